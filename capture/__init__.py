@@ -1,0 +1,1 @@
+"""Capture agents: frame sources, segmentation and silhouette streaming over Zenoh."""

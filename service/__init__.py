@@ -1,0 +1,1 @@
+"""Estimator service: REST jobs, live windows from Zenoh, Rerun logging."""

@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Set up posecal on a fresh Debian/Ubuntu machine: system GL libraries for
+# headless rendering (EGL on Mesa), then a virtualenv in .venv with posecal and
+# its test dependencies. Safe to run again; it only installs what is missing.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+packages=(libegl1 libegl-mesa0 libgl1-mesa-dri)
+if command -v dpkg >/dev/null 2>&1 && ! dpkg -s "${packages[@]}" >/dev/null 2>&1; then
+  sudo=""
+  if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
+  export DEBIAN_FRONTEND=noninteractive
+  $sudo apt-get update -qq
+  $sudo apt-get install -y -qq --no-install-recommends "${packages[@]}" >/dev/null
+fi
+
+PYTHON=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  "$PYTHON" -m venv .venv
+fi
+.venv/bin/python -m pip install -q --disable-pip-version-check -U pip
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+echo "posecal is set up in $(pwd)/.venv"
