@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from .camera import Camera
+from .gait import GaitModel, GaitStyle, load_gait
 from .joints import N_JOINTS
+from .render import Renderer
+from .skeleton import BodyShape, forward_kinematics
 
-__all__ = ["Examples"]
+__all__ = ["ExampleGrid", "Examples", "render_examples"]
 
 
 @dataclass(frozen=True)
@@ -49,3 +54,93 @@ class Examples:
 
     def __len__(self) -> int:
         return len(self.phase)
+
+
+@dataclass(frozen=True)
+class ExampleGrid:
+    """The sampling of body pose and camera pose (Izo–Grimson §4, steps 1–2).
+
+    Defaults: 20 phases; azimuths 0..355 and elevations -20..35 in 5-degree
+    steps (the paper's pi/36), i.e. 72 x 12 = 864 viewpoints and 17,280 examples
+    per body. ``crop`` is the (width, height) of the rendered silhouettes, the
+    body about ``fill`` of the crop height, seen by a perspective camera
+    ``distance`` metres away aimed at the body's centroid.
+    """
+
+    n_phases: int = 20
+    azimuth_step_deg: float = 5.0
+    elevations_deg: tuple[float, ...] = tuple(float(e) for e in range(-20, 40, 5))
+    crop: tuple[int, int] = (96, 128)
+    fill: float = 0.85
+    distance: float = 10.0
+
+    @property
+    def azimuths_deg(self) -> np.ndarray:
+        return np.arange(0.0, 360.0, self.azimuth_step_deg)
+
+    @property
+    def phases(self) -> np.ndarray:
+        return np.arange(self.n_phases) / self.n_phases
+
+    def __len__(self) -> int:
+        return self.n_phases * len(self.azimuths_deg) * len(self.elevations_deg)
+
+
+def render_examples(
+    grid: ExampleGrid = ExampleGrid(),
+    *,
+    bodies: Sequence[tuple[BodyShape, GaitStyle]] = ((BodyShape(), GaitStyle()),),
+    gait: GaitModel | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Examples:
+    """Render every (phase, azimuth, elevation) of every body (Izo–Grimson §4).
+
+    Parameters
+    ----------
+    grid : ExampleGrid
+        Phases, viewpoints and crop.
+    bodies : sequence of (BodyShape, GaitStyle)
+        The walkers to render; the paper used one. ``style`` in the result
+        indexes this sequence.
+    gait : GaitModel, optional
+        Defaults to the shipped CMU fit.
+    progress : callable, optional
+        ``progress(done, total)`` after each rendered example.
+
+    Returns
+    -------
+    Examples
+        Ordered body-major, then phase, azimuth, elevation.
+    """
+    gait = gait or load_gait()
+    width, height = grid.crop
+    az, el = grid.azimuths_deg, np.asarray(grid.elevations_deg, float)
+    n_per_body = len(grid)
+    total = n_per_body * len(bodies)
+    sil = np.empty((total, height, width), np.uint8)
+    j2d = np.empty((total, N_JOINTS, 2))
+    k = 0
+    with Renderer(bodies[0][0], image_size=grid.crop) as renderer:
+        for shape, style in bodies:
+            renderer.set_shape(shape)
+            poses = forward_kinematics(gait.angles(grid.phases, style), shape)
+            focal = grid.fill * height / shape.height * grid.distance
+            for pose in poses:
+                target = tuple(pose[:N_JOINTS].mean(axis=0))
+                for a in az:
+                    for e in el:
+                        cam = Camera(a, e, distance=grid.distance, image_size=grid.crop, focal_px=focal, target=target)
+                        sil[k], j2d[k] = renderer.render(pose, cam)
+                        k += 1
+                        if progress is not None:
+                            progress(k, total)
+    phase, azimuth, elevation = (m.ravel() for m in np.meshgrid(grid.phases, az, el, indexing="ij"))
+    n = len(bodies)
+    return Examples(
+        silhouettes=sil,
+        joints2d=j2d,
+        phase=np.tile(phase, n),
+        azimuth_deg=np.tile(azimuth, n),
+        elevation_deg=np.tile(elevation, n),
+        style=np.repeat(np.arange(n), n_per_body),
+    )

@@ -22,7 +22,7 @@ from .render import Renderer
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, GaitAngles, forward_kinematics
 
-__all__ = ["SynthSpec", "synthesize", "walk"]
+__all__ = ["SynthSpec", "place_cameras", "synthesize", "walk"]
 
 ELEVATION_RANGE = (-20.0, 35.0)
 """Elevations drawn by default: the appearance model's grid (paper: -20 .. +40)."""
@@ -112,6 +112,33 @@ def _recorded_walk(motion: Motion, spec: SynthSpec, shape: BodyShape, rng: np.ra
     return poses, motion_phase(motion)[idx]
 
 
+def place_cameras(
+    azimuths: tuple[float, ...],
+    elevations: tuple[float, ...],
+    *,
+    centroids: np.ndarray,
+    stature: float,
+    image_size: tuple[int, int],
+    distance: float,
+) -> dict[str, Camera]:
+    """Fixed cameras ``c0, c1, ...`` aimed at the middle of a walk.
+
+    The focal length puts the body at about 55% of the image height, or smaller
+    when needed to keep the whole path (centroids, shape (T, 3)) in the frame;
+    the distance grows when the path is long, so the walker never passes the
+    camera.
+    """
+    target = centroids.mean(axis=0)
+    path = float(np.ptp(centroids[:, 0]))
+    width, height = image_size
+    scale = min(0.55 * height / stature, 0.8 * (width / 2) / (path / 2 + 0.35))  # pixels per metre
+    distance = max(distance, path / 2 + 3.0)
+    return {
+        f"c{i}": Camera(az, el, distance=distance, image_size=image_size, focal_px=scale * distance, target=tuple(target))
+        for i, (az, el) in enumerate(zip(azimuths, elevations))
+    }
+
+
 def synthesize(
     spec: SynthSpec,
     *,
@@ -145,17 +172,14 @@ def synthesize(
     else:
         world, phase = _recorded_walk(motion, spec, shape, rng)
     centroids = world[:, :N_JOINTS].mean(axis=1)
-    target = centroids.mean(axis=0)
-    path = float(np.ptp(centroids[:, 0]))
-    width, height = spec.image_size
-    # Pixels per metre at the target: the body at ~55% of the image height, and
-    # the whole path inside the frame.
-    scale = min(0.55 * height / shape.height, (width / 2 - 0.2 * width / 2) / (path / 2 + 0.35))
-    distance = max(spec.distance or float(rng.uniform(8.0, 12.0)), path / 2 + 3.0)
-    cameras = {
-        f"c{i}": Camera(az, el, distance=distance, image_size=spec.image_size, focal_px=scale * distance, target=tuple(target))
-        for i, (az, el) in enumerate(zip(azimuths, elevations))
-    }
+    cameras = place_cameras(
+        azimuths,
+        elevations,
+        centroids=centroids,
+        stature=shape.height,
+        image_size=spec.image_size,
+        distance=spec.distance or float(rng.uniform(8.0, 12.0)),
+    )
     silhouettes: dict[str, list[np.ndarray | None]] = {c: [] for c in cameras}
     joints2d: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
     total, done = len(cameras) * spec.n_frames, 0
