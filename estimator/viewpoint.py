@@ -1,0 +1,194 @@
+"""Camera viewpoint from the cloud of matched examples' viewpoints (Izo–Grimson §3 step 4).
+
+The viewpoints (azimuth, elevation) of all examples in the clusters matched
+over a window form a cloud; a 2D Gaussian (the paper's ellipse) fitted to it,
+with azimuth on the circle, gives the estimate (its centre) and a spread.
+
+Silhouettes seen from azimuth ``a`` and ``180 - a`` are nearly the same shape
+(the body's left/right mirror symmetry plus projection from the opposite side),
+so the cloud may have two modes: ahead-left vs behind-left. The walker's motion
+in the full frame tells them apart (§3 step 4): a walker who grows is
+approaching (``cos a > 0``), one moving towards the image's left is seen from
+their left (``sin a > 0``). Each sample is folded onto the side the motion
+indicates before the fit; without a motion cue (cropped silhouettes) the larger
+mode wins and the result says the flip was not resolved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["MotionCue", "Viewpoint", "estimate_viewpoint", "motion_cue"]
+
+
+@dataclass(frozen=True)
+class MotionCue:
+    """How the walker moves in one camera's full frame over a window.
+
+    Attributes
+    ----------
+    growth : float
+        Relative change of the silhouette's height per frame (> 0: approaching).
+    travel : float
+        Horizontal motion of the box centre per frame, in body heights
+        (> 0: towards the image's right).
+    n_frames : int
+        Frames with a box.
+    """
+
+    growth: float
+    travel: float
+    n_frames: int
+
+    @property
+    def approaching(self) -> float:
+        """Evidence that the camera is ahead of the walker: growth in units of its noise."""
+        return self.growth
+
+    def signs(self, *, min_growth: float = 0.002, min_travel: float = 0.01) -> tuple[int, int]:
+        """(sign of cos azimuth, sign of sin azimuth) the motion implies; 0 = no evidence."""
+        cos_sign = int(np.sign(self.growth)) if abs(self.growth) >= min_growth else 0
+        sin_sign = int(-np.sign(self.travel)) if abs(self.travel) >= min_travel else 0
+        return cos_sign, sin_sign
+
+
+def motion_cue(boxes: np.ndarray) -> MotionCue | None:
+    """Fit the walker's motion from full-frame boxes.
+
+    Parameters
+    ----------
+    boxes : ndarray of shape (T, 4)
+        ``(x, y, width, height)`` of the silhouette in the full frame per frame;
+        NaN rows where the camera has no silhouette.
+
+    Returns
+    -------
+    MotionCue or None
+        None when fewer than 3 frames have a box.
+    """
+    boxes = np.asarray(boxes, dtype=float)
+    if boxes.ndim != 2 or boxes.shape[1] != 4:
+        raise ValueError(f"boxes must have shape (T, 4), got {boxes.shape}")
+    ok = np.all(np.isfinite(boxes), axis=1) & (boxes[:, 3] > 0)
+    if ok.sum() < 3:
+        return None
+    t = np.flatnonzero(ok).astype(float)
+    x, y, w, h = boxes[ok].T
+    # Robust slopes (Theil-Sen style: median of pairwise slopes) resist a bad frame.
+    log_h = np.log(h)
+    cx = (x + w / 2) / np.median(h)
+    i, j = np.triu_indices(len(t), 1)
+    dt = t[j] - t[i]
+    growth = float(np.median((log_h[j] - log_h[i]) / dt))
+    travel = float(np.median((cx[j] - cx[i]) / dt))
+    return MotionCue(growth=growth, travel=travel, n_frames=int(ok.sum()))
+
+
+@dataclass(frozen=True)
+class Viewpoint:
+    """An estimated camera viewpoint (DESIGN.md convention, degrees).
+
+    Attributes
+    ----------
+    azimuth_deg, elevation_deg : float
+        Centre of the fitted ellipse.
+    covariance : ndarray of shape (2, 2)
+        Covariance of (azimuth, elevation) of the folded cloud, degrees^2.
+    spread_deg : float
+        Square root of the larger eigenvalue: the ellipse's semi-major axis.
+    flip : str
+        How the ahead/behind ambiguity was settled: ``"motion"``, ``"majority"``
+        (no motion cue) or ``"none"`` (the cloud had one mode).
+    flip_margin : float
+        Fraction of the cloud's weight on the chosen side minus the other side,
+        before folding (1 = unambiguous).
+    n_samples : int
+    """
+
+    azimuth_deg: float
+    elevation_deg: float
+    covariance: np.ndarray
+    spread_deg: float
+    flip: str
+    flip_margin: float
+    n_samples: int
+
+    def to_dict(self) -> dict:
+        return {
+            "azimuth_deg": round(self.azimuth_deg, 3),
+            "elevation_deg": round(self.elevation_deg, 3),
+            "spread_deg": round(self.spread_deg, 3),
+            "covariance_deg2": np.round(self.covariance, 3).tolist(),
+            "flip": self.flip,
+            "flip_margin": round(self.flip_margin, 3),
+            "n_samples": self.n_samples,
+        }
+
+
+def _circular_mean_deg(a: np.ndarray, w: np.ndarray) -> float:
+    r = np.deg2rad(a)
+    return float(np.rad2deg(np.arctan2(np.sum(w * np.sin(r)), np.sum(w * np.cos(r)))) % 360.0)
+
+
+def estimate_viewpoint(
+    azimuth_deg: np.ndarray,
+    elevation_deg: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    cue: MotionCue | None = None,
+) -> Viewpoint:
+    """Fit the viewpoint ellipse to a cloud of example viewpoints.
+
+    Parameters
+    ----------
+    azimuth_deg, elevation_deg : ndarray of shape (N,)
+        Viewpoints of the matched clusters' members over the window.
+    weights : ndarray of shape (N,), optional
+        Per-sample weights (e.g. 1 / cluster size, or match quality).
+    cue : MotionCue, optional
+        The walker's motion in this camera's full frame, to settle ahead/behind.
+    """
+    az = np.asarray(azimuth_deg, dtype=float) % 360.0
+    el = np.asarray(elevation_deg, dtype=float)
+    if az.ndim != 1 or az.shape != el.shape or az.size == 0:
+        raise ValueError(f"azimuth_deg and elevation_deg must be non-empty (N,) arrays, got {az.shape}, {el.shape}")
+    w = np.ones_like(az) if weights is None else np.asarray(weights, dtype=float)
+    if w.shape != az.shape or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError("weights must be non-negative, one per sample, not all zero")
+    w = w / w.sum()
+    cos_sign, sin_sign = cue.signs() if cue is not None else (0, 0)
+    r = np.deg2rad(az)
+    ahead = np.cos(r) >= 0
+    share_ahead = float(w[ahead].sum())
+    if cos_sign != 0:
+        side, flip = cos_sign > 0, "motion"
+    else:
+        side, flip = share_ahead >= 0.5, "majority" if cue is None else "none"
+    margin = abs(2 * share_ahead - 1)
+    # Fold a -> 180 - a onto the chosen side (ahead: cos > 0).
+    folded = np.where(ahead == side, az, (180.0 - az) % 360.0)
+    if sin_sign != 0:
+        # Near-frontal views: the image's travel direction says which side.
+        wrong = np.sign(np.sin(np.deg2rad(folded))) == -sin_sign
+        near_axis = np.abs(np.sin(np.deg2rad(folded))) < np.sin(np.deg2rad(30))
+        folded = np.where(wrong & near_axis, (-folded) % 360.0, folded)
+    if flip == "majority" and margin > 0.8:
+        flip = "none"
+    centre = _circular_mean_deg(folded, w)
+    d_az = (folded - centre + 180.0) % 360.0 - 180.0
+    mean_el = float(np.sum(w * el))
+    X = np.stack([d_az, el - mean_el])
+    cov = (X * w) @ X.T
+    centre = (centre + float(np.sum(w * d_az))) % 360.0
+    spread = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
+    return Viewpoint(
+        azimuth_deg=centre,
+        elevation_deg=mean_el,
+        covariance=cov,
+        spread_deg=spread,
+        flip=flip,
+        flip_margin=margin,
+        n_samples=int(az.size),
+    )

@@ -1,0 +1,67 @@
+"""Viewpoint ellipse on the circle, and the motion cue that settles ahead/behind."""
+
+import numpy as np
+import pytest
+
+from estimator.synth import SynthSpec, synthesize
+from estimator.viewpoint import MotionCue, estimate_viewpoint, motion_cue
+
+
+def cloud(rng, az, el, n=300, spread=6.0):
+    return (az + rng.normal(0, spread, n)) % 360, el + rng.normal(0, spread / 2, n)
+
+
+def test_centre_wraps_around_zero():
+    rng = np.random.default_rng(0)
+    a, e = cloud(rng, 358.0, 10.0)
+    vp = estimate_viewpoint(a, e)
+    assert abs((vp.azimuth_deg - 358.0 + 180) % 360 - 180) < 1.5
+    assert vp.elevation_deg == pytest.approx(10.0, abs=1.0)
+    assert 4 < vp.spread_deg < 9
+
+
+@pytest.mark.parametrize("true_az", [30.0, 150.0, 210.0, 330.0])
+def test_motion_settles_the_front_back_flip(true_az):
+    rng = np.random.default_rng(1)
+    # 60% of the cloud in the wrong mode (180 - a), the rest right.
+    wrong = (180.0 - true_az) % 360
+    a1, e1 = cloud(rng, true_az, 5.0, n=200)
+    a2, e2 = cloud(rng, wrong, 5.0, n=300)
+    a, e = np.concatenate([a1, a2]), np.concatenate([e1, e2])
+    approaching = np.cos(np.radians(true_az)) > 0
+    towards_left = np.sin(np.radians(true_az)) > 0
+    cue = MotionCue(growth=0.01 if approaching else -0.01, travel=-0.05 if towards_left else 0.05, n_frames=30)
+    vp = estimate_viewpoint(a, e, cue=cue)
+    assert abs((vp.azimuth_deg - true_az + 180) % 360 - 180) < 3.0, vp
+    assert vp.flip == "motion"
+    # Without the cue the majority (wrong) mode wins, and the result says so.
+    vp0 = estimate_viewpoint(a, e)
+    assert abs((vp0.azimuth_deg - wrong + 180) % 360 - 180) < 3.0
+    assert vp0.flip == "majority" and vp0.flip_margin < 0.5
+
+
+@pytest.mark.parametrize("az", [0.0, 60.0, 90.0, 160.0, 250.0])
+def test_motion_cue_from_rendered_walks(az):
+    seq = synthesize(SynthSpec(n_cameras=1, n_frames=20, seed=5, azimuths=(az,), elevations=(5.0,), image_size=(320, 240)))
+    boxes = []
+    for s in seq.silhouettes["c0"]:
+        v, u = np.nonzero(s)
+        boxes.append([u.min(), v.min(), np.ptp(u) + 1, np.ptp(v) + 1])
+    cue = motion_cue(np.array(boxes, float))
+    cos_sign, sin_sign = cue.signs()
+    c, s = np.cos(np.radians(az)), np.sin(np.radians(az))
+    if abs(c) > 0.3:
+        assert cos_sign == np.sign(c)
+    if abs(s) > 0.3:
+        assert sin_sign == np.sign(s)
+
+
+def test_motion_cue_needs_three_boxes():
+    assert motion_cue(np.full((5, 4), np.nan)) is None
+    with pytest.raises(ValueError, match=r"\(T, 4\)"):
+        motion_cue(np.zeros((5, 3)))
+
+
+def test_bad_cloud_rejected():
+    with pytest.raises(ValueError, match="non-empty"):
+        estimate_viewpoint(np.array([]), np.array([]))
