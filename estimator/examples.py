@@ -13,7 +13,11 @@ from .joints import N_JOINTS
 from .render import Renderer
 from .skeleton import BodyShape, forward_kinematics
 
-__all__ = ["ExampleGrid", "Examples", "render_examples"]
+__all__ = ["RENDER_VERSION", "ExampleGrid", "Examples", "render_examples"]
+
+RENDER_VERSION = 1
+"""Version of the body mesh, gait fit and renderer behind rendered examples: bump it
+when any of them changes, so cached appearance models are rebuilt."""
 
 
 @dataclass(frozen=True)

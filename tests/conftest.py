@@ -12,3 +12,27 @@ def mocap_dir() -> str:
     if not os.path.isdir(MOCAP):
         pytest.skip(f"CMU mocap not found at {MOCAP}")
     return MOCAP
+
+
+@pytest.fixture(scope="session")
+def small_model_path(tmp_path_factory) -> str:
+    """A small appearance model (15-degree azimuths, 3 elevations, 40 clusters): ~10 s to build.
+
+    Cached as a file for the session; tests that need the full 17,280-example
+    model are evaluations, not unit tests.
+    """
+    from estimator.appearance import build_model, save_model
+    from estimator.examples import ExampleGrid, render_examples
+
+    examples = render_examples(ExampleGrid(azimuth_step_deg=15.0, elevations_deg=(-10.0, 10.0, 30.0)))
+    model = build_model(examples, n_clusters=40, rng=0)
+    path = tmp_path_factory.mktemp("model") / "small.npz"
+    save_model(model, path)
+    return str(path)
+
+
+@pytest.fixture(scope="session")
+def small_model(small_model_path):
+    from estimator.appearance import load_model
+
+    return load_model(small_model_path)
