@@ -13,10 +13,15 @@ import argparse
 import os
 import time
 
-import numpy as np
+# One core: BLAS must not start threads that then fight over it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("LP_NUM_THREADS", "1")
 
-from estimator.pipeline import estimate_walk, tracks_from_sequence
-from estimator.synth import SynthSpec, synthesize
+import numpy as np  # noqa: E402
+
+from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
+from estimator.synth import SynthSpec, synthesize  # noqa: E402
 
 TARGET_MS = 5.0
 
