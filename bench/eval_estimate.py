@@ -217,6 +217,17 @@ appearance model ({examples} examples, {clusters} clusters). Sequences: {n} rand
   both divided by their body's height;
 - ms: the online path (matching, viewpoint, phase, HMM, joints) per frame and camera, single process.
 
+Variants: **posecal** (the default, `EstimateConfig()`) compares each input with the members of
+its three best clusters (weights `exp(-d/3)`, d = eq. 8 to each member) for the viewpoint cloud,
+and with the examples of every phase at the estimated viewpoint for the HMM's emissions
+(`-d/30`); its "raw phase" is the best such example's phase. **paper** is §3 as published:
+the cloud of all members of the matched clusters, the clusters' mean phases through the eq. 9
+mixture; with equal weights eq. 9 cannot tell a phase from its opposite, hence ~50% left/right
+swaps. **paper + ...** restricts each cluster's phase to members seen from near the estimated
+viewpoint and picks the Viterbi path or its half-cycle shift by the clusters' fit.
+The ms column ran on a machine shared with other jobs and multi-threaded BLAS; the one-core
+figure is `bench/bench_estimate.py` in `docs/BENCHMARKS.md`.
+
 {table}
 
 ![errors]({plot})
