@@ -94,10 +94,11 @@ def render_examples(
     grid: ExampleGrid = ExampleGrid(),
     *,
     bodies: Sequence[tuple[BodyShape, GaitStyle]] = ((BodyShape(), GaitStyle()),),
+    cycle: bool = False,
     gait: GaitModel | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Examples:
-    """Render every (phase, azimuth, elevation) of every body (Izo–Grimson §4).
+    """Render the (phase, azimuth, elevation) grid (Izo–Grimson §4).
 
     Parameters
     ----------
@@ -106,6 +107,10 @@ def render_examples(
     bodies : sequence of (BodyShape, GaitStyle)
         The walkers to render; the paper used one. ``style`` in the result
         indexes this sequence.
+    cycle : bool, optional
+        False: every grid point for every body (``len(grid) * len(bodies)``
+        examples). True: the bodies take turns over the grid points, so the
+        model keeps ``len(grid)`` examples but sees several walkers.
     gait : GaitModel, optional
         Defaults to the shipped CMU fit.
     progress : callable, optional
@@ -114,37 +119,45 @@ def render_examples(
     Returns
     -------
     Examples
-        Ordered body-major, then phase, azimuth, elevation.
+        Ordered by grid point (phase, then azimuth, then elevation), body-major
+        when every body renders every point.
     """
     gait = gait or load_gait()
     width, height = grid.crop
     az, el = grid.azimuths_deg, np.asarray(grid.elevations_deg, float)
-    n_per_body = len(grid)
-    total = n_per_body * len(bodies)
+    phase, azimuth, elevation = (m.ravel() for m in np.meshgrid(grid.phases, az, el, indexing="ij"))
+    n_points, n_bodies = len(grid), len(bodies)
+    if cycle:
+        point = np.arange(n_points)
+        style = point % n_bodies
+    else:
+        point = np.tile(np.arange(n_points), n_bodies)
+        style = np.repeat(np.arange(n_bodies), n_points)
+    total = len(point)
     sil = np.empty((total, height, width), np.uint8)
     j2d = np.empty((total, N_JOINTS, 2))
-    k = 0
+    done = 0
     with Renderer(bodies[0][0], image_size=grid.crop) as renderer:
-        for shape, style in bodies:
+        for b, (shape, gait_style) in enumerate(bodies):
             renderer.set_shape(shape)
-            poses = forward_kinematics(gait.angles(grid.phases, style), shape)
+            poses = forward_kinematics(gait.angles(grid.phases, gait_style), shape)
             focal = grid.fill * height / shape.height * grid.distance
-            for pose in poses:
-                target = tuple(pose[:N_JOINTS].mean(axis=0))
-                for a in az:
-                    for e in el:
-                        cam = Camera(a, e, distance=grid.distance, image_size=grid.crop, focal_px=focal, target=target)
-                        sil[k], j2d[k] = renderer.render(pose, cam)
-                        k += 1
-                        if progress is not None:
-                            progress(k, total)
-    phase, azimuth, elevation = (m.ravel() for m in np.meshgrid(grid.phases, az, el, indexing="ij"))
-    n = len(bodies)
+            for k in np.flatnonzero(style == b):
+                p = point[k]
+                pose = poses[p // (len(az) * len(el))]
+                cam = Camera(
+                    azimuth[p], elevation[p], distance=grid.distance, image_size=grid.crop, focal_px=focal,
+                    target=tuple(pose[:N_JOINTS].mean(axis=0)),
+                )
+                sil[k], j2d[k] = renderer.render(pose, cam)
+                done += 1
+                if progress is not None:
+                    progress(done, total)
     return Examples(
         silhouettes=sil,
         joints2d=j2d,
-        phase=np.tile(phase, n),
-        azimuth_deg=np.tile(azimuth, n),
-        elevation_deg=np.tile(elevation, n),
-        style=np.repeat(np.arange(n), n_per_body),
+        phase=phase[point],
+        azimuth_deg=azimuth[point],
+        elevation_deg=elevation[point],
+        style=style,
     )
