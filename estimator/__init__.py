@@ -27,6 +27,8 @@ from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, 
 from .registration import Transforms, transform_points
 from .render import Renderer
 from .sequence import Sequence, SequenceError, read_sequence, write_sequence
+from .selfcal import RIGID_LINKS, SYMMETRIC_RATIOS, SelfCalibration, self_calibrate
+from .selfcal_baselines import liebowitz_carlsson, tresadern_reid
 from .skeleton import FULL_JOINT_NAMES, BodyShape, GaitAngles, forward_kinematics, segment_angles
 from .synth import SynthSpec, place_cameras, synthesize, walk
 from .viewpoint import MotionCue, Viewpoint, estimate_viewpoint, motion_cue
@@ -39,6 +41,8 @@ __all__ = [
     "MIRROR",
     "N_JOINTS",
     "PARTS",
+    "RIGID_LINKS",
+    "SYMMETRIC_RATIOS",
     "AppearanceModel",
     "BodyPart",
     "BodyShape",
@@ -56,6 +60,7 @@ __all__ = [
     "MotionCue",
     "PhaseHMM",
     "Renderer",
+    "SelfCalibration",
     "Sequence",
     "SequenceError",
     "SynthSpec",
@@ -71,6 +76,7 @@ __all__ = [
     "fit_gait",
     "forward_kinematics",
     "heel_strikes",
+    "liebowitz_carlsson",
     "load_gait",
     "load_model",
     "motion_angles",
@@ -85,9 +91,11 @@ __all__ = [
     "render_examples",
     "save_model",
     "segment_angles",
+    "self_calibrate",
     "synthesize",
     "tracks_from_sequence",
     "transform_points",
+    "tresadern_reid",
     "viewpoint_direction",
     "viterbi",
     "walk",

@@ -15,7 +15,7 @@ from .skeleton import BodyShape, forward_kinematics
 
 __all__ = ["RENDER_VERSION", "ExampleGrid", "Examples", "render_examples"]
 
-RENDER_VERSION = 1
+RENDER_VERSION = 2
 """Version of the body mesh, gait fit and renderer behind rendered examples: bump it
 when any of them changes, so cached appearance models are rebuilt."""
 
@@ -65,10 +65,17 @@ class ExampleGrid:
     """The sampling of body pose and camera pose (Izo–Grimson §4, steps 1–2).
 
     Defaults: 20 phases; azimuths 0..355 and elevations -20..35 in 5-degree
-    steps (the paper's pi/36), i.e. 72 x 12 = 864 viewpoints and 17,280 examples
-    per body. ``crop`` is the (width, height) of the rendered silhouettes, the
-    body about ``fill`` of the crop height, seen by a perspective camera
-    ``distance`` metres away aimed at the body's centroid.
+    steps (the paper's pi/36), i.e. 72 x 12 = 864 viewpoints and 17,280 examples.
+    ``crop`` is the (width, height) of the rendered silhouettes, the body about
+    ``fill`` of the crop height, seen by a perspective camera ``distance``
+    metres away aimed at the body's centroid.
+
+    The paper rendered one body. ``n_bodies`` walkers — the average body and
+    gait, then random ones drawn from ``body_seed`` — take turns over the grid
+    points (still 17,280 examples): on 30 random test walks the azimuth error
+    fell from 2.0 to 1.2 degrees (median) and 5.1 to 4.0 (90th percentile),
+    elevation went from 5.7 to 6.6 degrees and the phase stayed at 95% within
+    1/20 cycle (docs/APPEARANCE.md).
     """
 
     n_phases: int = 20
@@ -77,6 +84,14 @@ class ExampleGrid:
     crop: tuple[int, int] = (96, 128)
     fill: float = 0.85
     distance: float = 10.0
+    n_bodies: int = 8
+    body_seed: int = 123
+
+    def bodies(self) -> list[tuple[BodyShape, GaitStyle]]:
+        """The walkers of the grid: the average one first, then random ones."""
+        rng = np.random.default_rng(self.body_seed)
+        extra = [(BodyShape.random(rng), GaitStyle.random(rng)) for _ in range(self.n_bodies - 1)]
+        return [(BodyShape(), GaitStyle())] + extra
 
     @property
     def azimuths_deg(self) -> np.ndarray:
@@ -93,7 +108,7 @@ class ExampleGrid:
 def render_examples(
     grid: ExampleGrid = ExampleGrid(),
     *,
-    bodies: Sequence[tuple[BodyShape, GaitStyle]] = ((BodyShape(), GaitStyle()),),
+    bodies: Sequence[tuple[BodyShape, GaitStyle]] | None = None,
     cycle: bool = False,
     gait: GaitModel | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -104,13 +119,13 @@ def render_examples(
     ----------
     grid : ExampleGrid
         Phases, viewpoints and crop.
-    bodies : sequence of (BodyShape, GaitStyle)
-        The walkers to render; the paper used one. ``style`` in the result
-        indexes this sequence.
+    bodies : sequence of (BodyShape, GaitStyle), optional
+        The walkers to render (``style`` in the result indexes them). By
+        default the grid's own (:meth:`ExampleGrid.bodies`), taking turns.
     cycle : bool, optional
-        False: every grid point for every body (``len(grid) * len(bodies)``
-        examples). True: the bodies take turns over the grid points, so the
-        model keeps ``len(grid)`` examples but sees several walkers.
+        For explicit ``bodies``: False renders every grid point for every body
+        (``len(grid) * len(bodies)`` examples); True lets them take turns over
+        the grid points, keeping ``len(grid)`` examples.
     gait : GaitModel, optional
         Defaults to the shipped CMU fit.
     progress : callable, optional
@@ -123,6 +138,8 @@ def render_examples(
         when every body renders every point.
     """
     gait = gait or load_gait()
+    if bodies is None:
+        bodies, cycle = grid.bodies(), True
     width, height = grid.crop
     az, el = grid.azimuths_deg, np.asarray(grid.elevations_deg, float)
     phase, azimuth, elevation = (m.ravel() for m in np.meshgrid(grid.phases, az, el, indexing="ij"))

@@ -1,0 +1,335 @@
+"""Wang–Leow Test 2 (§6.2) reproduced: self-calibration accuracy against noise.
+
+Usage::
+
+    .venv/bin/python bench/selfcal_test2.py [--trials 50] [--no-ba] [--seed 0]
+
+A 30-frame real walk (CMU 16_15, every 4th frame at 120 Hz, a random window
+per trial, skipping the first 20 frames) is projected orthographically into
+two cameras; uniform noise U(-a, a) with ``a`` = 0..9 % of the body height in
+the image is added to u and v of every joint. Per noise level and trial:
+E3D (mean 3D joint error / body height), Es = |s_hat - s| and the error of
+each XYZ Euler angle of the relative rotation, plus the SO(3) geodesic error,
+for our closed form (§4.2), the closed form + bundle adjustment (§4.3), and
+the two baselines (Liebowitz–Carlsson, Tresadern–Reid).
+
+Experiments:
+
+A. Test 2: relative rotation (-10, -60, 20) degrees, s = 1; camera 0 at
+   azimuth 45, elevation 10 (a three-quarter view; see docs/SELFCAL.md).
+B. The same with camera 0 in a pure side view (azimuth 90), the hardest case.
+C. Random camera pairs (uniform rotations, viewing directions 25-155 degrees
+   apart) and random relative scale s in [0.5, 2].
+D. Three cameras (A plus a third at azimuth 200, elevation 15): the joint
+   least-squares solution against the two-camera closed form.
+
+Prints the tables, writes PNG plots to ``docs/img/`` and the report
+``docs/SELFCAL.md``.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Small matrices: BLAS threads only add overhead (and thrash on a shared 2-core box).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from estimator._selfcal_core import geodesic_deg  # noqa: E402
+from estimator.joints import N_JOINTS  # noqa: E402
+from estimator.mocap import read_motion  # noqa: E402
+from estimator.selfcal import self_calibrate  # noqa: E402
+from estimator.selfcal_baselines import liebowitz_carlsson, tresadern_reid  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+MOCAP = ROOT.parent / "shared" / "data" / "mocap"
+TEST2_EULER = np.array([-10.0, -60.0, 20.0])
+LEVELS = np.arange(10) / 100.0
+S0 = 130.0  # camera 0 pixels per metre: body height (head to ankle) ~195 px, as in the paper
+
+
+def look(azimuth: float, elevation: float) -> np.ndarray:
+    """World-to-camera rotation (rows u, v, viewing direction) aimed at the origin."""
+    az, el = np.radians(azimuth), np.radians(elevation)
+    d = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    u = np.cross(d, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(d, u), d])
+
+
+def wrap(deg: np.ndarray) -> np.ndarray:
+    return np.abs((deg + 180.0) % 360.0 - 180.0)
+
+
+METHODS = {
+    "ours": lambda y: self_calibrate(y),
+    "ours+BA": lambda y: self_calibrate(y, refine=True),
+    "LC": lambda y: liebowitz_carlsson(y, on_indefinite="clip"),
+    "TR": lambda y: tresadern_reid(y),
+}
+
+
+def run_trials(x_all, rng, *, trials, methods, pair, cams=2):
+    """Returns {method: {metric: (levels, trials) array}}, LC non-PD counts, failures."""
+    out = {m: {k: np.full((len(LEVELS), trials), np.nan) for k in
+               ("e3d", "es", "ex", "ey", "ez", "geo")} for m in methods}
+    non_pd = np.zeros(len(LEVELS), dtype=int)
+    failed = {m: np.zeros(len(LEVELS), dtype=int) for m in methods}
+    for li, level in enumerate(LEVELS):
+        for k in range(trials):
+            start = rng.integers(0, len(x_all) - 120)
+            x = x_all[start:start + 120:4]
+            rots, scales = pair(rng)
+            scales = np.asarray(scales, dtype=float)
+            height = np.mean(x[..., 2].max(1) - x[..., 2].min(1))
+            y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, None, None, None]
+            y = y + rng.uniform(-1, 1, y.shape) * (level * height * scales)[:, None, None, None]
+            y = y[:cams]
+            truth = scales[0] * np.einsum("ij,tkj->tki", rots[0], x)
+            truth -= truth.mean(axis=1, keepdims=True)
+            rel = rots[1] @ rots[0].T
+            s_true = scales[1] / scales[0]
+            euler_true = Rotation.from_matrix(rel).as_euler("xyz", degrees=True)
+            for m in methods:
+                res = METHODS[m](y)
+                if m == "LC":
+                    non_pd[li] += not res.diagnostics.get("omega_positive_definite", True)
+                if not res:
+                    failed[m][li] += 1
+                    continue
+                d = out[m]
+                d["e3d"][li, k] = np.nanmean(np.linalg.norm(res.joints3d - truth, axis=-1)) / (
+                    scales[0] * height)
+                d["es"][li, k] = abs(res.scales[1] - s_true)
+                e = wrap(res.euler_xyz_deg[1] - euler_true)
+                d["ex"][li, k], d["ey"][li, k], d["ez"][li, k] = e
+                d["geo"][li, k] = geodesic_deg(res.rotations[1], rel)
+    return out, non_pd, failed
+
+
+def run_varying(x_all, rng, *, trials):
+    """Experiment E: camera scales change linearly over the window (walker moving in depth)."""
+    names = ("closed form (fixed-scale model)", "sec. 4.3 (per-frame U + BA)")
+    out = {m: {k: np.full((len(LEVELS), trials), np.nan) for k in ("geo", "es")} for m in names}
+    rel = Rotation.from_euler("xyz", TEST2_EULER, degrees=True).as_matrix()
+    ra = look(45, 10)
+    rots = np.stack([ra, rel @ ra])
+    for li, level in enumerate(LEVELS):
+        for k in range(trials):
+            start = rng.integers(0, len(x_all) - 120)
+            x = x_all[start:start + 120:4]
+            t = len(x)
+            scales = S0 * np.stack([np.linspace(1.0, 1.3, t), np.linspace(1.2, 0.9, t)])  # (2, T)
+            height = np.mean(x[..., 2].max(1) - x[..., 2].min(1))
+            y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, :, None, None]
+            y = y + rng.uniform(-1, 1, y.shape) * (level * height * scales)[:, :, None, None]
+            s_true = scales[1] / scales[0]
+            for m, kw in zip(names, ({}, {"scales": "varying"})):
+                res = self_calibrate(y, **kw)
+                if not res:
+                    continue
+                out[m]["geo"][li, k] = geodesic_deg(res.rotations[1], rel)
+                est = res.frame_scales[:, 1] if res.frame_scales is not None else res.scales[1]
+                out[m]["es"][li, k] = np.median(np.abs(est - s_true) / s_true)
+    return out
+
+
+def fixed_pair(azimuth):
+    rel = Rotation.from_euler("xyz", TEST2_EULER, degrees=True).as_matrix()
+    ra = look(azimuth, 10)
+
+    def pair(rng):
+        return np.stack([ra, rel @ ra, look(200, 15)]), [S0, S0, S0]
+
+    return pair
+
+
+def random_pair(rng):
+    while True:
+        r = Rotation.random(2, random_state=rng).as_matrix()
+        if 25 < np.degrees(np.arccos(np.clip(r[0, 2] @ r[1, 2], -1, 1))) < 155:
+            return r, [S0, S0 * rng.uniform(0.5, 2.0)]
+
+
+def stats(a: np.ndarray) -> tuple[float, float, float, float]:
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return (np.nan,) * 4
+    q25, q50, q75, q90 = np.percentile(a, [25, 50, 75, 90])
+    return q50, q25, q75, q90
+
+
+def table(title, res, methods, metric, unit, fmt="{:.2f}", non_pd=None, failed=None) -> str:
+    label = {"geo": "geodesic rotation error", "e3d": "E3D", "es": "Es"}.get(metric, metric)
+    lines = [f"**{title}** — {label}" + (f" ({unit})" if unit else "") + ": median [q25, q75] p90", ""]
+    head = "| noise | " + " | ".join(methods) + (" | LC Omega not PD |" if non_pd is not None else " |")
+    lines += [head, "|" + "---|" * (len(methods) + 1 + (non_pd is not None))]
+    for li, level in enumerate(LEVELS):
+        cells = []
+        for m in methods:
+            q50, q25, q75, q90 = stats(res[m][metric][li])
+            cell = f"{fmt.format(q50)} [{fmt.format(q25)}, {fmt.format(q75)}] {fmt.format(q90)}"
+            if failed is not None and failed[m][li]:
+                cell += f" ({failed[m][li]} failed)"
+            cells.append(cell)
+        extra = f" {non_pd[li]} |" if non_pd is not None else ""
+        lines.append(f"| {level:.0%} | " + " | ".join(cells) + " |" + extra)
+    return "\n".join(lines) + "\n"
+
+
+def medians(res, methods, metric) -> str:
+    lines = [f"| noise | " + " | ".join(methods) + " |", "|" + "---|" * (len(methods) + 1)]
+    for li, level in enumerate(LEVELS):
+        lines.append(f"| {level:.0%} | " + " | ".join(
+            f"{np.nanmedian(res[m][metric][li]):.4g}" for m in methods) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(res, methods, path: Path, title: str, metrics) -> None:
+    ncols = min(3, len(metrics))
+    nrows = -(-len(metrics) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.3 * nrows), squeeze=False)
+    x = LEVELS * 100
+    for ax in axes.ravel()[len(metrics):]:
+        ax.set_visible(False)
+    for ax, (metric, label) in zip(axes.ravel(), metrics):
+        for m in methods:
+            a = res[m][metric]
+            med = np.nanmedian(a, axis=1)
+            lo, hi = np.nanpercentile(a, 25, axis=1), np.nanpercentile(a, 75, axis=1)
+            (line,) = ax.plot(x, med, marker="o", ms=3, label=m)
+            ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15)
+        if metric in ("e3d", "es"):
+            ax.set_yscale("symlog", linthresh=1e-3)
+        ax.set_xlabel("2D noise (% of body height)")
+        ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--trials", type=int, default=50)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-ba", action="store_true", help="skip the (slow) closed form + BA rows")
+    p.add_argument("--mocap", type=Path, default=MOCAP / "16_15.amc")
+    p.add_argument("--doc", type=Path, default=ROOT / "docs" / "SELFCAL.md")
+    p.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
+    args = p.parse_args(argv)
+
+    x_all = read_motion(args.mocap).person_frame()[20:, :N_JOINTS]
+    base = ["ours", "LC", "TR"]
+    with_ba = base[:1] + ([] if args.no_ba else ["ours+BA"]) + base[1:]
+    t0 = time.time()
+    sections = {}
+    figs = [("e3d", "E3D / height"), ("es", "Es = |s - s_true|"), ("ex", "E_rx (deg)"),
+            ("ey", "E_ry (deg)"), ("ez", "E_rz (deg)"), ("geo", "geodesic (deg)")]
+
+    rng = np.random.default_rng(args.seed)
+    res_a, npd_a, fail_a = run_trials(x_all, rng, trials=args.trials, methods=with_ba,
+                                      pair=fixed_pair(45))
+    plot(res_a, with_ba, args.img / "selfcal_test2.png",
+         "Test 2: rotation (-10, -60, 20) deg, s = 1, camera 0 at azimuth 45", figs)
+    sections["A"] = (table("A. Test 2", res_a, with_ba, "geo", "degrees", non_pd=npd_a, failed=fail_a)
+                     + "\n" + table("A. Test 2", res_a, with_ba, "e3d", "fraction of height", "{:.3f}")
+                     + "\n" + table("A. Test 2", res_a, with_ba, "es", "|s_hat - s|", "{:.4f}")
+                     + "\nMedian error of each Euler angle (degrees), x / y / z:\n\n"
+                     + "\n".join(f"- **{m}**: " + ", ".join(
+                         f"{lv:.0%}: {np.nanmedian(res_a[m]['ex'][i]):.2f}/"
+                         f"{np.nanmedian(res_a[m]['ey'][i]):.2f}/{np.nanmedian(res_a[m]['ez'][i]):.2f}"
+                         for i, lv in enumerate(LEVELS)) for m in with_ba) + "\n")
+    print(sections["A"], flush=True)
+
+    rng = np.random.default_rng(args.seed + 1)
+    res_b, npd_b, fail_b = run_trials(x_all, rng, trials=args.trials, methods=base, pair=fixed_pair(90))
+    plot(res_b, base, args.img / "selfcal_test2_side.png",
+         "Test 2 with camera 0 in a side view (azimuth 90)", figs)
+    sections["B"] = table("B. Side view", res_b, base, "geo", "degrees", non_pd=npd_b, failed=fail_b)
+    print(sections["B"], flush=True)
+
+    rng = np.random.default_rng(args.seed + 2)
+    res_c, npd_c, fail_c = run_trials(x_all, rng, trials=args.trials, methods=base, pair=random_pair)
+    plot(res_c, base, args.img / "selfcal_random.png",
+         "Random camera pairs, s in [0.5, 2]", [figs[0], figs[1], figs[5]])
+    sections["C"] = (table("C. Random pairs", res_c, base, "geo", "degrees", non_pd=npd_c, failed=fail_c)
+                     + "\n" + table("C. Random pairs", res_c, base, "es", "|s_hat - s|", "{:.4f}"))
+    print(sections["C"], flush=True)
+
+    rng = np.random.default_rng(args.seed + 3)
+    res_d2, _, _ = run_trials(x_all, rng, trials=args.trials, methods=["ours"], pair=fixed_pair(45))
+    rng = np.random.default_rng(args.seed + 3)  # same windows and noise, plus a third view
+    res_d3, _, _ = run_trials(x_all, rng, trials=args.trials, methods=["ours"], pair=fixed_pair(45), cams=3)
+    res_d = {"2 cameras": res_d2["ours"], "3 cameras (lsq)": res_d3["ours"]}
+    sections["D"] = ("**D. Three cameras** — geodesic error of camera 1 (degrees), median\n\n"
+                     + medians(res_d, list(res_d), "geo"))
+    print(sections["D"], flush=True)
+
+    rng = np.random.default_rng(args.seed + 4)
+    res_e = run_varying(x_all, rng, trials=max(5, args.trials // 2))
+    names_e = list(res_e)
+    plot(res_e, names_e, args.img / "selfcal_varying.png",
+         "Changing scales (sec. 4.3): s0 x1.0 -> 1.3, s1 x1.2 -> 0.9 over the window",
+         [("geo", "geodesic (deg)"), ("es", "median |s_t - s_t,true| / s_t,true")])
+    sections["E"] = (table("E. Changing scales", res_e, names_e, "geo", "degrees")
+                     + "\n" + table("E. Changing scales", res_e, names_e, "es",
+                                    "median relative error of the per-frame scale", "{:.4f}"))
+    print(sections["E"], flush=True)
+    elapsed = time.time() - t0
+    print(f"elapsed {elapsed:.0f} s")
+
+    targets = check_targets(res_a, npd_a)
+    print(targets)
+    write_doc(args.doc, sections, targets, args.trials, elapsed)
+    return 0
+
+
+def check_targets(res, npd) -> str:
+    i0, i5 = 0, 5
+    ok = []
+    geo0 = np.nanmax(res["ours"]["geo"][i0])
+    s0 = np.nanmax(res["ours"]["es"][i0])
+    ok.append(("noise 0: rotation error < 0.01 deg (max over trials)", f"{geo0:.2e} deg", geo0 < 0.01))
+    ok.append(("noise 0: abs(s - 1) < 1e-4 (max over trials)", f"{s0:.2e}", s0 < 1e-4))
+    med = {m: np.nanmedian(res[m]["geo"][i5]) for m in res}
+    ok.append(("noise 5%: median rotation error <= 3 deg (ours, closed form)",
+               f"{med['ours']:.2f} deg", med["ours"] <= 3))
+    if "ours+BA" in med:
+        ok.append(("noise 5%: median rotation error <= 3 deg (ours + BA)",
+                   f"{med['ours+BA']:.2f} deg", med["ours+BA"] <= 3))
+    ok.append(("noise 5%: ours no worse than LC and TR (median geodesic)",
+               f"ours {med['ours']:.2f}, LC {med['LC']:.2f}, TR {med['TR']:.2f}",
+               med["ours"] <= min(med["LC"], med["TR"])))
+    lines = ["| target | measured | met |", "|---|---|---|"]
+    lines += [f"| {a} | {b} | {'yes' if c else '**no**'} |" for a, b, c in ok]
+    return "\n".join(lines) + "\n"
+
+
+def write_doc(path: Path, sections: dict, targets: str, trials: int, elapsed: float) -> None:
+    text = (ROOT / "bench" / "selfcal_report_template.md").read_text()
+    for key, body in sections.items():
+        text = text.replace(f"{{{{{key}}}}}", body)
+    text = text.replace("{{TARGETS}}", targets).replace("{{TRIALS}}", str(trials))
+    text = text.replace("{{ELAPSED}}", f"{elapsed:.0f}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

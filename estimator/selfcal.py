@@ -1,0 +1,729 @@
+"""Camera self-calibration from 2D joint tracks (Wang & Leow, §4).
+
+Two or more fixed, uncalibrated, scaled orthographic cameras watch the same
+walker; given the 2D joints in every view, :func:`self_calibrate` recovers the
+rotation and the scale of every camera relative to the first and the metric
+3D joints, without a nonlinear search:
+
+1. centre and normalise the tracks, rank-3 factorization ``W = M_hat P_hat``
+   (Tomasi–Kanade, eq. 4; missing joints are imputed);
+2. the five camera constraints (eqs. 7–11) are linear in ``Omega^-1`` and leave
+   the family ``Omega^-1(beta) = Omega_0^-1 + beta Omega_1^-1``; the leading
+   minors give the range of ``beta`` where it is positive definite;
+3. ``Omega(beta) = adj / det``; the rigid-link constraints give ``E(beta)`` and
+   ``F(beta) = f4 / f3^2`` (eqs. 12–13); the real roots of ``f6`` (eq. 14)
+   inside the range give the global minimum;
+4. Cholesky of ``Omega`` gives ``U``; ``M_hat U^-1 = [R_1; s R_2]`` and
+   ``U P_hat`` the metric joints;
+5. the reflection (depth reversal) left by Cholesky is decided by how knees
+   and elbows bend.
+
+With three or more cameras the camera constraints alone over-determine
+``Omega^-1`` and are solved jointly in least squares. When the camera scales
+change over time (``scales="varying"``, §4.3) each frame pair gets its own
+``U`` from the camera constraints and known length ratios, and a bundle
+adjustment over the relative rotations, the per-frame scales and the 3D joints
+with constant bone lengths finishes the job.
+
+References
+----------
+R. Wang and W. K. Leow, "Human posture sequence estimation using two
+un-calibrated cameras", §4.1–4.3, eqs. 4–14.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse
+from scipy.optimize import least_squares, minimize_scalar
+from scipy.spatial.transform import Rotation
+
+from ._factorization import Factorization, factorize
+from ._selfcal_core import (
+    DEPTH_FLIP,
+    adj3,
+    camera_constraint_rows,
+    geodesic_deg,
+    kinematic_reflection,
+    link_rows,
+    nearest_scaled_rotation,
+    poly_interp,
+    sym_from_vec,
+)
+from .joints import JOINT_INDEX, N_JOINTS
+
+__all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "SelfCalibration", "self_calibrate"]
+
+Link = tuple[int, int]
+Ratio = tuple[Link, Link, float]
+
+
+def _link(a: str, b: str) -> Link:
+    return (JOINT_INDEX[a], JOINT_INDEX[b])
+
+
+RIGID_LINKS: tuple[Link, ...] = (
+    _link("left_shoulder", "right_shoulder"),
+    _link("left_shoulder", "left_elbow"),
+    _link("left_elbow", "left_wrist"),
+    _link("right_shoulder", "right_elbow"),
+    _link("right_elbow", "right_wrist"),
+    _link("left_hip", "right_hip"),
+    _link("left_hip", "left_knee"),
+    _link("left_knee", "left_ankle"),
+    _link("right_hip", "right_knee"),
+    _link("right_knee", "right_ankle"),
+)
+"""The links of :data:`estimator.joints.BONES` that are one rigid bone.
+
+``BONES`` minus head–shoulder and shoulder–hip, which span the neck and the
+spine: on the CMU walks their length varies by 0.5–1.5 % (docs/SELFCAL.md).
+"""
+
+SYMMETRIC_RATIOS: tuple[Ratio, ...] = (
+    (_link("left_shoulder", "left_elbow"), _link("right_shoulder", "right_elbow"), 1.0),
+    (_link("left_elbow", "left_wrist"), _link("right_elbow", "right_wrist"), 1.0),
+    (_link("left_hip", "left_knee"), _link("right_hip", "right_knee"), 1.0),
+    (_link("left_knee", "left_ankle"), _link("right_knee", "right_ankle"), 1.0),
+)
+"""Left and right limbs of equal length: the default length ratios for §4.3."""
+
+
+@dataclass(frozen=True)
+class SelfCalibration:
+    """Result of a self-calibration; falsy (with a ``reason``) when it failed.
+
+    Attributes
+    ----------
+    rotations : ndarray of shape (C, 3, 3) or None
+        ``R_c R_0^T`` per camera, ``R_c`` the world-to-camera rotation whose
+        rows are the image u axis, the image v axis and the viewing direction.
+        ``rotations[0]`` is the identity.
+    scales : ndarray of shape (C,) or None
+        Scale of each camera relative to camera 0 (``s = s_c / s_0``); the
+        median over frames when scales vary.
+    joints3d : ndarray of shape (T, 13, 3) or None
+        Metric joints in camera 0's frame (x = image u, y = image v, z = viewing
+        direction), in camera 0's pixels, origin at each frame's centroid of the
+        13 joints (missing ones imputed). NaN where a joint was seen by fewer
+        than two cameras.
+    frame_scales : ndarray of shape (T, C) or None
+        Per-frame relative scales (``scales="varying"`` only).
+    reflection_confidence : float
+        Weighted share of knee/elbow bending votes that agree with the chosen
+        depth orientation, in [0.5, 1]; 0.5 means the reflection is a guess.
+    method : str
+        ``"wang-leow"``, ``"wang-leow-lsq"`` (3+ cameras),
+        ``"wang-leow-varying"``, or a baseline's name.
+    reason : str
+        Why the estimate failed; empty on success.
+    diagnostics : dict
+        Intermediate quantities (``beta``, ``beta_range``, the polynomial
+        coefficients ``f3``, ``f4``, ``f6``, residuals, counts).
+    """
+
+    rotations: np.ndarray | None = None
+    scales: np.ndarray | None = None
+    joints3d: np.ndarray | None = None
+    frame_scales: np.ndarray | None = None
+    reflection_confidence: float = 0.5
+    method: str = "wang-leow"
+    reason: str = ""
+    diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.reason:
+            return
+        if self.rotations is None or self.scales is None or self.joints3d is None:
+            raise ValueError("a successful SelfCalibration needs rotations, scales and joints3d")
+        r = np.asarray(self.rotations, dtype=float)
+        if r.ndim != 3 or r.shape[1:] != (3, 3):
+            raise ValueError(f"rotations must have shape (C, 3, 3), got {r.shape}")
+        if not np.allclose(np.linalg.det(r), 1.0, atol=1e-6):
+            raise ValueError("rotations must be proper (det = +1)")
+        if not np.allclose(r @ np.swapaxes(r, 1, 2), np.eye(3), atol=1e-6):
+            raise ValueError("rotations must be orthonormal")
+
+    def __bool__(self) -> bool:
+        return not self.reason
+
+    @classmethod
+    def failed(cls, reason: str, method: str = "wang-leow", **diagnostics: Any) -> SelfCalibration:
+        """A falsy result that says why."""
+        return cls(method=method, reason=reason, diagnostics=diagnostics)
+
+    @property
+    def euler_xyz_deg(self) -> np.ndarray:
+        """Per-camera ``Rotation.as_euler("xyz", degrees=True)``, shape (C, 3)."""
+        if self.rotations is None:
+            raise ValueError(f"no rotations: self-calibration failed ({self.reason})")
+        return Rotation.from_matrix(self.rotations).as_euler("xyz", degrees=True)
+
+
+# --------------------------------------------------------------------------- input
+
+
+def _check_tracks(tracks: Any) -> np.ndarray:
+    try:
+        y = np.asarray(tracks, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"tracks must be numeric, shape (C, T, {N_JOINTS}, 2): {exc}") from None
+    if y.ndim != 4 or y.shape[2:] != (N_JOINTS, 2):
+        raise ValueError(f"tracks must have shape (C, T, {N_JOINTS}, 2), got {y.shape}")
+    if y.shape[0] < 2:
+        raise ValueError(f"need at least two cameras, got {y.shape[0]}")
+    if y.shape[1] < 2:
+        raise ValueError(f"need at least two frames, got {y.shape[1]}")
+    if np.isinf(y).any():
+        raise ValueError("tracks contain inf (use NaN for missing joints)")
+    seen = np.isfinite(y).all(axis=-1)
+    if (seen.sum(axis=(1, 2)) < 4).any():
+        raise ValueError("every camera must see at least 4 joints")
+    return y
+
+
+def _check_links(links: Sequence[Link] | None, ratios: Sequence[Ratio]) -> tuple[list, list]:
+    links = list(RIGID_LINKS if links is None else links)
+    for ln in links:
+        if len(ln) != 2 or not all(0 <= int(i) < N_JOINTS for i in ln) or ln[0] == ln[1]:
+            raise ValueError(f"a link must be two different joint indices in [0, {N_JOINTS}), got {ln}")
+    out = []
+    for r in ratios:
+        if len(r) != 3 or float(r[2]) <= 0:
+            raise ValueError(f"a length ratio must be (link_a, link_b, ratio > 0), got {r}")
+        for ln in r[:2]:
+            if len(ln) != 2 or not all(0 <= int(i) < N_JOINTS for i in ln):
+                raise ValueError(f"bad link {ln} in length ratio {r}")
+        out.append((tuple(map(int, r[0])), tuple(map(int, r[1])), float(r[2])))
+    return [tuple(map(int, ln)) for ln in links], out
+
+
+# ------------------------------------------------------------------ the beta family
+
+
+def _trim(p: np.ndarray, rel: float = 1e-12) -> np.ndarray:
+    big = np.abs(p).max(initial=0.0)
+    keep = np.nonzero(np.abs(p) > rel * big)[0]
+    return p[keep[0]:] if keep.size else np.zeros(1)
+
+
+def _real_roots(p: np.ndarray) -> np.ndarray:
+    p = _trim(p)
+    if p.size < 2:
+        return np.zeros(0)
+    r = np.roots(p)
+    scale = 1.0 + np.abs(r)
+    return np.sort(r[np.abs(r.imag) < 1e-7 * scale].real)
+
+
+def _omega_family(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``Omega^-1(beta) = A + beta B`` from eqs. 7–11 (two cameras).
+
+    Returns A (particular, minimum norm), B (homogeneous, unit norm) and the
+    singular values of the 5 x 6 system.
+    """
+    a, b = camera_constraint_rows(motion)
+    _, sv, vt = np.linalg.svd(a)
+    particular = np.linalg.lstsq(a, b, rcond=None)[0]
+    return sym_from_vec(particular), sym_from_vec(vt[-1]), sv
+
+
+def _pd_interval(a: np.ndarray, b: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """Range of beta where ``A + beta B`` is positive definite (leading minors > 0).
+
+    Returns (lo, hi, det coefficients f3, highest first); lo = hi = nan if empty.
+    """
+    nodes = np.array([-1.0, 0.0, 1.0, 2.0])
+    m = a + nodes[:, None, None] * b
+    minors = np.stack(
+        [m[:, 0, 0], m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0], np.linalg.det(m)], axis=1
+    )
+    coef = poly_interp(minors, nodes)  # (4, 3)
+    breaks = np.unique(np.concatenate([_real_roots(coef[:, k]) for k in range(3)]))
+    edges = np.concatenate([[-np.inf], breaks, [np.inf]])
+    lo_e, hi_e = edges[:-1], edges[1:]
+    with np.errstate(invalid="ignore"):
+        probe = np.where(
+            np.isfinite(lo_e) & np.isfinite(hi_e), 0.5 * (lo_e + hi_e),
+            np.where(np.isfinite(lo_e), lo_e + 1.0 + np.abs(lo_e),
+                     np.where(np.isfinite(hi_e), hi_e - 1.0 - np.abs(hi_e), 0.0)),
+        )
+    vals = np.stack([np.polyval(coef[:, k], probe) for k in range(3)], axis=1)
+    pd = (vals > 0).all(axis=1)
+    if not pd.any():
+        return np.nan, np.nan, coef[:, 2]
+    # The positive-definite part of a line is convex: one run of segments.
+    idx = np.nonzero(pd)[0]
+    best = max(np.split(idx, np.nonzero(np.diff(idx) > 1)[0] + 1), key=len)
+    return float(lo_e[best[0]]), float(hi_e[best[-1]]), coef[:, 2]
+
+
+@dataclass(frozen=True)
+class _Beta:
+    beta: float = np.nan
+    lo: float = np.nan
+    hi: float = np.nan
+    f3: np.ndarray | None = None
+    f4: np.ndarray | None = None
+    f6: np.ndarray | None = None
+    via: str = "sextic"
+    reason: str = ""
+
+
+def _solve_beta(a: np.ndarray, b: np.ndarray, g: np.ndarray) -> _Beta:
+    """Global minimum of ``F(beta) = f4 / f3^2`` on the valid range (eqs. 12–14).
+
+    Parameters
+    ----------
+    a, b : ndarray of shape (3, 3)
+        ``Omega^-1(beta) = a + beta b``.
+    g : ndarray of shape (M, 6)
+        Rigid-link rows, ``g @ vec(Omega) = 0``.
+    """
+    lo, hi, f3 = _pd_interval(a, b)
+    if np.isnan(lo):
+        return _Beta(reason="no positive-definite Omega^-1 satisfies the camera constraints "
+                            "(noise too large or degenerate views)")
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return _Beta(lo=lo, hi=hi, reason="the camera constraints leave an unbounded family "
+                                          "(the views are too similar)")
+    # adj(A + beta B) is quadratic in beta: coefficients K (3, 6) for [b^2, b, 1].
+    nodes = np.array([-1.0, 0.0, 1.0])
+    adj = adj3(a + nodes[:, None, None] * b)
+    k = poly_interp(adj[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]], nodes)  # (3, 6)
+    c = g @ k.T  # E(beta) = C [b^2, b, 1]^T / f3, eq. 12
+    h = c.T @ c
+    f4 = np.array([h[0, 0], 2 * h[0, 1], 2 * h[0, 2] + h[1, 1], 2 * h[1, 2], h[2, 2]])
+    f6 = np.polysub(np.polymul(np.polyder(f4), f3), 2.0 * np.polymul(f4, np.polyder(f3)))
+
+    def cost(x: np.ndarray | float) -> np.ndarray:
+        return np.polyval(f4, x) / np.polyval(f3, x) ** 2
+
+    roots = _real_roots(f6)
+    df6 = np.polyder(_trim(f6))
+    for _ in range(2):  # Newton polish
+        d = np.polyval(df6, roots)
+        roots = roots - np.where(d != 0, np.polyval(f6, roots) / np.where(d != 0, d, 1.0), 0.0)
+    inside = roots[(roots > lo) & (roots < hi)]
+    if inside.size:
+        beta, via = float(inside[np.argmin(cost(inside))]), "sextic"
+    else:  # numerically possible only when F is flat; fall back to a bounded search
+        width = hi - lo
+        res = minimize_scalar(cost, bounds=(lo + 1e-9 * width, hi - 1e-9 * width), method="bounded")
+        beta, via = float(res.x), "bounded-search"
+    return _Beta(beta, lo, hi, f3, f4, f6, via)
+
+
+# ------------------------------------------------------------------ reconstruction
+
+
+def _metric(motion: np.ndarray, structure: np.ndarray, omega_inv: np.ndarray,
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """Cholesky of Omega, cameras ``M_hat U^-1`` and joints ``U P_hat`` in camera 0's frame.
+
+    Parameters
+    ----------
+    motion : ndarray of shape (2C, 3)
+    structure : ndarray of shape (3, N)
+    omega_inv : ndarray of shape (3, 3)
+
+    Returns
+    -------
+    rotations (C, 3, 3), scales (C,) relative to camera 0, joints (N, 3) in
+    camera 0's frame and units; or a reason string.
+    """
+    try:
+        lower = np.linalg.cholesky(np.linalg.inv(omega_inv))
+    except np.linalg.LinAlgError:
+        return "Omega is not positive definite"
+    u = lower.T  # Omega = U^T U, U upper triangular
+    cams = np.linalg.solve(u.T, motion.T).T  # M_hat U^-1
+    pts = u @ structure
+    r0, s0 = nearest_scaled_rotation(cams[0:2])
+    blocks = (cams @ r0.T).reshape(-1, 2, 3)
+    rots, sc = nearest_scaled_rotation(blocks)
+    rots[0] = np.eye(3)
+    return rots, sc / sc[0], (s0 * (r0 @ pts)).T
+
+
+def _apply_reflection(rots: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    flip, conf = kinematic_reflection(joints)
+    if flip:
+        rots = DEPTH_FLIP @ rots @ DEPTH_FLIP
+        joints = joints @ DEPTH_FLIP
+    return rots, joints, conf, flip
+
+
+def _mask_unseen(joints: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """NaN for joints seen by fewer than two cameras; joints (T, J, 3), observed (C, T, J)."""
+    return np.where((observed.sum(axis=0) >= 2)[..., None], joints, np.nan)
+
+
+def _rank_check(fact: Factorization, rank_tol: float) -> str:
+    sv = fact.singular_values
+    if sv.shape[-1] < 3:
+        return "too few joint observations for a rank-3 factorization"
+    ratio = sv[:, 2] / np.maximum(sv[:, 0], 1e-300)
+    if (ratio < rank_tol).any():
+        return (f"degenerate input: the centred tracks have rank < 3 (sigma3/sigma1 = "
+                f"{ratio.min():.2e}); the motion is planar or the views coincide")
+    return ""
+
+
+def self_calibrate(
+    tracks: np.ndarray,
+    *,
+    scales: str = "fixed",
+    links: Sequence[Link] | None = None,
+    length_ratios: Sequence[Ratio] | None = None,
+    refine: bool | None = None,
+    rank_tol: float = 1e-6,
+    max_nfev: int = 200,
+) -> SelfCalibration:
+    """Self-calibrate scaled orthographic cameras from 2D joint tracks.
+
+    Parameters
+    ----------
+    tracks : ndarray of shape (C, T, 13, 2)
+        Image ``(u, v)`` of the 13 joints (DESIGN.md order) per camera and
+        frame, ``C >= 2``, ``T >= 2``; NaN marks a missing joint.
+    scales : {"fixed", "varying"}
+        ``"fixed"``: one scale per camera, the closed form of §4.2 (eqs. 4–14).
+        ``"varying"``: scales change per frame, one ``U`` per frame pair from
+        the camera constraints and ``length_ratios``, then a bundle
+        adjustment (§4.3).
+    links : sequence of (int, int), optional
+        Joint pairs of constant length; default :data:`RIGID_LINKS`.
+    length_ratios : sequence of ((int, int), (int, int), float), optional
+        Known length ratios ``|link_a| / |link_b|`` (first kind of rigid-link
+        constraint). Default: none for ``"fixed"``, :data:`SYMMETRIC_RATIOS`
+        for ``"varying"``.
+    refine : bool, optional
+        Finish with the bundle adjustment (§4.3); default False for
+        ``"fixed"`` (pure closed form), True for ``"varying"``.
+    rank_tol : float
+        ``sigma_3 / sigma_1`` of the centred tracks below this is degenerate
+        (planar motion or coincident views).
+    max_nfev : int
+        Function evaluations of the bundle adjustment.
+
+    Returns
+    -------
+    SelfCalibration
+        Falsy with a ``reason`` when the input is degenerate or no positive
+        definite ``Omega`` exists.
+
+    Raises
+    ------
+    ValueError
+        On malformed input (shape, fewer than two cameras or frames, bad links).
+
+    Notes
+    -----
+    Two cameras use the one-parameter family of eqs. 7–11 and the sextic of
+    eq. 14; three or more cameras solve eqs. 7–11 for every camera jointly in
+    least squares (``2C + 1`` equations, 6 unknowns) and need no rigid links.
+    """
+    y = _check_tracks(tracks)
+    if scales not in ("fixed", "varying"):
+        raise ValueError(f"scales must be 'fixed' or 'varying', got {scales!r}")
+    if length_ratios is None:
+        length_ratios = SYMMETRIC_RATIOS if scales == "varying" else ()
+    links_, ratios = _check_links(links, length_ratios)
+    if refine is None:
+        refine = scales == "varying"
+    if scales == "varying":
+        return _varying(y, links_, ratios, rank_tol=rank_tol, max_nfev=max_nfev)
+
+    n_cam = y.shape[0]
+    method = "wang-leow" if n_cam == 2 else "wang-leow-lsq"
+    fact = factorize(y)
+    reason = _rank_check(fact, rank_tol)
+    if reason:
+        return SelfCalibration.failed(reason, method)
+    motion, structure = fact.motion[0], fact.structure[0]
+    t, j = y.shape[1], y.shape[2]
+    diag: dict[str, Any] = {"imputation_iterations": fact.iterations,
+                            "singular_values": fact.singular_values[0, :4].tolist()}
+    if n_cam == 2:
+        a, b, _ = _omega_family(motion)
+        valid = fact.observed.all(axis=0)
+        g = link_rows(structure.T.reshape(t, j, 3), valid, links_, ratios)
+        if g.shape[0] < 1:
+            return SelfCalibration.failed(
+                "no rigid-link constraint: need a link seen whole by every camera in two frames",
+                method)
+        sol = _solve_beta(a, b, g)
+        if sol.reason:
+            return SelfCalibration.failed(sol.reason, method, beta_range=(sol.lo, sol.hi))
+        omega_inv = a + sol.beta * b
+        diag.update(beta=sol.beta, beta_range=(sol.lo, sol.hi), beta_via=sol.via,
+                    f3=sol.f3, f4=sol.f4, f6=sol.f6, n_link_rows=int(g.shape[0]),
+                    omega0_inv=a, omega1_inv=b)
+    else:
+        a_rows, b_rhs = camera_constraint_rows(motion)
+        vec, *_ = np.linalg.lstsq(a_rows, b_rhs, rcond=None)
+        omega_inv = sym_from_vec(vec)
+        diag.update(camera_residual=float(np.linalg.norm(a_rows @ vec - b_rhs)))
+    out = _metric(motion, structure, omega_inv)
+    if isinstance(out, str):
+        return SelfCalibration.failed(out + " (camera constraints in least squares)", method)
+    rots, sc, pts = out
+    joints = pts.reshape(t, j, 3) * fact.norm
+    rots, joints, conf, flip = _apply_reflection(rots, joints)
+    diag["reflected"] = flip
+    frame_scales = None
+    if refine:
+        ba = _bundle_adjust(y / fact.norm, fact.observed, rots, np.repeat(sc[:, None], t, axis=1),
+                            joints / fact.norm, fact.centroids / fact.norm, links_,
+                            per_frame_scales=False, max_nfev=max_nfev)
+        rots, sc_t, joints_n, info = ba
+        sc = sc_t[:, 0] / sc_t[0, 0]
+        joints = joints_n * fact.norm * sc_t[0, 0]
+        _, conf = kinematic_reflection(joints)
+        diag.update(bundle=info)
+        method += "+ba"
+    return SelfCalibration(rots, sc, _mask_unseen(joints, fact.observed), frame_scales,
+                           conf, method, "", diag)
+
+
+# ------------------------------------------------------------------ §4.3 varying scales
+
+
+def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_nfev: int
+             ) -> SelfCalibration:
+    method = "wang-leow-varying"
+    n_cam, t, j, _ = y.shape
+    if not ratios and n_cam == 2:
+        raise ValueError("scales='varying' with two cameras needs length_ratios "
+                         "(constant length over time cannot be used per frame, §4.3)")
+    fact = factorize(y, per_frame=True)
+    motion, structure = fact.motion, fact.structure  # (T, 2C, 3), (T, 3, J)
+    sv = fact.singular_values
+    good = sv[:, 2] / np.maximum(sv[:, 0], 1e-300) >= rank_tol
+    valid = fact.observed.all(axis=0)
+    rots_f = np.full((t, n_cam, 3, 3), np.nan)
+    sc_f = np.full((t, n_cam), np.nan)
+    pts_f = np.full((t, j, 3), np.nan)
+    if n_cam == 2:
+        a_rows, b_rhs = camera_constraint_rows(motion)
+        part = (np.linalg.pinv(a_rows) @ b_rhs[..., None])[..., 0]
+        null = np.linalg.svd(a_rows)[2][:, -1]
+        fam_a, fam_b = sym_from_vec(part), sym_from_vec(null)
+    else:
+        a_rows, b_rhs = camera_constraint_rows(motion)
+        om = sym_from_vec((np.linalg.pinv(a_rows) @ b_rhs[..., None])[..., 0])
+    for f in np.nonzero(good)[0]:  # one small closed form per frame pair (§4.3)
+        if n_cam == 2:
+            g = link_rows(structure[f].T[None], valid[f][None], links, ratios, constant_length=False)
+            if g.shape[0] < 1:
+                continue
+            sol = _solve_beta(fam_a[f], fam_b[f], g)
+            if sol.reason:
+                continue
+            omega_inv = fam_a[f] + sol.beta * fam_b[f]
+        else:
+            omega_inv = om[f]
+        out = _metric(motion[f], structure[f], omega_inv)
+        if isinstance(out, str):
+            continue
+        rots_f[f], sc_f[f], pts_f[f] = out
+    ok = np.isfinite(sc_f).all(axis=1)
+    if not good.any():
+        return SelfCalibration.failed(
+            "degenerate input: every frame's tracks have rank < 3 (planar pose or coincident views)",
+            method)
+    if ok.sum() < 2:
+        return SelfCalibration.failed(
+            f"per-frame self-calibration succeeded in {int(ok.sum())} of {t} frames (need 2)", method)
+    # Consistent reflection over frames: each frame is (R, X) or (D R D, X D).
+    cand = np.stack([rots_f[ok], DEPTH_FLIP @ rots_f[ok] @ DEPTH_FLIP])  # (2, n, C, 3, 3)
+    ref = cand[0, 0]
+    for _ in range(3):
+        dist = geodesic_deg(ref[None, None, 1:], cand[:, :, 1:]).sum(axis=-1)  # (2, n)
+        pick = np.argmin(dist, axis=0)
+        chosen = cand[pick, np.arange(pick.size)]
+        ref = np.stack([Rotation.from_matrix(chosen[:, c]).mean().as_matrix() for c in range(n_cam)])
+    pts_ok = np.where(pick[:, None, None] == 1, pts_f[ok] @ DEPTH_FLIP, pts_f[ok])
+    pts_all = np.zeros((t, j, 3))
+    pts_all[ok] = pts_ok
+    rots, joints, conf, flip = _apply_reflection(ref, pts_all)
+    # Bundle adjustment: per-frame size factor as the initial camera-0 scale.
+    ln = np.asarray(links, dtype=int).reshape(-1, 2)
+    if ln.shape[0]:
+        lens = np.linalg.norm(joints[:, ln[:, 0]] - joints[:, ln[:, 1]], axis=-1)  # (T, K)
+        ref_len = np.nanmedian(np.where(ok[:, None], lens, np.nan), axis=0)
+        kappa = np.nanmedian(lens / ref_len, axis=1)
+    else:
+        kappa = np.ones(t)
+    kappa = np.where(ok & np.isfinite(kappa) & (kappa > 0), kappa, np.nanmedian(kappa[ok]))
+    sc_init = np.where(ok[:, None], sc_f, np.nanmedian(sc_f[ok], axis=0)).T * kappa[None, :]
+    x_init = joints / kappa[:, None, None] / fact.norm
+    x_init[~ok] = np.nanmedian(x_init[ok], axis=0)
+    rots, sc_t, x, info = _bundle_adjust(y / fact.norm, fact.observed, rots, sc_init, x_init,
+                                         fact.centroids / fact.norm, links, per_frame_scales=True,
+                                         max_nfev=max_nfev)
+    joints = x * fact.norm * sc_t[0, 0]
+    _, conf = kinematic_reflection(joints)
+    frame_scales = (sc_t / sc_t[0:1]).T
+    diag = {"frames_solved": int(ok.sum()), "bundle": info, "reflected": flip}
+    return SelfCalibration(rots, np.median(frame_scales, axis=0), _mask_unseen(joints, fact.observed),
+                           frame_scales, conf, method, "", diag)
+
+
+def _bundle_adjust(
+    y: np.ndarray,
+    observed: np.ndarray,
+    rots: np.ndarray,
+    scales: np.ndarray,
+    joints: np.ndarray,
+    centroids: np.ndarray,
+    links: Sequence[Link],
+    *,
+    per_frame_scales: bool,
+    max_nfev: int,
+    bone_weight: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Bundle adjustment over rotations, scales and 3D joints with constant bone lengths.
+
+    Parameters
+    ----------
+    y : ndarray of shape (C, T, J, 2)
+        Normalised tracks (NaN where missing).
+    observed : ndarray of shape (C, T, J), bool
+    rots : ndarray of shape (C, 3, 3)
+        Initial rotations relative to camera 0 (``rots[0] = I`` stays fixed).
+    scales : ndarray of shape (C, T)
+        Initial scales; ``scales[0, 0]`` stays fixed (the gauge).
+    joints : ndarray of shape (T, J, 3)
+        Initial joints in camera 0's frame (normalised units / scale).
+    centroids : ndarray of shape (C, T, 2)
+        Initial image translations.
+    links : sequence of (int, int)
+        Links whose length is a free parameter shared over frames.
+    per_frame_scales : bool
+        One scale per camera and frame (§4.3) or one per camera.
+
+    Returns
+    -------
+    rotations (C, 3, 3), scales (C, T), joints (T, J, 3), info dict.
+
+    Notes
+    -----
+    Residuals: reprojection ``s_ct (R_c X_tj)_{uv} + t_ct - y_ctj`` for every
+    observed joint; ``|X_ta - X_tb| - L_k`` per link and frame; and each
+    frame's joint centroid (the gauge of the per-frame translations).
+    """
+    n_cam, t, j, _ = y.shape
+    ln = np.asarray(links, dtype=int).reshape(-1, 2)
+    k = ln.shape[0]
+    n_rot = 3 * (n_cam - 1)
+    n_s = n_cam * t - 1 if per_frame_scales else n_cam - 1
+    n_t = 2 * n_cam * t
+    n_x = 3 * t * j
+    sizes = [n_rot, n_s, n_t, n_x, k]
+    offs = np.concatenate([[0], np.cumsum(sizes)])
+    log_s0 = np.log(scales[0, 0])
+    bone_ok = np.ones((t, k), dtype=bool)
+    if k:
+        lens = np.linalg.norm(joints[:, ln[:, 0]] - joints[:, ln[:, 1]], axis=-1)
+        l0 = np.median(lens, axis=0)
+    else:
+        l0 = np.zeros(0)
+    s_init = np.log(scales.reshape(-1)[1:] if per_frame_scales else scales[1:, 0])
+    p0 = np.concatenate([
+        Rotation.from_matrix(rots[1:]).as_rotvec().ravel(), s_init,
+        centroids.ravel(), joints.ravel(), l0])
+    obs_c, obs_t, obs_j = np.nonzero(observed)
+    y_obs = y[obs_c, obs_t, obs_j]
+
+    def unpack(p: np.ndarray):
+        rv, ls, tr, x, lk = (p[offs[i]:offs[i + 1]] for i in range(5))
+        r = np.concatenate([np.eye(3)[None], Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix()])
+        ls_full = np.concatenate([[log_s0], ls])
+        s = np.exp(ls_full).reshape(n_cam, t) if per_frame_scales else np.repeat(
+            np.exp(ls_full)[:, None], t, axis=1)
+        return r, s, tr.reshape(n_cam, t, 2), x.reshape(t, j, 3), lk
+
+    def fun(p: np.ndarray) -> np.ndarray:
+        r, s, tr, x, lk = unpack(p)
+        proj = np.einsum("cij,tkj->ctki", r[:, :2], x)
+        pred = s[obs_c, obs_t, None] * proj[obs_c, obs_t, obs_j] + tr[obs_c, obs_t]
+        res = [(pred - y_obs).ravel()]
+        if k:
+            bl = np.linalg.norm(x[:, ln[:, 0]] - x[:, ln[:, 1]], axis=-1) - lk
+            res.append(bone_weight * bl[bone_ok])
+        res.append(x.mean(axis=1).ravel())
+        return np.concatenate(res)
+
+    # Analytic sparse Jacobian (finite differences only for the rotation vectors).
+    n_obs = obs_c.size
+    ridx = np.arange(2 * n_obs).reshape(n_obs, 2)
+    cam_b = obs_c > 0
+    sidx = obs_c * t + obs_t - 1 if per_frame_scales else obs_c - 1
+    has = sidx >= 0
+    rows, cols = [], []
+    for d in range(2):
+        rr = ridx[:, d]
+        for q in range(3):
+            rows.append(rr[cam_b]); cols.append(offs[0] + 3 * (obs_c[cam_b] - 1) + q)
+        rows.append(rr[has]); cols.append(offs[1] + sidx[has])
+        rows.append(rr); cols.append(offs[2] + (obs_c * t + obs_t) * 2 + d)
+        for q in range(3):
+            rows.append(rr); cols.append(offs[3] + (obs_t * j + obs_j) * 3 + q)
+    base = 2 * n_obs
+    bt, bk = np.nonzero(bone_ok) if k else (np.zeros(0, int), np.zeros(0, int))
+    if k:
+        rb = base + np.arange(bt.size)
+        for end in range(2):
+            for q in range(3):
+                rows.append(rb); cols.append(offs[3] + (bt * j + ln[bk, end]) * 3 + q)
+        rows.append(rb); cols.append(offs[4] + bk)
+        base += bt.size
+    ct, cd, cj = np.meshgrid(np.arange(t), np.arange(3), np.arange(j), indexing="ij")
+    rows.append((base + ct * 3 + cd).ravel()); cols.append(offs[3] + ((ct * j + cj) * 3 + cd).ravel())
+    base += 3 * t
+    rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
+    shape = (base, offs[-1])
+    centroid_vals = np.full(ct.size, 1.0 / j)
+
+    def jac(p: np.ndarray) -> scipy.sparse.csr_matrix:
+        r, s, _, x, lk = unpack(p)
+        rx = np.einsum("cij,tkj->ctki", r, x)[obs_c, obs_t, obs_j]  # (n_obs, 3)
+        sc = s[obs_c, obs_t]
+        # Rotation columns: central differences, all cameras' q-th component at once.
+        drot = []
+        h = 1e-6
+        for q in range(3):
+            dp = np.zeros_like(p)
+            dp[offs[0] + q:offs[1]:3] = h
+            drot.append((fun(p + dp) - fun(p - dp))[:2 * n_obs].reshape(n_obs, 2) / (2 * h))
+        vals = []
+        for d in range(2):
+            for q in range(3):
+                vals.append(drot[q][cam_b, d])
+            vals.append((sc * rx[:, d])[has])
+            vals.append(np.ones(n_obs))
+            rd = r[obs_c, d]  # (n_obs, 3)
+            for q in range(3):
+                vals.append(sc * rd[:, q])
+        if k:
+            diff = x[bt, ln[bk, 0]] - x[bt, ln[bk, 1]]
+            unit = diff / np.maximum(np.linalg.norm(diff, axis=-1, keepdims=True), 1e-12)
+            for sign in (1.0, -1.0):
+                for q in range(3):
+                    vals.append(sign * bone_weight * unit[:, q])
+            vals.append(np.full(bt.size, -bone_weight))
+        vals.append(centroid_vals)
+        return scipy.sparse.csr_matrix((np.concatenate(vals), (rows_a, cols_a)), shape=shape)
+
+    start_cost = 0.5 * float(np.sum(fun(p0) ** 2))
+    res = least_squares(fun, p0, jac=jac, method="trf", x_scale="jac", max_nfev=max_nfev)
+    r, s, _, x, _ = unpack(res.x)
+    info = {"cost_start": start_cost, "cost_end": float(res.cost), "nfev": int(res.nfev),
+            "status": int(res.status)}
+    return r, s, x, info

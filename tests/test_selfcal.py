@@ -1,0 +1,346 @@
+"""Self-calibration from 2D joint tracks (Wang–Leow §4): ground-truth recovery."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimator._selfcal_core import DEPTH_FLIP, geodesic_deg, kinematic_reflection, link_rows
+from estimator.joints import JOINT_INDEX, N_JOINTS
+from estimator.selfcal import (
+    RIGID_LINKS,
+    SelfCalibration,
+    _omega_family,
+    _solve_beta,
+    self_calibrate,
+)
+from estimator.selfcal_baselines import liebowitz_carlsson, tresadern_reid
+
+MOCAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
+TEST2 = Rotation.from_euler("xyz", [-10, -60, 20], degrees=True).as_matrix()
+
+
+@pytest.fixture(scope="module")
+def walk() -> np.ndarray:
+    """30 frames (every 4th at 120 Hz, skipping the first 20) of a real walk, metres."""
+    path = MOCAP / "16_15.amc"
+    if not path.exists():
+        pytest.skip(f"mocap data not found at {path}")
+    from estimator.mocap import read_motion
+
+    return read_motion(path).person_frame()[20:140:4, :N_JOINTS]
+
+
+def look(azimuth: float, elevation: float) -> np.ndarray:
+    """World-to-camera rotation (rows u, v, viewing direction) of a camera aimed at the origin."""
+    az, el = np.radians(azimuth), np.radians(elevation)
+    d = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    u = np.cross(d, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(d, u), d])
+
+
+def project(x: np.ndarray, rots: np.ndarray, scales, offsets=None) -> np.ndarray:
+    """Scaled orthographic projection, (T, J, 3) -> (C, T, J, 2)."""
+    scales = np.asarray(scales, dtype=float).reshape(len(rots), -1)
+    y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, :, None, None]
+    if offsets is not None:
+        y = y + np.asarray(offsets, dtype=float)[:, None, None, :]
+    return y
+
+
+def truth_joints(x: np.ndarray, r0: np.ndarray, s0: float) -> np.ndarray:
+    """True joints in camera 0's frame and pixels, per-frame centred."""
+    p = s0 * np.einsum("ij,tkj->tki", r0, x)
+    return p - p.mean(axis=1, keepdims=True)
+
+
+def random_pair(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Two random camera rotations whose viewing directions differ by 25-155 degrees."""
+    while True:
+        r = Rotation.random(2, random_state=rng).as_matrix()
+        angle = np.degrees(np.arccos(np.clip(r[0, 2] @ r[1, 2], -1, 1)))
+        if 25 < angle < 155:
+            return r[0], r[1]
+
+
+# ------------------------------------------------------------------ exact recovery
+
+
+def test_test2_geometry_noise_free(walk):
+    ra = look(90, 10)
+    rots = np.stack([ra, TEST2 @ ra])
+    y = project(walk, rots, [130.0, 130.0], [(320, 240), (300, 200)])
+    res = self_calibrate(y)
+    assert res, res.reason
+    assert res.method == "wang-leow"
+    assert geodesic_deg(res.rotations[1], TEST2) < 0.01
+    assert abs(res.scales[1] - 1.0) < 1e-4
+    np.testing.assert_allclose(res.euler_xyz_deg[1], [-10, -60, 20], atol=0.01)
+    err = np.linalg.norm(res.joints3d - truth_joints(walk, ra, 130.0), axis=-1).mean()
+    assert err < 1e-6 * 130
+    assert res.reflection_confidence > 0.9
+    assert res.diagnostics["beta_range"][0] < res.diagnostics["beta"] < res.diagnostics["beta_range"][1]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_exact_recovery_random_rotations_and_scales(walk, seed):
+    rng = np.random.default_rng(seed)
+    ra, rb = random_pair(rng)
+    s = rng.uniform(0.5, 2.0)
+    y = project(walk, np.stack([ra, rb]), [100.0, 100.0 * s], rng.uniform(0, 500, (2, 2)))
+    res = self_calibrate(y)
+    assert res, res.reason
+    assert geodesic_deg(res.rotations[1], rb @ ra.T) < 0.01
+    assert abs(res.scales[1] - s) < 1e-4 * s
+    np.testing.assert_allclose(res.joints3d, truth_joints(walk, ra, 100.0), atol=1e-5)
+    np.testing.assert_allclose(res.rotations[0], np.eye(3))
+
+
+def test_three_cameras_least_squares(walk):
+    rng = np.random.default_rng(7)
+    rots = np.stack([look(60, 5), look(150, 20), look(250, -10)])
+    scales = [90.0, 120.0, 70.0]
+    res = self_calibrate(project(walk, rots, scales, rng.uniform(0, 300, (3, 2))))
+    assert res and res.method == "wang-leow-lsq"
+    rel = rots @ rots[0].T
+    assert geodesic_deg(res.rotations, rel).max() < 0.01
+    np.testing.assert_allclose(res.scales, np.array(scales) / scales[0], rtol=1e-6)
+    assert res.diagnostics["camera_residual"] < 1e-9
+
+
+def test_three_cameras_noise_is_no_worse_than_two(walk):
+    """Extra views over-determine Omega^-1; with noise they should help, not hurt."""
+    rng = np.random.default_rng(3)
+    rots = np.stack([look(45, 10), TEST2 @ look(45, 10), look(200, 15)])
+    clean = project(walk, rots, [130.0, 130.0, 130.0])
+    e2, e3 = [], []
+    for _ in range(8):
+        y = clean + rng.uniform(-2.0, 2.0, clean.shape)
+        e2.append(geodesic_deg(self_calibrate(y[:2]).rotations[1], TEST2))
+        e3.append(geodesic_deg(self_calibrate(y).rotations[1], TEST2))
+    assert np.median(e3) <= np.median(e2)
+
+
+def test_varying_scales_section_4_3(walk):
+    ra = look(45, 10)
+    rots = np.stack([ra, TEST2 @ ra])
+    t = len(walk)
+    sa = 120.0 * np.linspace(1.0, 1.4, t)
+    sb = 150.0 * np.linspace(1.2, 0.9, t)
+    y = project(walk, rots, np.stack([sa, sb]))
+
+    def length(a, b):
+        return np.linalg.norm(walk[0, JOINT_INDEX[a]] - walk[0, JOINT_INDEX[b]])
+
+    ratios = [((JOINT_INDEX[f"left_{p}"], JOINT_INDEX[f"left_{q}"]),
+               (JOINT_INDEX[f"right_{p}"], JOINT_INDEX[f"right_{q}"]),
+               length(f"left_{p}", f"left_{q}") / length(f"right_{p}", f"right_{q}"))
+              for p, q in [("shoulder", "elbow"), ("elbow", "wrist"), ("hip", "knee"), ("knee", "ankle")]]
+    res = self_calibrate(y, scales="varying", length_ratios=ratios)
+    assert res, res.reason
+    assert res.method == "wang-leow-varying"
+    assert geodesic_deg(res.rotations[1], TEST2) < 0.01
+    np.testing.assert_allclose(res.frame_scales[:, 1], sb / sa, rtol=1e-4)
+    assert res.diagnostics["frames_solved"] == t
+
+
+def test_bundle_adjustment_keeps_exact_solution(walk):
+    ra = look(30, 15)
+    rots = np.stack([ra, TEST2 @ ra])
+    res = self_calibrate(project(walk, rots, [100.0, 80.0]), refine=True)
+    assert res and res.method == "wang-leow+ba"
+    assert geodesic_deg(res.rotations[1], TEST2) < 0.01
+    assert abs(res.scales[1] - 0.8) < 1e-4
+
+
+# ------------------------------------------------------------------ the sextic
+
+
+@pytest.mark.parametrize("noise", [0.0, 1.0, 4.0, 10.0])
+def test_sextic_root_is_global_minimum_of_dense_search(walk, noise):
+    """The root of f6 (eq. 14) equals a dense search of F(beta) computed directly."""
+    rng = np.random.default_rng(11)
+    ra = look(70, 10)
+    y = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0])
+    y = y + rng.uniform(-noise, noise, y.shape)
+    from estimator._factorization import factorize
+
+    fact = factorize(y)
+    a, b, _ = _omega_family(fact.motion[0])
+    g = link_rows(fact.structure[0].T.reshape(len(walk), N_JOINTS, 3),
+                  np.ones((len(walk), N_JOINTS), bool), RIGID_LINKS, [])
+    sol = _solve_beta(a, b, g)
+    assert not sol.reason and sol.via == "sextic"
+    grid = np.linspace(sol.lo, sol.hi, 40001)[1:-1]
+    omega = np.linalg.inv(a + grid[:, None, None] * b)  # Omega(beta) without the polynomials
+    vec = omega[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
+    f_dense = np.sum((vec @ g.T) ** 2, axis=1)
+    best = grid[np.argmin(f_dense)]
+    step = grid[1] - grid[0]
+    assert abs(sol.beta - best) <= 2 * step
+    f_root = np.sum((np.linalg.inv(a + sol.beta * b)[[0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]] @ g.T) ** 2)
+    assert f_root <= f_dense.min() * (1 + 1e-9) + 1e-300
+    # The polynomial form agrees with the direct one.
+    np.testing.assert_allclose(np.polyval(sol.f4, grid) / np.polyval(sol.f3, grid) ** 2, f_dense,
+                               rtol=1e-6, atol=1e-12 * f_dense.max())
+    # Positive definite exactly inside the range.
+    eig = np.linalg.eigvalsh(a + grid[:, None, None] * b)
+    assert (eig[:, 0] > 0).all()
+    for outside in (sol.lo - 1e-3 * (sol.hi - sol.lo), sol.hi + 1e-3 * (sol.hi - sol.lo)):
+        assert np.linalg.eigvalsh(a + outside * b)[0] < 0
+
+
+# ------------------------------------------------------------------ reflection
+
+
+def test_kinematic_prior_on_truth_and_its_mirror(walk):
+    flip, conf = kinematic_reflection(walk)
+    assert not flip and conf > 0.9
+    flip, conf = kinematic_reflection(walk @ DEPTH_FLIP)
+    assert flip and conf > 0.9
+
+
+@pytest.mark.parametrize("azimuth", [0, 60, 120, 200, 300])
+def test_reflection_resolved_for_many_viewpoints(walk, azimuth):
+    """Cholesky leaves the Necker twin (D R D, depth reversed); the prior must pick the truth."""
+    ra = look(azimuth, 15)
+    rb = TEST2 @ ra
+    res = self_calibrate(project(walk, np.stack([ra, rb]), [100.0, 100.0]))
+    twin = DEPTH_FLIP @ TEST2 @ DEPTH_FLIP
+    assert geodesic_deg(res.rotations[1], TEST2) < 0.01
+    assert geodesic_deg(res.rotations[1], twin) > 1.0
+    assert res.reflection_confidence > 0.8
+
+
+def test_straight_limbs_give_no_confidence(walk):
+    x = walk.copy()
+    for side in ("left", "right"):
+        for a, m, b in (("hip", "knee", "ankle"), ("shoulder", "elbow", "wrist")):
+            i, k, j = (JOINT_INDEX[f"{side}_{n}"] for n in (a, m, b))
+            x[:, k] = 0.5 * (x[:, i] + x[:, j])
+    assert kinematic_reflection(x)[1] == pytest.approx(0.5)
+
+
+# ------------------------------------------------------------------ masks
+
+
+def test_missing_joints_are_masked(walk):
+    rng = np.random.default_rng(5)
+    ra = look(45, 10)
+    y = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0], [(320, 240), (300, 200)])
+    drop = rng.random(y.shape[:3]) < 0.1
+    y[drop] = np.nan
+    y[1, 3] = np.nan  # camera 1 lost a whole frame
+    y[:, 5, JOINT_INDEX["head"]] = np.nan  # head unseen by every camera in frame 5
+    res = self_calibrate(y)
+    assert res, res.reason
+    assert res.diagnostics["imputation_iterations"] > 0
+    assert geodesic_deg(res.rotations[1], TEST2) < 0.01
+    assert abs(res.scales[1] - 1.0) < 1e-4
+    seen2 = (~np.isnan(y[..., 0])).sum(axis=0) >= 2
+    assert np.array_equal(np.isfinite(res.joints3d).all(axis=-1), seen2)
+    truth = truth_joints(walk, ra, 130.0)
+    # Origins differ by where the imputed joints went: compare shapes per frame.
+    w = seen2[..., None]
+    est = res.joints3d - np.nansum(np.where(w, res.joints3d, 0), 1, keepdims=True) / np.maximum(w.sum(1, keepdims=True), 1)
+    tru = truth - np.sum(np.where(w, truth, 0), 1, keepdims=True) / np.maximum(w.sum(1, keepdims=True), 1)
+    np.testing.assert_allclose(est[seen2], tru[seen2], atol=1e-3)
+
+
+def test_masks_with_noise_still_close(walk):
+    rng = np.random.default_rng(8)
+    ra = look(45, 10)
+    clean = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0])
+    y = clean + rng.uniform(-0.5, 0.5, clean.shape)
+    y[rng.random(y.shape[:3]) < 0.05] = np.nan
+    res = self_calibrate(y)
+    assert res and geodesic_deg(res.rotations[1], TEST2) < 3.0
+
+
+# ------------------------------------------------------------------ baselines
+
+
+@pytest.mark.parametrize("method", [liebowitz_carlsson, tresadern_reid])
+def test_baselines_recover_noise_free(walk, method):
+    ra = look(45, 10)
+    res = method(project(walk, np.stack([ra, TEST2 @ ra]), [100.0, 130.0]))
+    assert res, res.reason
+    assert geodesic_deg(res.rotations[1], TEST2) < 0.05
+    assert abs(res.scales[1] - 1.3) < 1e-3
+
+
+def test_liebowitz_carlsson_reports_indefinite_omega(walk):
+    rng = np.random.default_rng(2)
+    ra = look(90, 10)
+    clean = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0])
+    seen = {True: 0, False: 0}
+    for _ in range(12):
+        y = clean + rng.uniform(-15, 15, clean.shape)
+        fail = liebowitz_carlsson(y)
+        clip = liebowitz_carlsson(y, on_indefinite="clip")
+        pd = clip.diagnostics["omega_positive_definite"]
+        seen[pd] += 1
+        assert bool(fail) == pd and bool(clip)
+        if not pd:
+            assert "not positive definite" in fail.reason
+    assert seen[False] > 0  # heavy noise: the failure mode of section 4.1 does occur
+    with pytest.raises(ValueError, match="on_indefinite"):
+        liebowitz_carlsson(clean, on_indefinite="ignore")
+
+
+# ------------------------------------------------------------------ bad input
+
+
+@pytest.mark.parametrize(
+    ("shape", "match"),
+    [((2, 5, 12, 2), r"shape \(C, T, 13, 2\)"), ((2, 5, 13, 3), r"shape \(C, T, 13, 2\)"),
+     ((5, 13, 2), r"shape \(C, T, 13, 2\)"), ((1, 5, 13, 2), "two cameras"),
+     ((2, 1, 13, 2), "two frames")],
+)
+def test_bad_shapes(shape, match):
+    with pytest.raises(ValueError, match=match):
+        self_calibrate(np.zeros(shape))
+
+
+def test_bad_options(walk):
+    y = project(walk, np.stack([look(0, 0), look(90, 0)]), [1.0, 1.0])
+    with pytest.raises(ValueError, match="scales"):
+        self_calibrate(y, scales="sometimes")
+    with pytest.raises(ValueError, match="link"):
+        self_calibrate(y, links=[(0, 13)])
+    with pytest.raises(ValueError, match="ratio"):
+        self_calibrate(y, length_ratios=[((0, 1), (1, 2), -1.0)])
+    with pytest.raises(ValueError, match="length_ratios"):
+        self_calibrate(y, scales="varying", length_ratios=[])
+    y[0] = np.nan
+    with pytest.raises(ValueError, match="at least 4 joints"):
+        self_calibrate(y)
+
+
+def test_planar_motion_is_a_failed_estimate():
+    rng = np.random.default_rng(0)
+    x = np.zeros((10, N_JOINTS, 3))
+    x[..., :2] = rng.normal(size=(10, N_JOINTS, 2))  # everything in one plane
+    rots = np.stack([look(20, 10), look(80, 30)])
+    res = self_calibrate(project(x, rots, [50.0, 50.0]))
+    assert not res
+    assert "planar" in res.reason
+    with pytest.raises(ValueError, match="failed"):
+        res.euler_xyz_deg  # noqa: B018
+
+
+def test_identical_views_fail(walk):
+    r = look(45, 10)
+    roll = Rotation.from_euler("z", 30, degrees=True).as_matrix() @ r  # same view, rolled
+    res = self_calibrate(project(walk, np.stack([r, roll]), [100.0, 100.0]))
+    assert not res and res.reason
+
+
+def test_result_validates_rotations():
+    with pytest.raises(ValueError, match="det"):
+        SelfCalibration(np.stack([np.eye(3), -np.eye(3)]), np.ones(2), np.zeros((2, 13, 3)))
+    assert not SelfCalibration.failed("because")

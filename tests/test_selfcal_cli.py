@@ -1,0 +1,153 @@
+"""``posecal selfcal``: the JSON formats of DESIGN.md and exit codes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimator._selfcal_core import geodesic_deg
+from estimator.joints import JOINT_NAMES, N_JOINTS
+from service.cli import main
+
+MOCAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
+TEST2 = Rotation.from_euler("xyz", [-10, -60, 20], degrees=True).as_matrix()
+POSECAL = Path(sys.executable).with_name("posecal")
+
+
+def look(azimuth: float, elevation: float) -> np.ndarray:
+    az, el = np.radians(azimuth), np.radians(elevation)
+    d = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    u = np.cross(d, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(d, u), d])
+
+
+@pytest.fixture(scope="module")
+def tracks() -> np.ndarray:
+    """(2, 30, 13, 2) pixels of a real walk seen by the Test 2 camera pair."""
+    path = MOCAP / "16_15.amc"
+    if not path.exists():
+        pytest.skip(f"mocap data not found at {path}")
+    from estimator.mocap import read_motion
+
+    x = read_motion(path).person_frame()[20:140:4, :N_JOINTS]
+    ra = look(45, 10)
+    rots = np.stack([ra, TEST2 @ ra])
+    return np.einsum("cij,tkj->ctki", rots[:, :2], x) * np.array([150.0, 120.0])[:, None, None, None] + 300
+
+
+def write(tmp_path: Path, doc, name="tracks.json") -> Path:
+    path = tmp_path / name
+    path.write_text(doc if isinstance(doc, str) else json.dumps(doc))
+    return path
+
+
+def as_doc(y: np.ndarray, names=("left", "right")) -> dict:
+    cams = {}
+    for c, name in enumerate(names):
+        cams[name] = [[None if np.isnan(p).any() else [float(p[0]), float(p[1])] for p in frame]
+                      for frame in y[c]]
+    return {"joint_names": list(JOINT_NAMES), "cameras": cams}
+
+
+def test_selfcal_writes_result(tmp_path, tracks):
+    y = tracks.copy()
+    y[0, 2, 4] = np.nan
+    y[:, 7, 0] = np.nan  # head lost in both views: null in the 3D output
+    out = tmp_path / "result.json"
+    assert main(["selfcal", str(write(tmp_path, as_doc(y))), "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["joint_names"] == list(JOINT_NAMES)
+    assert res["reference_camera"] == "left"
+    assert list(res["cameras"]) == ["right"]
+    cam = res["cameras"]["right"]
+    assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
+    np.testing.assert_allclose(cam["euler_xyz_deg"], [-10, -60, 20], atol=0.01)
+    assert cam["scale"] == pytest.approx(0.8, abs=1e-4)
+    assert 0.5 <= res["reflection_confidence"] <= 1
+    assert len(res["frames"]) == 30 and res["frames"][3]["index"] == 3
+    assert res["frames"][7]["joints3d"][0] is None
+    frame2 = res["frames"][2]["joints3d"]
+    assert frame2[4] is None  # seen by one camera only: no 3D
+    assert all(len(p) == 3 for k, p in enumerate(frame2) if k != 4)
+
+
+def test_joint_subset_order_and_nan(tmp_path, tracks):
+    """joint_names in another order; absent joints and NaN coordinates are missing."""
+    names = list(JOINT_NAMES[1:])[::-1]  # no head, reversed
+    idx = [JOINT_NAMES.index(n) for n in names]
+    cams = {c: [[list(map(float, tracks[k, f, j])) for j in idx] for f in range(30)]
+            for k, c in enumerate("ab")}
+    cams["a"][4][0] = [float("nan"), 1.0]
+    text = json.dumps({"joint_names": names, "cameras": cams})  # writes NaN literals
+    out = tmp_path / "r.json"
+    assert main(["selfcal", str(write(tmp_path, text)), "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert geodesic_deg(np.array(res["cameras"]["b"]["rotation"]), TEST2) < 0.05
+    assert all(f["joints3d"][0] is None for f in res["frames"])  # head never seen
+
+
+def test_varying_scale_option(tmp_path, tracks):
+    out = tmp_path / "r.json"
+    assert main(["selfcal", str(write(tmp_path, as_doc(tracks))), "--out", str(out),
+                 "--varying-scale"]) == 0
+    cam = json.loads(out.read_text())["cameras"]["right"]
+    assert len(cam["frame_scales"]) == 30
+    assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda d: d["cameras"].pop("right"), "two cameras"),
+        (lambda d: [v.__delitem__(slice(1, None)) for v in d["cameras"].values()], "two frames"),
+        (lambda d: d["cameras"]["right"].pop(), "different frame counts"),
+        (lambda d: d.__setitem__("joint_names", ["nose"] + d["joint_names"][1:]), "unknown joint"),
+        (lambda d: d["cameras"]["left"][0].pop(), "expected 13 joints"),
+        (lambda d: d["cameras"]["left"][0].__setitem__(0, [1, "x"]), "numbers"),
+        (lambda d: d.__setitem__("cameras", []), "cameras"),
+    ],
+)
+def test_bad_input_exit_2(tmp_path, tracks, capsys, mutate, message):
+    doc = as_doc(tracks)
+    mutate(doc)
+    assert main(["selfcal", str(write(tmp_path, doc)), "--out", str(tmp_path / "r.json")]) == 2
+    err = capsys.readouterr().err
+    assert "posecal selfcal: error:" in err and message in err
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_planar_motion_exit_2(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    x = np.zeros((10, N_JOINTS, 3))
+    x[..., :2] = rng.normal(size=(10, N_JOINTS, 2))
+    rots = np.stack([look(20, 10), look(80, 30)])
+    y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * 50
+    assert main(["selfcal", str(write(tmp_path, as_doc(y)))]) == 2
+    assert "planar" in capsys.readouterr().err
+
+
+def test_unreadable_files_exit_2(tmp_path, capsys):
+    assert main(["selfcal", str(tmp_path / "missing.json")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["selfcal", str(write(tmp_path, "{not json"))]) == 2
+    assert "cannot read" in capsys.readouterr().err
+
+
+def test_console_script(tmp_path, tracks):
+    if not POSECAL.exists():
+        pytest.skip("posecal console script not installed next to the interpreter")
+    path = write(tmp_path, as_doc(tracks))
+    ok = subprocess.run([str(POSECAL), "selfcal", str(path)], capture_output=True, text=True,
+                        timeout=60)
+    assert ok.returncode == 0, ok.stderr
+    assert "euler_xyz_deg" in json.loads(ok.stdout)["cameras"]["right"]
+    bad = subprocess.run([str(POSECAL), "selfcal", str(write(tmp_path, {"cameras": {"a": []}}, "b.json"))],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "two cameras" in bad.stderr
