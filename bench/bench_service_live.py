@@ -1,0 +1,141 @@
+"""Live service benchmark: N cameras x F fps streamed for S seconds over loopback Zenoh.
+
+The service runs as ``posecal serve`` in its own process. This script publishes
+pre-rendered synthetic silhouettes exactly as capture agents do (one
+``SilhouetteMessage`` per camera per frame, index-synchronised, paced in real
+time), subscribes to ``posecal/<rig>/estimate``, and reports:
+
+- windows cut / estimated / skipped / failed / dropped (target: every window estimated);
+- latency from publishing a window's last frame to receiving its estimate
+  (same clock), p50 / p95 / max (target: p95 <= 200 ms);
+- the service's own figure (last frame received -> estimate published).
+
+Usage: ``python bench/bench_service_live.py [--cameras 4] [--fps 15] [--seconds 60]
+[--model PATH] [--rerun SINK]``; exit code 0 when the targets are met.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import numpy as np
+import zenoh
+
+from capture.wire import Box, SilhouetteMessage, encode, estimate_key, silhouette_key
+from capture.zconfig import build_config
+from estimator.pipeline import crop_to_box
+from estimator.synth import SynthSpec, synthesize
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _service_proc import ServiceProcess  # noqa: E402
+
+RIG = "bench"
+
+
+def render(cameras: int, frames: int, seed: int) -> tuple[list[str], list[list[tuple]], tuple[int, int]]:
+    az = tuple(float(a) for a in np.linspace(0, 360, cameras, endpoint=False) + 45.0)
+    seq = synthesize(SynthSpec(n_cameras=cameras, n_frames=frames, seed=seed, azimuths=az,
+                               elevations=tuple(10.0 + 5 * (k % 3) for k in range(cameras))))
+    crops = []
+    for cam in seq.cameras:
+        row = []
+        for s in seq.silhouettes[cam]:
+            c = crop_to_box(s)
+            row.append((np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0)) if c is None
+                       else (np.ascontiguousarray(c[0]), Box(*(int(v) for v in c[1]))))
+        crops.append(row)
+    return seq.cameras, crops, tuple(seq.image_size)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cameras", type=int, default=4)
+    ap.add_argument("--fps", type=float, default=15.0)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--loop-frames", type=int, default=60, help="rendered frames, replayed in a loop")
+    ap.add_argument("--model", help="appearance model (default: the service's default model)")
+    ap.add_argument("--rerun", help="the service's Rerun sink, e.g. save:/tmp/bench.rrd (default: off)")
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args()
+
+    load_before = os.getloadavg()[0]
+    t = time.perf_counter()
+    cams, crops, size = render(args.cameras, args.loop_frames, seed=5)
+    print(f"rendered {len(cams)} x {args.loop_frames} silhouettes in {time.perf_counter() - t:.1f} s")
+    workdir = Path(tempfile.mkdtemp(prefix="posecal-bench-live-"))
+    extra = ["--job-workers", "0"] + (["--rerun", args.rerun] if args.rerun else [])
+    with ServiceProcess(workdir, *extra, model=args.model) as svc, \
+            zenoh.open(build_config(connect=[svc.zenoh])) as session:
+        received: list[tuple[int, dict]] = []
+        sub = session.declare_subscriber(estimate_key(RIG), lambda s: received.append(
+            (time.time_ns(), json.loads(s.payload.to_bytes()))))
+        pubs = [session.declare_publisher(silhouette_key(RIG, c), congestion_control=zenoh.CongestionControl.BLOCK,
+                                          express=True) for c in cams]
+        time.sleep(1.0)
+        n = int(args.seconds * args.fps)
+        sent_ns = np.zeros(n, np.int64)
+        behind = 0
+        epoch = time.time_ns()
+        start = time.monotonic()
+        for k in range(n):
+            due = start + k / args.fps
+            wait = due - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            elif wait < -0.5 / args.fps:
+                behind += 1
+            now = time.time_ns()
+            for pub, cam, row in zip(pubs, cams, crops):
+                mask, box = row[k % len(row)]
+                pub.put(encode(SilhouetteMessage(rig=RIG, camera=cam, frame_index=k, capture_ns=now,
+                                                 box=box, image_size=size, epoch_ns=epoch, seq=k,
+                                                 mask=mask, sync="index", publish_ns=now)))
+            sent_ns[k] = time.time_ns()
+        time.sleep(3.0)
+        summary = svc.client.get(f"/v1/rigs/{RIG}").json()
+        sub.undeclare()
+    results = {r["window"]["seq"]: (t_ns, r) for t_ns, r in received}
+    ext = np.array([(t_ns - sent_ns[r["window"]["last_index"]]) / 1e6 for t_ns, r in results.values()])
+    svc_lat = np.array([r["latency_ms"]["last_frame_to_result"] for _, r in results.values()])
+    est_ms = np.array([r["latency_ms"]["estimate"] for _, r in results.values()])
+    w = summary["windows"]
+    fig = {
+        "cameras": len(cams), "fps": args.fps, "seconds": args.seconds, "frames_per_camera": n,
+        "publisher_behind_frames": behind, "rerun": args.rerun,
+        "windows": w, "frames": summary["frames"], "estimates_received": len(results),
+        "latency_ms_publish_to_estimate": _pct(ext), "latency_ms_service": _pct(svc_lat),
+        "estimate_ms": _pct(est_ms),
+        "frames_in": sum(c["frames"] for c in summary["cameras"].values()),
+        "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+    }
+    ok = (w["estimated"] == w["seq"] and len(results) == w["seq"] and w["dropped"] == 0
+          and fig["latency_ms_publish_to_estimate"]["p95"] <= 200.0)
+    fig["targets_met"] = bool(ok)
+    print(json.dumps(fig, indent=1))
+    print(f"windows: {w['seq']} cut, {w['estimated']} estimated, {w['skipped']} skipped, "
+          f"{w['failed']} failed, {w['dropped']} dropped; estimates received {len(results)}")
+    print(f"publish of last frame -> estimate received: p50 {fig['latency_ms_publish_to_estimate']['p50']:.0f} ms, "
+          f"p95 {fig['latency_ms_publish_to_estimate']['p95']:.0f} ms, max {fig['latency_ms_publish_to_estimate']['max']:.0f} ms "
+          f"(target p95 <= 200 ms) -> {'MET' if ok else 'NOT MET'}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(fig, indent=1))
+    return 0 if ok else 1
+
+
+def _pct(a: np.ndarray) -> dict:
+    if a.size == 0:
+        return {"p50": float("nan"), "p95": float("nan"), "max": float("nan"), "n": 0}
+    return {"p50": round(float(np.percentile(a, 50)), 1), "p95": round(float(np.percentile(a, 95)), 1),
+            "max": round(float(a.max()), 1), "n": int(a.size)}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

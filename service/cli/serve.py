@@ -1,0 +1,79 @@
+"""``posecal serve``: the estimator service (REST jobs, live windows from Zenoh, Rerun).
+
+Options given here override ``POSECAL_*`` environment variables, which override
+the defaults of :class:`service.settings.Settings`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from . import CliError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from capture.zconfig import add_zenoh_arguments
+
+    p = subparsers.add_parser(
+        "serve", help="run the estimator service (REST API, live windows, Rerun)",
+        description="Serve the REST API, estimate sliding windows of the silhouettes streamed on "
+                    "posecal/*/*/silhouette, publish posecal/<rig>/estimate and log to Rerun. "
+                    "Zenoh: the service listens on tcp/127.0.0.1:7447 (where agents connect by "
+                    "default) unless --listen is given.")
+    p.add_argument("--host", default="127.0.0.1", help="HTTP bind address (default: 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="HTTP port (default: 8000)")
+    p.add_argument("--rerun", metavar="SINK",
+                   help="save:PATH (.rrd file) | serve[:PORT] (gRPC on 127.0.0.1) | connect[:URL]")
+    p.add_argument("--db", metavar="PATH|URL", help="SQLite file or SQLAlchemy URL (default: posecal.db)")
+    p.add_argument("--data-dir", metavar="DIR", help="where job uploads are kept (default: posecal-data)")
+    p.add_argument("--model", metavar="PATH", help="appearance model (default: the cached default model)")
+    p.add_argument("--window", type=int, metavar="N", help="frames per live window (default: 20)")
+    p.add_argument("--hop", type=int, metavar="N", help="frames between windows (default: 10)")
+    p.add_argument("--job-workers", type=int, metavar="N", help="job processes (default: 1)")
+    p.add_argument("--no-live", action="store_true", help="REST jobs only: no Zenoh subscription")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=run_serve)
+
+
+def settings_from_args(args: argparse.Namespace, **extra):
+    """:class:`~service.settings.Settings` from the command line (and the environment)."""
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    given = {name: value for name, value in (
+        ("rerun", args.rerun), ("db", args.db), ("data_dir", args.data_dir), ("model_path", args.model),
+        ("window_length", args.window), ("window_hop", args.hop), ("job_workers", args.job_workers),
+        ("zenoh_connect", args.connect), ("zenoh_listen", args.listen),
+        ("zenoh_config", args.zenoh_config)) if value is not None}
+    if args.no_live:
+        given["live"] = False
+    if args.mode != "peer":
+        given["zenoh_mode"] = args.mode
+    if args.multicast:
+        given["zenoh_multicast"] = True
+    try:
+        return Settings(**given, **extra)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise CliError(f"invalid settings: {problems}") from None
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import create_app
+    from service.settings import get_settings
+
+    from estimator.appearance import load_model
+
+    settings = settings_from_args(args)
+    if settings.model_path is not None:
+        try:
+            load_model(settings.model_path)
+        except (OSError, ValueError) as exc:
+            raise CliError(f"appearance model {settings.model_path}: {exc}") from None
+    app = create_app()
+    app.dependency_overrides[get_settings] = lambda: settings
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    return 0

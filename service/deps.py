@@ -1,0 +1,47 @@
+"""Shared dependencies and their typed aliases (FastAPI "Bigger Applications")."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Request
+
+from .jobs import JobStore
+from .live import LiveService
+from .metrics import Metrics
+from .runner import JobRunner
+from .runtime import Runtime
+from .settings import Settings, get_settings
+
+__all__ = ["LiveDep", "MetricsDep", "RunnerDep", "RuntimeDep", "SettingsDep", "StoreDep"]
+
+
+def get_runtime(request: Request) -> Runtime:
+    return request.app.state.runtime
+
+
+def get_store(request: Request) -> JobStore:
+    return get_runtime(request).store
+
+
+def get_runner(request: Request) -> JobRunner:
+    return get_runtime(request).runner
+
+
+def get_metrics(request: Request) -> Metrics:
+    return get_runtime(request).metrics
+
+
+def get_live(request: Request) -> LiveService:
+    live = get_runtime(request).live
+    if live is None:
+        raise HTTPException(503, "live estimation is disabled on this server (POSECAL_LIVE=false)")
+    return live
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
+StoreDep = Annotated[JobStore, Depends(get_store)]
+RunnerDep = Annotated[JobRunner, Depends(get_runner)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+LiveDep = Annotated[LiveService, Depends(get_live)]

@@ -1,0 +1,584 @@
+"""Live estimation: silhouettes from Zenoh -> synchronized frames -> sliding windows -> estimates.
+
+Per rig:
+
+1. :class:`FrameAssembler` groups the cameras' messages into frame sets: by
+   ``frame_index`` when the agents say ``sync="index"`` (hardware-triggered or
+   synthetic rigs), else by ``capture_ns`` within ``sync_tolerance_ms``. A frame
+   set is closed when every expected camera is in it or has already sent a later
+   frame (Zenoh keeps each publisher's order), or after ``max_wait_ms``; missing
+   cameras then count as "no data". Late messages (for a closed frame) and
+   duplicates are dropped and counted. A camera silent for ``camera_timeout_s``
+   is no longer waited for; an agent restart (new epoch) resets the rig.
+2. :class:`WindowBuffer` cuts windows of ``window_length`` frame sets every
+   ``window_hop``; a jump in frame index larger than half a window starts over.
+3. Windows wait in a bounded queue (oldest dropped on overflow); consumer
+   threads send each to the process pool (:func:`service.worker.estimate_window`),
+   smooth the viewpoints (:class:`ViewpointTrack`), publish the result on
+   ``posecal/<rig>/estimate``, keep it for the REST API and log it to Rerun.
+
+The Zenoh callback thread only does bookkeeping; nothing blocks the event loop.
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import json
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from capture.receiver import Received, SilhouetteReceiver
+from capture.wire import SilhouetteMessage, estimate_key
+from estimator.pipeline import CameraTrack, crop_to_box
+
+from .metrics import Metrics
+from .settings import Settings
+from .worker import StageBundle, estimate_window, register_stage
+
+__all__ = ["FrameAssembler", "FrameSet", "LiveService", "ViewpointTrack", "WindowBuffer"]
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------- frame sets
+
+
+@dataclass
+class FrameSet:
+    """One synchronized multi-camera frame (some cameras may be missing)."""
+
+    index: int  # frame index (of the first message, for time-synchronised rigs)
+    capture_ns: int
+    created: float  # monotonic time the first message arrived
+    parts: dict[str, SilhouetteMessage] = field(default_factory=dict)
+    last_receive_ns: int = 0
+
+
+class FrameAssembler:
+    """Group one rig's messages into :class:`FrameSet` objects, emitted in order.
+
+    Each camera's arrival lag behind the first camera of a frame set is learned
+    (agents that started pacing at different moments stay offset by a constant
+    delay); a frame set waits ``max_wait`` plus 1.5x the lag of the cameras it
+    still misses, at most ``max_lag_s``. During the first ``max_wait`` after the
+    rig's first message every frame set waits, so cameras that start together
+    are all known before the first frame closes.
+    """
+
+    max_lag_s = 2.0
+
+    def __init__(self, *, tolerance_ms: float, max_wait_ms: float, camera_timeout_s: float) -> None:
+        self.tolerance_ns = int(tolerance_ms * 1e6)
+        self.max_wait = max_wait_ms / 1e3
+        self.camera_timeout = camera_timeout_s
+        self.open: list[FrameSet] = []  # sorted by (index or capture time)
+        self.last_seen: dict[str, float] = {}
+        self.lag: dict[str, float] = {}
+        self.last_closed: FrameSet | None = None
+        self._closed_at: collections.OrderedDict[int, float] = collections.OrderedDict()
+        self._started: float | None = None
+        self.late = self.duplicate = self.missing = 0
+
+    @staticmethod
+    def _key(fs: FrameSet, by_index: bool) -> int:
+        return fs.index if by_index else fs.capture_ns
+
+    def _learn(self, cam: str, lag: float) -> None:
+        old = self.lag.get(cam, lag)
+        a = 0.5 if lag > old else 0.1  # learn a growing lag fast, forget it slowly
+        self.lag[cam] = min(self.max_lag_s, old + a * (lag - old))
+
+    def add(self, msg: SilhouetteMessage, receive_ns: int, now: float) -> list[FrameSet]:
+        """Add one message; returns the frame sets it closed (in order)."""
+        cam = msg.camera
+        self.last_seen[cam] = now
+        if self._started is None:
+            self._started = now
+        by_index = msg.sync == "index"
+        key = msg.frame_index if by_index else msg.capture_ns
+        tol = 0 if by_index else self.tolerance_ns
+        if self.last_closed is not None and key <= self._key(self.last_closed, by_index) + tol:
+            self.late += 1
+            created = self._closed_at.get(key) if by_index else None
+            self._learn(cam, now - (created if created is not None else self.last_closed.created))
+            return self.poll(now)
+        target = None
+        for fs in self.open:
+            if abs(self._key(fs, by_index) - key) <= tol:
+                if cam in fs.parts:
+                    if by_index or fs.parts[cam].frame_index == msg.frame_index:
+                        self.duplicate += 1
+                        return self.poll(now)
+                    continue  # another frame of this camera within the tolerance
+                target = fs
+                break
+        if target is None:
+            target = FrameSet(msg.frame_index, msg.capture_ns, now)
+            self.open.append(target)
+            self.open.sort(key=lambda f: self._key(f, by_index))
+        self._learn(cam, now - target.created)
+        target.parts[cam] = msg
+        target.last_receive_ns = max(target.last_receive_ns, receive_ns)
+        return self.poll(now)
+
+    def expected(self, now: float) -> set[str]:
+        """Cameras heard from within the timeout."""
+        return {c for c, t in self.last_seen.items() if now - t <= self.camera_timeout}
+
+    def poll(self, now: float) -> list[FrameSet]:
+        """Close the frame sets that are complete, overtaken or waited for long enough."""
+        out: list[FrameSet] = []
+        expected = self.expected(now)
+        discovering = self._started is not None and now - self._started < self.max_wait
+        while self.open:
+            head = self.open[0]
+            if discovering and now - head.created < self.max_wait:
+                break
+            later = set().union(*(fs.parts for fs in self.open[1:])) if len(self.open) > 1 else set()
+            waiting = expected - set(head.parts) - later
+            if waiting:
+                wait = self.max_wait + 1.5 * max(self.lag.get(c, 0.0) for c in waiting)
+                if now - head.created < min(wait, self.max_lag_s):
+                    break
+            self.open.pop(0)
+            self.missing += len(expected - set(head.parts))
+            self.last_closed = head
+            self._closed_at[head.index] = head.created
+            if len(self._closed_at) > 512:
+                self._closed_at.popitem(last=False)
+            out.append(head)
+        return out
+
+
+# ------------------------------------------------------------------------------ windows
+
+
+@dataclass
+class Window:
+    """Frame sets handed to estimation."""
+
+    rig: str
+    seq: int
+    frames: list[FrameSet]
+    closed_ns: int  # arrival of the last message of the last frame set
+
+    @property
+    def indices(self) -> list[int]:
+        return [fs.index for fs in self.frames]
+
+
+class WindowBuffer:
+    """Cut sliding windows of ``length`` frame sets every ``hop``."""
+
+    def __init__(self, length: int, hop: int) -> None:
+        self.length, self.hop = length, hop
+        self.frames: collections.deque[FrameSet] = collections.deque(maxlen=length)
+        self._since = 0
+        self.resets = 0
+
+    def push(self, fs: FrameSet) -> list[FrameSet] | None:
+        """Add a frame set; returns a window's frames when one is due."""
+        if self.frames and fs.index - self.frames[-1].index > self.length // 2:
+            self.frames.clear()  # a long gap: the frames before belong to another walk
+            self.resets += 1
+        first = len(self.frames) < self.length
+        self.frames.append(fs)
+        self._since += 1
+        if len(self.frames) == self.length and (first or self._since >= self.hop):
+            self._since = 0
+            return list(self.frames)
+        return None
+
+    def clear(self) -> None:
+        self.frames.clear()
+        self._since = 0
+
+
+# ------------------------------------------------------------------- viewpoint smoothing
+
+
+def _circ_diff(a: float, b: float) -> float:
+    return (a - b + 180.0) % 360.0 - 180.0
+
+
+def _view_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
+    return max(abs(_circ_diff(a[0], b[0])), abs(a[1] - b[1]))
+
+
+class ViewpointTrack:
+    """A camera's viewpoint smoothed across windows, with change detection.
+
+    Windows within ``threshold_deg`` of the smoothed value refine it (running
+    mean over up to ``memory`` windows). A window farther away is held as an
+    outlier; ``confirm`` consecutive outliers that agree with each other mean
+    the camera moved: the estimate restarts from them and a change is recorded.
+    A lone outlier never moves the estimate.
+    """
+
+    def __init__(self, *, threshold_deg: float, confirm: int, memory: int = 10) -> None:
+        self.threshold, self.confirm, self.memory = threshold_deg, confirm, memory
+        self.value: tuple[float, float] | None = None
+        self.n = 0
+        self.pending: list[tuple[float, float, int]] = []
+        self.changes: list[dict[str, Any]] = []
+        self.outliers = 0
+
+    def update(self, az: float | None, el: float | None, index: int) -> dict[str, Any]:
+        """Add one window's viewpoint (None/NaN: the camera saw nothing; no change)."""
+        if az is not None and el is not None and np.isfinite(az) and np.isfinite(el):
+            self._update(float(az) % 360.0, float(el), index)
+        return self.state()
+
+    def _update(self, az: float, el: float, index: int) -> None:
+        if self.value is None:
+            self.value, self.n = (az, el), 1
+            return
+        if _view_distance((az, el), self.value) <= self.threshold:
+            self.pending.clear()
+            self.n = min(self.n + 1, self.memory)
+            a = 1.0 / self.n
+            self.value = ((self.value[0] + a * _circ_diff(az, self.value[0])) % 360.0,
+                          self.value[1] + a * (el - self.value[1]))
+            return
+        self.outliers += 1
+        self.pending.append((az, el, index))
+        if len(self.pending) < self.confirm:
+            return
+        ref = self.pending[-1][:2]
+        if all(_view_distance(p[:2], ref) <= self.threshold for p in self.pending):
+            new = (float(np.rad2deg(np.arctan2(*np.sum([[np.sin(np.deg2rad(p[0])), np.cos(np.deg2rad(p[0]))]
+                                                          for p in self.pending], 0)))) % 360.0,
+                   float(np.mean([p[1] for p in self.pending])))
+            self.changes.append({"frame_index": self.pending[0][2],
+                                 "from": [round(v, 2) for v in self.value],
+                                 "to": [round(v, 2) for v in new]})
+            self.value, self.n = new, len(self.pending)
+            self.pending.clear()
+        else:
+            self.pending = self.pending[-(self.confirm - 1):] if self.confirm > 1 else []
+
+    def state(self) -> dict[str, Any]:
+        v = self.value
+        return {"azimuth_deg": None if v is None else round(v[0], 3),
+                "elevation_deg": None if v is None else round(v[1], 3),
+                "windows": self.n, "pending_outliers": len(self.pending),
+                "outliers": self.outliers, "changes": list(self.changes)}
+
+
+# ------------------------------------------------------------------------------ rigs
+
+
+@dataclass
+class CameraState:
+    frames: int = 0
+    last_index: int = -1
+    last_seen_ns: int = 0
+    epoch_ns: int = 0
+    sync: str = "time"
+    image_size: tuple[int, int] = (0, 0)
+
+
+@dataclass
+class RigState:
+    """Everything the service knows about one rig."""
+
+    name: str
+    assembler: FrameAssembler
+    buffer: WindowBuffer
+    cameras: dict[str, CameraState] = field(default_factory=dict)
+    recent: collections.deque = field(default_factory=collections.deque)
+    tracks: dict[str, ViewpointTrack] = field(default_factory=dict)
+    window_seq: int = 0
+    estimated: int = 0
+    skipped: int = 0
+    failed: int = 0
+    dropped: int = 0
+    restarts: int = 0
+    last_logged_index: int = -1
+    publisher: Any = None
+
+
+class LiveService:
+    """Subscribe, assemble, window, estimate, publish; thread-safe queries for the API."""
+
+    def __init__(self, session: zenoh.Session, pool: concurrent.futures.Executor, settings: Settings,
+                 metrics: Metrics, rerun=None) -> None:
+        self.session, self.pool, self.settings = session, pool, settings
+        self.metrics, self.rerun = metrics, rerun
+        self._lock = threading.Lock()
+        self._rigs: dict[str, RigState] = {}
+        self._queue: queue.Queue[Window] = queue.Queue(maxsize=settings.queue_limit)
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._consume, name=f"live-estimate-{i}", daemon=True)
+                         for i in range(settings.live_workers)]
+        self._threads.append(threading.Thread(target=self._tick, name="live-tick", daemon=True))
+        self._rerun_queue: queue.Queue[tuple[str, StageBundle, int, dict]] = queue.Queue(maxsize=4)
+        if rerun is not None:
+            self._threads.append(threading.Thread(target=self._draw, name="live-rerun", daemon=True))
+        for t in self._threads:
+            t.start()
+        self.receiver = SilhouetteReceiver(session, on_message=self._on_message)
+        metrics.watch_receiver(self.receiver.stats)
+
+    # -- ingest (Zenoh callback thread) ---------------------------------------------------
+    def _assembler(self) -> FrameAssembler:
+        s = self.settings
+        return FrameAssembler(tolerance_ms=s.sync_tolerance_ms, max_wait_ms=s.max_wait_ms,
+                              camera_timeout_s=s.camera_timeout_s)
+
+    def _rig(self, name: str) -> RigState:
+        rig = self._rigs.get(name)
+        if rig is None:
+            s = self.settings
+            rig = self._rigs[name] = RigState(name, self._assembler(), WindowBuffer(s.window_length, s.window_hop),
+                                              recent=collections.deque(maxlen=s.history))
+        return rig
+
+    def _on_message(self, item: Received) -> None:
+        msg = item.message
+        now = time.monotonic()
+        with self._lock:
+            rig = self._rig(msg.rig)
+            cam = rig.cameras.get(msg.camera)
+            if item.new_epoch and cam is not None:  # an agent restarted: frame indices start over
+                rig.restarts += 1
+                rig.assembler = self._assembler()
+                rig.buffer.clear()
+            if cam is None:
+                cam = rig.cameras[msg.camera] = CameraState()
+            cam.frames += 1
+            cam.last_index, cam.last_seen_ns = msg.frame_index, item.receive_ns
+            cam.epoch_ns, cam.sync, cam.image_size = msg.epoch_ns, msg.sync, msg.image_size
+            before = (rig.assembler.late, rig.assembler.duplicate, rig.assembler.missing)
+            closed = rig.assembler.add(msg, item.receive_ns, now)
+            self._count_drops(rig, before)
+            windows = self._windows(rig, closed)
+        self.metrics.frames_in.labels(msg.rig, msg.camera).inc()
+        for w in windows:
+            self._enqueue(w)
+
+    def _count_drops(self, rig: RigState, before: tuple[int, int, int]) -> None:
+        a = rig.assembler
+        late, dup, miss = a.late - before[0], a.duplicate - before[1], a.missing - before[2]
+        if late:
+            self.metrics.frames_dropped.labels(rig.name, "late").inc(late)
+        if dup:
+            self.metrics.frames_dropped.labels(rig.name, "duplicate").inc(dup)
+        if miss:
+            self.metrics.frames_missing.labels(rig.name).inc(miss)
+
+    def _windows(self, rig: RigState, closed: list[FrameSet]) -> list[Window]:
+        out = []
+        for fs in closed:
+            frames = rig.buffer.push(fs)
+            if frames is not None:
+                rig.window_seq += 1
+                out.append(Window(rig.name, rig.window_seq, frames, max(f.last_receive_ns for f in frames)))
+        return out
+
+    def _tick(self) -> None:
+        """Close frame sets whose missing cameras did not come in time."""
+        while not self._stop.wait(0.01):
+            now = time.monotonic()
+            windows = []
+            with self._lock:
+                for rig in self._rigs.values():
+                    before = (rig.assembler.late, rig.assembler.duplicate, rig.assembler.missing)
+                    closed = rig.assembler.poll(now)
+                    if closed:
+                        self._count_drops(rig, before)
+                        windows += self._windows(rig, closed)
+            for w in windows:
+                self._enqueue(w)
+
+    def _enqueue(self, w: Window) -> None:
+        while True:
+            try:
+                self._queue.put_nowait(w)
+                return
+            except queue.Full:
+                try:
+                    old = self._queue.get_nowait()
+                except queue.Empty:
+                    continue
+                with self._lock:
+                    self._rigs[old.rig].dropped += 1
+                self.metrics.windows.labels(old.rig, "dropped").inc()
+
+    # -- estimation (consumer threads) ------------------------------------------------------
+    def _consume(self) -> None:
+        while not self._stop.is_set():
+            try:
+                w = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                self._process(w)
+            except Exception:  # keep the consumer alive; the window counts as failed
+                log.exception("window %s/%d failed", w.rig, w.seq)
+                with self._lock:
+                    self._rigs[w.rig].failed += 1
+                self.metrics.windows.labels(w.rig, "failed").inc()
+
+    def _tracks(self, w: Window) -> tuple[dict[str, CameraTrack], dict[str, tuple[int, int]]] | None:
+        cams = sorted(set().union(*(fs.parts for fs in w.frames)))
+        tracks, sizes = {}, {}
+        present = 0
+        for fs in w.frames:
+            present += any(not m.box.empty for m in fs.parts.values())
+        if present < max(1, self.settings.min_present * len(w.frames)):
+            return None
+        for cam in cams:
+            sils, boxes = [], []
+            for fs in w.frames:
+                m = fs.parts.get(cam)
+                tight = None if m is None or m.box.empty else crop_to_box(m.mask)
+                if tight is None:
+                    sils.append(None)
+                    boxes.append([np.nan] * 4)
+                else:
+                    sils.append(tight[0])
+                    b = tight[1]
+                    boxes.append([m.box.x + b[0], m.box.y + b[1], b[2], b[3]])
+                if m is not None:
+                    sizes[cam] = m.image_size
+            tracks[cam] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=True)
+        return tracks, sizes
+
+    def _process(self, w: Window) -> None:
+        built = self._tracks(w)
+        if built is None:
+            with self._lock:
+                self._rigs[w.rig].skipped += 1
+            self.metrics.windows.labels(w.rig, "skipped").inc()
+            return
+        tracks, sizes = built
+        bundle_from = None
+        if self.rerun is not None:
+            with self._lock:
+                last = self._rigs[w.rig].last_logged_index
+            bundle_from = sum(1 for i in w.indices if i <= last)
+        future = self.pool.submit(estimate_window, tracks, w.indices, sizes, bundle_from=bundle_from)
+        try:
+            result, bundle, seconds = future.result(timeout=60)
+        except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
+            log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
+            with self._lock:
+                self._rigs[w.rig].skipped += 1
+            self.metrics.windows.labels(w.rig, "skipped").inc()
+            return
+        with self._lock:
+            rig = self._rigs[w.rig]
+            smoothed = {}
+            for cam, c in result["cameras"].items():
+                track = rig.tracks.get(cam)
+                if track is None:
+                    track = rig.tracks[cam] = ViewpointTrack(
+                        threshold_deg=self.settings.change_threshold_deg,
+                        confirm=self.settings.change_windows)
+                smoothed[cam] = track.update(c["azimuth_deg"], c["elevation_deg"], w.indices[-1])
+            publisher = rig.publisher
+            if publisher is None:
+                publisher = rig.publisher = self.session.declare_publisher(estimate_key(w.rig))
+        done_ns = time.time_ns()
+        latency = max(0.0, (done_ns - w.closed_ns) / 1e9)
+        result.update({
+            "rig": w.rig,
+            "window": {"seq": w.seq, "first_index": w.indices[0], "last_index": w.indices[-1],
+                       "frames": len(w.frames), "cameras": sorted(tracks)},
+            "smoothed": smoothed,
+            "latency_ms": {"estimate": round(seconds * 1e3, 2), "last_frame_to_result": round(latency * 1e3, 2)},
+            "published_ns": done_ns,
+        })
+        publisher.put(json.dumps(result, separators=(",", ":")))
+        self.metrics.window_latency.observe(latency)
+        self.metrics.window_estimate.observe(seconds)
+        self.metrics.windows.labels(w.rig, "estimated").inc()
+        with self._lock:
+            rig.recent.append(result)
+            rig.estimated += 1
+            rig.last_logged_index = max(rig.last_logged_index, w.indices[-1])
+        if self.rerun is not None and bundle is not None:
+            try:
+                self._rerun_queue.put_nowait((w.rig, bundle, w.indices[-1], smoothed))
+            except queue.Full:  # drawing fell behind: skip this window's drawing, not its estimate
+                self.metrics.rerun_skipped.labels(w.rig).inc()
+
+    def _draw(self) -> None:
+        """Rerun logging, off the estimation path: registration in the pool, then log."""
+        while not self._stop.is_set() or not self._rerun_queue.empty():
+            try:
+                rig, bundle, last, smoothed = self._rerun_queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                bundle = self.pool.submit(register_stage, bundle).result(timeout=60)
+                self.rerun.log_window(f"rigs/{rig}", bundle)
+                self.rerun.log_smoothed(f"rigs/{rig}", last, smoothed)
+            except Exception:
+                log.exception("drawing window of %s failed", rig)
+
+    # -- queries (API threads) -------------------------------------------------------------
+    def rig_names(self) -> list[str]:
+        with self._lock:
+            return sorted(self._rigs)
+
+    def summary(self, name: str) -> dict[str, Any] | None:
+        with self._lock:
+            rig = self._rigs.get(name)
+            if rig is None:
+                return None
+            a = rig.assembler
+            latest = rig.recent[-1] if rig.recent else None
+            return {
+                "rig": rig.name,
+                "cameras": {c: {"frames": s.frames, "last_index": s.last_index,
+                                "last_seen_ns": s.last_seen_ns, "epoch_ns": s.epoch_ns, "sync": s.sync,
+                                "image_size": list(s.image_size)} for c, s in sorted(rig.cameras.items())},
+                "windows": {"seq": rig.window_seq, "estimated": rig.estimated, "skipped": rig.skipped,
+                            "failed": rig.failed, "dropped": rig.dropped},
+                "frames": {"late": a.late, "duplicate": a.duplicate, "missing": a.missing,
+                           "restarts": rig.restarts, "gaps": rig.buffer.resets},
+                "viewpoints": {c: t.state() for c, t in sorted(rig.tracks.items())},
+                "latest_seq": None if latest is None else latest["window"]["seq"],
+            }
+
+    def latest(self, name: str) -> dict | None:
+        with self._lock:
+            rig = self._rigs.get(name)
+            return None if rig is None or not rig.recent else rig.recent[-1]
+
+    def since(self, name: str, seq: int, limit: int) -> list[dict] | None:
+        with self._lock:
+            rig = self._rigs.get(name)
+            if rig is None:
+                return None
+            return [r for r in rig.recent if r["window"]["seq"] > seq][:limit]
+
+    def has_rig(self, name: str) -> bool:
+        with self._lock:
+            return name in self._rigs
+
+    def close(self) -> None:
+        self._stop.set()
+        try:
+            self.receiver.close()
+        except Exception:  # the session may already be closed
+            pass
+        for t in self._threads:
+            t.join(timeout=5)
+        with self._lock:
+            for rig in self._rigs.values():
+                if rig.publisher is not None:
+                    try:
+                        rig.publisher.undeclare()
+                    except Exception:
+                        pass

@@ -1,0 +1,90 @@
+"""Prometheus metrics of one service instance (its own registry, so apps don't collide).
+
+Frames in, drops by reason, windows by outcome, latency histograms (window
+end-to-end, estimation, jobs), jobs by state (read from the store at scrape
+time) and the receiver's reject counters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.registry import Collector
+
+__all__ = ["Metrics"]
+
+_LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0, 5.0)
+_JOB_BUCKETS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 30.0, 60.0, 300.0)
+
+
+class _Callback(Collector):
+    """Metrics computed at scrape time from a callable returning metric families."""
+
+    def __init__(self, fn: Callable[[], Iterator]) -> None:
+        self._fn = fn
+
+    def collect(self) -> Iterator:
+        yield from self._fn()
+
+
+class Metrics:
+    """All metrics of the service; ``render()`` is the ``/metrics`` body."""
+
+    def __init__(self) -> None:
+        r = self.registry = CollectorRegistry()
+        self.frames_in = Counter("posecal_frames_in", "silhouette messages accepted",
+                                 ["rig", "camera"], registry=r)
+        self.frames_dropped = Counter("posecal_frames_dropped", "silhouette messages dropped "
+                                      "(late, duplicate, stale epoch, queue overflow)",
+                                      ["rig", "reason"], registry=r)
+        self.frames_missing = Counter("posecal_frames_missing", "camera frames absent when a "
+                                      "synchronized frame set was closed", ["rig"], registry=r)
+        self.windows = Counter("posecal_windows", "sliding windows by outcome "
+                               "(estimated, skipped, failed, dropped)", ["rig", "outcome"], registry=r)
+        self.window_latency = Histogram("posecal_window_latency_seconds", "arrival of a window's "
+                                        "last frame to its published estimate",
+                                        buckets=_LATENCY_BUCKETS, registry=r)
+        self.window_estimate = Histogram("posecal_window_estimate_seconds", "estimate_walk time "
+                                         "of one window in a worker", buckets=_LATENCY_BUCKETS, registry=r)
+        self.rerun_skipped = Counter("posecal_rerun_windows_skipped", "live windows not drawn in "
+                                     "Rerun because drawing fell behind (estimates unaffected)",
+                                     ["rig"], registry=r)
+        self.jobs_submitted = Counter("posecal_jobs_submitted", "jobs accepted", registry=r)
+        self.jobs_finished = Counter("posecal_jobs_finished", "jobs that ended, by final state",
+                                     ["state"], registry=r)
+        self.job_duration = Histogram("posecal_job_duration_seconds", "claim to end of a job",
+                                      buckets=_JOB_BUCKETS, registry=r)
+        self.uploads_rejected = Counter("posecal_uploads_rejected", "uploads answered with a 4xx",
+                                        ["status"], registry=r)
+
+    def watch_jobs(self, counts: Callable[[], dict[str, int]]) -> None:
+        """Export ``posecal_jobs{state}`` from the store at scrape time."""
+        def families():
+            g = GaugeMetricFamily("posecal_jobs", "jobs in the store by state", labels=["state"])
+            for state, n in counts().items():
+                g.add_metric([state], n)
+            yield g
+        self.registry.register(_Callback(families))
+
+    def watch_receiver(self, stats: Callable[[], object]) -> None:
+        """Export the Zenoh receiver's counters (rejected, lost, restarts, overflow)."""
+        def families():
+            s = stats()
+            if s is None:
+                return
+            for name, doc, value in (
+                ("posecal_receiver_rejected", "malformed silhouette messages", s.rejected),
+                ("posecal_receiver_lost", "sequence gaps within an agent epoch", s.lost),
+                ("posecal_receiver_restarts", "agent restarts (new epochs)", s.restarts),
+                ("posecal_receiver_overflow", "messages dropped by a full queue", s.overflow),
+                ("posecal_receiver_stale", "messages from an older epoch", s.stale),
+            ):
+                c = CounterMetricFamily(name, doc)
+                c.add_metric([], value)
+                yield c
+        self.registry.register(_Callback(families))
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

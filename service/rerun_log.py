@@ -1,0 +1,169 @@
+"""Every Rerun call of the service: one :class:`RerunLog` (one RecordingStream) per run.
+
+Laid out like Rerun's human_pose_tracking example: the skeleton's
+AnnotationContext (keypoint names and bones) is logged once, statically; every
+per-frame item sets the ``frame`` timeline, then logs. Entity paths follow
+coordinate spaces, under a prefix per rig (``rigs/<rig>``) or job
+(``jobs/<id>``)::
+
+    <P>/inputs/<cam>                      input silhouette crop (SegmentationImage)
+    <P>/registration/<cam>/silhouette     registered silhouette (canvas)
+    <P>/registration/<cam>/cluster_mean   mean of the matched cluster, beside it
+    <P>/viewpoints/<cam>/cloud            member viewpoints of the matched clusters (az, el)
+    <P>/viewpoints/<cam>/ellipse          the fitted 2-sigma ellipse
+    <P>/viewpoints/<cam>/smoothed         the viewpoint smoothed across windows (live)
+    <P>/phase/observed/<cam>              per-camera phase observation (scalar)
+    <P>/phase/hmm                         the HMM (Viterbi) path (scalar)
+    <P>/world/skeleton                    3D joints (person frame), keypoints + bones
+    <P>/world/cameras/<cam>               estimated camera: Transform3D + Pinhole
+    <P>/world/cameras/<cam>/box           silhouette box in that camera's image
+    <P>/world/cameras/<cam>/joints        2D joints in that camera's image
+
+Fed only by plain arrays (:class:`service.worker.StageBundle`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+import rerun as rr
+
+from estimator.camera import viewpoint_direction, world_to_camera_rotation
+from estimator.joints import BONES, JOINT_NAMES
+
+from .worker import StageBundle
+
+__all__ = ["RerunLog", "STAGE_PATHS"]
+
+log = logging.getLogger(__name__)
+
+TIMELINE = "frame"
+CAMERA_DISTANCE_M = 4.0  # where cameras are drawn: scaled orthography fixes no distance
+STAGE_PATHS = ("inputs/{cam}", "registration/{cam}/silhouette", "registration/{cam}/cluster_mean",
+               "viewpoints/{cam}/cloud", "viewpoints/{cam}/ellipse", "phase/observed/{cam}",
+               "phase/hmm", "world/skeleton", "world/cameras/{cam}", "world/cameras/{cam}/joints")
+"""Entity paths (under a prefix) that every estimated window writes."""
+
+_WALKER = 0
+
+
+class RerunLog:
+    """One recording of the service run, streamed to one sink.
+
+    Parameters
+    ----------
+    sink : ("save", path) | ("serve", port) | ("connect", url)
+        A ``.rrd`` file, a gRPC server on 127.0.0.1 that viewers connect to, or
+        a viewer (gRPC server) to connect to.
+    """
+
+    def __init__(self, sink: tuple[str, str | int], *, recording_id: str | None = None) -> None:
+        kind, target = sink
+        self.stream = rr.RecordingStream("posecal", recording_id=recording_id)
+        self.uri: str | None = None
+        if kind == "save":
+            self.stream.set_sinks(rr.FileSink(str(target)))
+        elif kind == "serve":
+            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=int(target))
+            self.uri = server.uri
+            self.stream.set_sinks(server)
+        elif kind == "connect":
+            self.stream.set_sinks(rr.GrpcSink(str(target)))
+        else:
+            raise ValueError(f"unknown rerun sink {kind!r}")
+        self._lock = threading.Lock()
+        self._prefixes: set[str] = set()
+        self.stream.log("/", rr.AnnotationContext([rr.ClassDescription(
+            info=rr.AnnotationInfo(id=_WALKER, label="walker", color=(90, 200, 255)),
+            keypoint_annotations=[rr.AnnotationInfo(id=i, label=n) for i, n in enumerate(JOINT_NAMES)],
+            keypoint_connections=list(BONES))]), static=True)
+
+    def _setup(self, prefix: str) -> None:
+        if prefix not in self._prefixes:
+            self.stream.log(f"{prefix}/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+            self._prefixes.add(prefix)
+
+    def log_window(self, prefix: str, b: StageBundle) -> None:
+        """Log every stage of one estimate; per-frame items from ``b.extra['from_frame']`` on."""
+        with self._lock:
+            self._setup(prefix)
+            self._log_window(prefix, b)
+
+    def _log_window(self, p: str, b: StageBundle) -> None:
+        s = self.stream
+        first = int(b.extra.get("from_frame", 0))
+        for t in range(first, len(b.indices)):
+            s.set_time(TIMELINE, sequence=int(b.indices[t]))
+            for cam in b.crops:
+                crop = b.crops[cam][t]
+                if crop is not None:
+                    s.log(f"{p}/inputs/{cam}", rr.SegmentationImage((crop > 0).astype(np.uint8)))
+                reg = b.registered[cam][t]
+                if reg is not None:
+                    s.log(f"{p}/registration/{cam}/silhouette", rr.SegmentationImage((reg > 0).astype(np.uint8)))
+                    label = int(b.labels[cam][t])
+                    if label in b.means:
+                        s.log(f"{p}/registration/{cam}/cluster_mean", rr.Image(b.means[label]))
+                obs = b.observations[cam][t]
+                if np.isfinite(obs):
+                    s.log(f"{p}/phase/observed/{cam}", rr.Scalars(float(obs)))
+                box = b.boxes[cam][t]
+                if np.all(np.isfinite(box)):
+                    s.log(f"{p}/world/cameras/{cam}/box", rr.Boxes2D(mins=box[:2], sizes=box[2:]))
+                j2d = b.joints2d[cam][t]
+                if np.all(np.isfinite(j2d)):
+                    s.log(f"{p}/world/cameras/{cam}/joints", rr.Points2D(
+                        j2d, class_ids=_WALKER, keypoint_ids=np.arange(len(JOINT_NAMES)), radii=2.0))
+            s.log(f"{p}/phase/hmm", rr.Scalars(float(b.phase[t])))
+            s.log(f"{p}/world/skeleton", rr.Points3D(
+                b.joints3d[t], class_ids=_WALKER, keypoint_ids=np.arange(len(JOINT_NAMES)), radii=0.03))
+        # Per-window items at the window's last frame.
+        s.set_time(TIMELINE, sequence=int(b.indices[-1]))
+        for cam, vp in b.viewpoints.items():
+            az, el = vp["azimuth_deg"], vp["elevation_deg"]
+            if not (np.isfinite(az) and np.isfinite(el)):
+                continue
+            cloud = b.clouds.get(cam)
+            if cloud is not None and len(cloud):
+                unwrapped = np.stack([az + (cloud[:, 0] - az + 180.0) % 360.0 - 180.0, cloud[:, 1]], -1)
+                s.log(f"{p}/viewpoints/{cam}/cloud", rr.Points2D(unwrapped, radii=0.6))
+            s.log(f"{p}/viewpoints/{cam}/ellipse", rr.LineStrips2D([_ellipse(az, el, vp["covariance"])]))
+            self._log_camera(p, cam, az, el, b.image_size.get(cam, (640, 480)))
+
+    def _log_camera(self, p: str, cam: str, az: float, el: float, size: tuple[int, int]) -> None:
+        R = world_to_camera_rotation(az, el)  # rows: u, v, viewing direction = camera RDF axes
+        self.stream.log(f"{p}/world/cameras/{cam}", rr.Transform3D(
+            translation=CAMERA_DISTANCE_M * viewpoint_direction(az, el), mat3x3=R.T))
+        self.stream.log(f"{p}/world/cameras/{cam}", rr.Pinhole(
+            resolution=[int(size[0]), int(size[1])], focal_length=1.2 * float(size[0]),
+            camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.8))
+
+    def log_smoothed(self, prefix: str, index: int, smoothed: dict[str, dict]) -> None:
+        """The live viewpoint smoothed across windows, per camera."""
+        with self._lock:
+            self.stream.set_time(TIMELINE, sequence=int(index))
+            for cam, sm in smoothed.items():
+                if sm.get("azimuth_deg") is None:
+                    continue
+                self.stream.log(f"{prefix}/viewpoints/{cam}/smoothed", rr.Points2D(
+                    [[sm["azimuth_deg"], sm["elevation_deg"]]], radii=3.0, colors=(255, 80, 80)))
+
+    def close(self) -> None:
+        with self._lock:
+            try:
+                self.stream.flush(timeout_sec=10.0)
+            finally:
+                self.stream.disconnect()
+
+
+def _ellipse(az: float, el: float, cov: np.ndarray, n: int = 48, k: float = 2.0) -> np.ndarray:
+    """Points of the k-sigma ellipse of ``cov`` around (az, el): (n + 1, 2)."""
+    cov = np.asarray(cov, float)
+    if cov.shape != (2, 2) or not np.all(np.isfinite(cov)):
+        cov = np.eye(2)
+    w, v = np.linalg.eigh((cov + cov.T) / 2)
+    a = np.linspace(0, 2 * np.pi, n + 1)
+    circle = np.stack([np.cos(a), np.sin(a)], -1)
+    return np.array([az, el]) + k * (circle * np.sqrt(np.maximum(w, 1e-6))) @ v.T

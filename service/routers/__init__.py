@@ -1,0 +1,1 @@
+"""REST routers: jobs, live rigs, health and metrics."""

@@ -1,0 +1,101 @@
+"""Batch jobs: submit (202), status, result, list, cancel, delete."""
+
+from __future__ import annotations
+
+import shutil
+import uuid
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, HTTPException, Query, Response, UploadFile, status
+
+from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep
+from ..jobs import STATES
+from ..schemas import JobList, JobOut, job_out
+from ..worker import UploadError, stage_upload
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+
+def _job_or_404(store: StoreDep, job_id: str):
+    row = store.get(job_id)
+    if row is None:
+        raise HTTPException(404, f"unknown job {job_id!r}")
+    return row
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings: SettingsDep,
+               metrics: MetricsDep,
+               files: Annotated[list[UploadFile], File(description="one zipped sequence folder, "
+                                                       "or one video per camera (<camera>.mp4)")],
+               warmup: Annotated[int | None, Form(ge=1, description="videos: background frames "
+                                                  "at the start (default: a quarter, at most 100)")] = None,
+               ) -> JobOut:
+    """Validate and stage the upload, queue the job; 4xx with the reason if the upload is bad."""
+    job_id = uuid.uuid4().hex
+    job_dir = settings.data_dir / job_id
+    try:
+        total = sum(f.size or 0 for f in files)
+        if total > settings.upload_limit_bytes:
+            raise UploadError(413, f"upload of {total} bytes exceeds the limit of {settings.upload_limit_bytes} bytes")
+        staged = stage_upload([(f.filename or "", f.file) for f in files], job_dir,
+                              limit_bytes=settings.upload_limit_bytes, max_frames=settings.max_frames)
+    except UploadError as exc:
+        shutil.rmtree(job_dir, ignore_errors=True)
+        metrics.uploads_rejected.labels(str(exc.status)).inc()
+        raise HTTPException(exc.status, str(exc)) from None
+    options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames}
+    if warmup is not None:
+        options["warmup"] = warmup
+    row = store.create(kind=staged.kind, input_dir=str(staged.path), options=options, job_id=job_id)
+    metrics.jobs_submitted.inc()
+    runner.wake()
+    response.headers["Location"] = f"/v1/jobs/{job_id}"
+    return job_out(row)
+
+
+@router.get("", response_model=JobList)
+def list_jobs(store: StoreDep,
+              state: Annotated[str | None, Query(pattern="^(" + "|".join(STATES) + ")$")] = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              offset: Annotated[int, Query(ge=0)] = 0) -> JobList:
+    """Jobs, newest first, optionally of one state."""
+    return JobList(jobs=[job_out(r) for r in store.list(state=state, limit=limit, offset=offset)],
+                   counts=store.counts())
+
+
+@router.get("/{job_id}", response_model=JobOut)
+def get_job(job_id: str, store: StoreDep) -> JobOut:
+    return job_out(_job_or_404(store, job_id))
+
+
+@router.get("/{job_id}/result")
+def get_result(job_id: str, store: StoreDep) -> dict[str, Any]:
+    """The DESIGN.md result of a finished job; 409 while it is not done."""
+    row = _job_or_404(store, job_id)
+    if row.state != "done":
+        detail = f"job {job_id} is {row.state}" + (f": {row.error}" if row.error else "")
+        raise HTTPException(409, detail)
+    result = store.result(job_id)
+    if result is None:
+        raise HTTPException(409, f"job {job_id} has no result")
+    return result
+
+
+@router.post("/{job_id}/cancel", response_model=JobOut)
+def cancel_job(job_id: str, store: StoreDep) -> JobOut:
+    """Cancel a queued or running job; 409 if it already ended."""
+    row = _job_or_404(store, job_id)
+    if row.state not in ("queued", "running"):
+        raise HTTPException(409, f"job {job_id} already ended ({row.state})")
+    return job_out(store.cancel(job_id))
+
+
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_job(job_id: str, store: StoreDep, settings: SettingsDep) -> Response:
+    """Forget a job and its files (a running one is cancelled first)."""
+    _job_or_404(store, job_id)
+    store.cancel(job_id)
+    store.delete(job_id)
+    shutil.rmtree(settings.data_dir / job_id, ignore_errors=True)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

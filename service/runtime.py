@@ -1,0 +1,131 @@
+"""What the lifespan owns: store, process pools, Zenoh session, live windows, job runner, Rerun.
+
+:meth:`Runtime.start` builds everything from one :class:`~service.settings.Settings`
+and :meth:`Runtime.stop` closes it in reverse order. Jobs left running by the
+previous process are re-queued at start; a job running at stop is interrupted
+(its worker is terminated) and re-queued by the next start.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from .jobs import JobStore
+from .metrics import Metrics
+from .runner import JobRunner
+from .settings import Settings
+from .worker import make_pool
+
+__all__ = ["Runtime", "resolve_model_path", "shutdown_pool"]
+
+log = logging.getLogger(__name__)
+
+
+def resolve_model_path(settings: Settings) -> Path:
+    """The model file to load: ``model_path``, else the cached default (built if missing).
+
+    The file is loaded once here, so a missing, foreign or outdated model fails the
+    start with its reason (ValueError) rather than as a broken worker pool.
+    """
+    from estimator.appearance import load_model
+
+    if settings.model_path is not None:
+        if not Path(settings.model_path).is_file():
+            raise FileNotFoundError(f"appearance model {settings.model_path} does not exist")
+        load_model(settings.model_path)
+        return Path(settings.model_path)
+    import os
+
+    from .cli.model import default_model_path, get_default_model
+
+    if settings.cache_dir is not None:
+        os.environ["POSECAL_CACHE"] = str(settings.cache_dir)
+    path = default_model_path()
+    if not path.exists():
+        log.warning("building the default appearance model in %s (about 2 minutes, once)", path.parent)
+        get_default_model(progress=False)
+    return path
+
+
+def shutdown_pool(pool: concurrent.futures.ProcessPoolExecutor | None) -> None:
+    """Stop a pool now: queued calls are cancelled, running workers terminated."""
+    if pool is None:
+        return
+    processes = list(getattr(pool, "_processes", {}).values())  # no public API to terminate
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in processes:
+        if p.is_alive():
+            p.terminate()
+    for p in processes:
+        p.join(timeout=5)
+
+
+@dataclass
+class Runtime:
+    settings: Settings
+    model_path: Path
+    store: JobStore
+    metrics: Metrics
+    job_pool: concurrent.futures.ProcessPoolExecutor | None
+    live_pool: concurrent.futures.ProcessPoolExecutor | None
+    runner: JobRunner
+    session: object | None = None
+    live: object | None = None
+    rerun: object | None = None
+
+    @classmethod
+    async def start(cls, settings: Settings) -> "Runtime":
+        model_path = await asyncio.to_thread(resolve_model_path, settings)
+        store = JobStore(settings.db_url)
+        requeued = await asyncio.to_thread(store.requeue_interrupted)
+        if requeued:
+            log.info("re-queued %d interrupted job(s): %s", len(requeued), ", ".join(requeued))
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        metrics = Metrics()
+        metrics.watch_jobs(store.counts)
+        rerun = None
+        if settings.rerun_sink is not None:
+            from .rerun_log import RerunLog
+
+            rerun = RerunLog(settings.rerun_sink)
+            if rerun.uri:
+                log.info("Rerun: connect a viewer with `rerun %s`", rerun.uri)
+        job_pool, live_pool = await asyncio.gather(
+            asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
+            asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none())
+        runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
+                           rerun=rerun if settings.rerun_jobs else None)
+        rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner, rerun=rerun)
+        if settings.live:
+            import zenoh
+
+            from capture.zconfig import build_config
+
+            from .live import LiveService
+
+            conf = build_config(mode=settings.zenoh_mode, connect=settings.zenoh_connect,
+                                listen=settings.zenoh_listen, config_file=settings.zenoh_config,
+                                multicast=settings.zenoh_multicast)
+            rt.session = await asyncio.to_thread(zenoh.open, conf)
+            rt.live = LiveService(rt.session, live_pool, settings, metrics, rerun=rerun)
+        return rt
+
+    async def stop(self) -> None:
+        await self.runner.close()
+        if self.live is not None:
+            await asyncio.to_thread(self.live.close)
+        if self.session is not None:
+            await asyncio.to_thread(self.session.close)
+        await asyncio.to_thread(shutdown_pool, self.job_pool)
+        await asyncio.to_thread(shutdown_pool, self.live_pool)
+        if self.rerun is not None:
+            await asyncio.to_thread(self.rerun.close)
+        self.store.close()
+
+
+async def _none() -> None:
+    return None

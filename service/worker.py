@@ -1,0 +1,453 @@
+"""CPU work of the service: upload intake, batch jobs and window estimation.
+
+Everything heavy runs in worker processes (:func:`make_pool`) that load the
+appearance model once (:func:`init_worker`). The event loop only awaits
+futures. Two entry points run in the pool:
+
+- :func:`run_job`: read the staged input (sequence folder or videos), build the
+  camera tracks, :func:`~estimator.pipeline.estimate_walk`, write the result to
+  the job store, writing progress as it goes;
+- :func:`estimate_window`: one live window.
+
+Both can return a :class:`StageBundle`: the plain arrays of every stage that
+:mod:`service.rerun_log` draws (inputs, registration, matched cluster means,
+viewpoint clouds, phase observations, HMM path, joints).
+
+:func:`stage_upload` runs in the API's thread pool when a job is submitted: it
+unpacks and validates the upload so a bad one is answered with a 4xx at once.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import multiprocessing
+import os
+import shutil
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from estimator.appearance import AppearanceModel, load_model
+from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.sequence import SequenceError, read_sequence
+
+from .jobs import JobGone, JobStore
+
+__all__ = [
+    "StageBundle",
+    "UploadError",
+    "estimate_window",
+    "init_worker",
+    "make_pool",
+    "run_job",
+    "stage_upload",
+]
+
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v")
+_MAX_ZIP_MEMBERS = 200_000
+_MAX_CLOUD = 1500  # viewpoint-cloud points kept per camera for drawing
+_NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
+
+
+# ----------------------------------------------------------------------- upload intake
+
+
+class UploadError(ValueError):
+    """A rejected upload: ``status`` is the HTTP code, ``str()`` the reason."""
+
+    def __init__(self, status: int, reason: str) -> None:
+        super().__init__(reason)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class StagedInput:
+    """A validated job input on disk."""
+
+    kind: str  # "sequence" | "videos"
+    path: Path  # the sequence folder, or the folder of <camera>.<ext> videos
+    cameras: list[str]
+    n_frames: int
+
+
+def stage_upload(files: list[tuple[str, BinaryIO]], job_dir: Path, *, limit_bytes: int,
+                 max_frames: int) -> StagedInput:
+    """Unpack and validate an upload into ``job_dir``; raise :class:`UploadError` if bad.
+
+    ``files`` are ``(filename, file object)``: one ``.zip`` holding a sequence
+    folder (``rig.json`` at its top or in its single top folder), or one video
+    per camera named ``<camera>.<ext>``.
+    """
+    if not files:
+        raise UploadError(422, "no files uploaded: send one zipped sequence folder or one video per camera")
+    job_dir.mkdir(parents=True, exist_ok=True)
+    names = [Path(name or "").name for name, _ in files]
+    if len(files) == 1 and names[0].lower().endswith(".zip"):
+        return _stage_zip(files[0][1], job_dir, limit_bytes=limit_bytes, max_frames=max_frames)
+    if all(n.lower().endswith(VIDEO_EXTENSIONS) for n in names):
+        return _stage_videos(files, job_dir, max_frames=max_frames)
+    raise UploadError(415, f"expected one .zip sequence folder or videos ({', '.join(VIDEO_EXTENSIONS)}), "
+                           f"got {names}")
+
+
+def _stage_zip(fh: BinaryIO, job_dir: Path, *, limit_bytes: int, max_frames: int) -> StagedInput:
+    try:
+        zf = zipfile.ZipFile(fh)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise UploadError(400, f"the upload is not a readable zip file: {exc}") from None
+    with zf:
+        members = zf.infolist()
+        if not members:
+            raise UploadError(422, "the zip file is empty")
+        if len(members) > _MAX_ZIP_MEMBERS:
+            raise UploadError(413, f"the zip holds {len(members)} files, more than {_MAX_ZIP_MEMBERS}")
+        if sum(m.file_size for m in members) > 4 * limit_bytes:
+            raise UploadError(413, "the zip expands to more than 4x the upload limit")
+        out = job_dir / "input"
+        root = out.resolve()
+        for m in members:
+            target = (out / m.filename).resolve()
+            if not target.is_relative_to(root):
+                raise UploadError(400, f"zip member {m.filename!r} points outside the archive")
+        bad = None
+        try:
+            bad = zf.testzip()
+            zf.extractall(out)
+        except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError) as exc:
+            raise UploadError(400, f"corrupt zip file: {exc}") from None
+        if bad is not None:
+            raise UploadError(400, f"corrupt zip file: bad CRC in {bad}")
+    folder = _find_sequence_root(out)
+    try:
+        seq = read_sequence(folder)
+    except SequenceError as exc:
+        raise UploadError(422, str(exc).replace(str(out) + os.sep, "")) from None
+    if seq.n_frames > max_frames:
+        raise UploadError(413, f"{seq.n_frames} frames per camera exceed the limit of {max_frames}")
+    if all(s is None or not s.any() for sils in seq.silhouettes.values() for s in sils):
+        raise UploadError(422, "the sequence holds no silhouette pixels")
+    return StagedInput("sequence", folder, list(seq.cameras), seq.n_frames)
+
+
+def _find_sequence_root(out: Path) -> Path:
+    if (out / "rig.json").is_file():
+        return out
+    tops = [p for p in out.iterdir() if p.name != "__MACOSX"]
+    if len(tops) == 1 and tops[0].is_dir() and (tops[0] / "rig.json").is_file():
+        return tops[0]
+    raise UploadError(422, "no rig.json at the top of the zip (or in its single top folder): "
+                           "zip a sequence folder, see DESIGN.md")
+
+
+def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, *, max_frames: int) -> StagedInput:
+    import cv2
+
+    folder = job_dir / "videos"
+    folder.mkdir(parents=True, exist_ok=True)
+    cameras, sizes, counts = [], {}, {}
+    for name, fh in files:
+        path = Path(Path(name).name)
+        cam = path.stem
+        if not cam or not set(cam) <= _NAME_OK or len(cam) > 64:
+            raise UploadError(422, f"video {path.name!r}: the file name (without extension) is the "
+                                   "camera name and must match [A-Za-z0-9_.-]{1,64}")
+        if cam in cameras:
+            raise UploadError(422, f"two videos for camera {cam!r}")
+        target = folder / f"{cam}{path.suffix.lower()}"
+        with open(target, "wb") as out:
+            shutil.copyfileobj(fh, out, 1 << 20)
+        cap = cv2.VideoCapture(str(target))
+        try:
+            ok, frame = cap.read() if cap.isOpened() else (False, None)
+            if not ok or frame is None:
+                raise UploadError(422, f"video {path.name!r} cannot be decoded")
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        finally:
+            cap.release()
+        cameras.append(cam)
+        sizes[cam] = (frame.shape[1], frame.shape[0])
+        counts[cam] = n
+    if len(set(sizes.values())) != 1:
+        raise UploadError(422, f"videos of one rig must have the same frame size, got {sizes}")
+    if max(counts.values()) > max_frames:
+        raise UploadError(413, f"{max(counts.values())} frames per camera exceed the limit of {max_frames}")
+    return StagedInput("videos", folder, cameras, max(counts.values()))
+
+
+# ---------------------------------------------------------------------------- the pool
+
+_model: AppearanceModel | None = None
+_stores: dict[str, JobStore] = {}
+
+
+def make_pool(n: int, model_path: Path) -> concurrent.futures.ProcessPoolExecutor:
+    """A process pool whose workers hold the model; started (spawn) and warmed up.
+
+    BLAS is kept to one thread per worker: the eq. 8 product is small, and
+    OpenBLAS threads spinning against each other on a shared 2-core host made
+    it ~6x slower.
+    """
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    pool = concurrent.futures.ProcessPoolExecutor(
+        max_workers=n, mp_context=multiprocessing.get_context("spawn"),
+        initializer=init_worker, initargs=(str(model_path),))
+    for f in [pool.submit(_ping) for _ in range(n)]:
+        f.result()
+    return pool
+
+
+def init_worker(model_path: str) -> None:
+    """Pool initializer: load the model once per process."""
+    global _model
+    import cv2
+
+    cv2.setNumThreads(1)
+    _model = load_model(model_path)
+
+
+def _ping() -> int:
+    return os.getpid()
+
+
+def _get_model() -> AppearanceModel:
+    if _model is None:
+        raise RuntimeError("worker not initialised (init_worker)")
+    return _model
+
+
+def _store(url: str) -> JobStore:
+    if url not in _stores:
+        _stores[url] = JobStore(url)
+    return _stores[url]
+
+
+# ------------------------------------------------------------------------ stage bundle
+
+
+@dataclass
+class StageBundle:
+    """Plain arrays of every stage of one estimate, for drawing (no estimator types)."""
+
+    indices: list[int]  # frame index of each of the T frames
+    image_size: dict[str, tuple[int, int]]
+    crops: dict[str, list[np.ndarray | None]]
+    boxes: dict[str, np.ndarray]  # (T, 4)
+    registered: dict[str, list[np.ndarray | None]]  # canvas uint8 0/255, None where no input
+    labels: dict[str, np.ndarray]  # (T,)
+    observations: dict[str, np.ndarray]  # (T,)
+    joints2d: dict[str, np.ndarray]  # (T, 13, 2)
+    viewpoints: dict[str, dict[str, Any]]  # azimuth_deg, elevation_deg, covariance (2, 2), spread_deg
+    clouds: dict[str, np.ndarray]  # (N, 2) member (azimuth, elevation) of the matched clusters
+    means: dict[int, np.ndarray]  # matched cluster means, uint8 0..255
+    phase: np.ndarray  # (T,)
+    states: np.ndarray  # (T,)
+    joints3d: np.ndarray  # (T, 13, 3)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def make_bundle(tracks: dict[str, CameraTrack], est: WalkEstimate, model: AppearanceModel,
+                indices: list[int], image_size: dict[str, tuple[int, int]], *,
+                from_frame: int = 0, register: bool = True, rng: int = 0) -> StageBundle:
+    """Collect what :mod:`service.rerun_log` draws; frames before ``from_frame`` (position
+    in the window) are left out of the per-frame images (already drawn).
+
+    With ``register`` False the registered silhouettes and cluster means are left
+    empty, for :func:`register_stage` to fill later (off the live latency path).
+    """
+    gen = np.random.default_rng(rng)
+    clouds = {}
+    offsets = model.member_offsets
+    for name in tracks:
+        labels = est.cameras[name].labels
+        matched = labels[labels >= 0]
+        if matched.size:
+            idx = np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in matched])
+            if idx.size > _MAX_CLOUD:
+                idx = gen.choice(idx, _MAX_CLOUD, replace=False)
+            clouds[name] = np.stack([model.member_azimuth_deg[idx], model.member_elevation_deg[idx]], -1)
+        else:
+            clouds[name] = np.zeros((0, 2))
+    vps = {}
+    for name, c in est.cameras.items():
+        vp = c.viewpoint
+        vps[name] = {"azimuth_deg": float(vp.azimuth_deg), "elevation_deg": float(vp.elevation_deg),
+                     "covariance": np.asarray(vp.covariance, float), "spread_deg": float(vp.spread_deg)}
+    bundle = StageBundle(
+        indices=list(indices), image_size=dict(image_size),
+        crops={n: [s if k >= from_frame else None for k, s in enumerate(t.silhouettes)] for n, t in tracks.items()},
+        boxes={n: t.boxes for n, t in tracks.items()},
+        registered={n: [None] * len(t.silhouettes) for n, t in tracks.items()},
+        labels={n: c.labels for n, c in est.cameras.items()},
+        observations={n: c.observations for n, c in est.cameras.items()},
+        joints2d={n: c.joints2d for n, c in est.cameras.items()},
+        viewpoints=vps, clouds=clouds, means={},
+        phase=est.phase, states=est.states, joints3d=est.joints3d,
+        extra={"from_frame": from_frame})
+    return register_stage(bundle, model) if register else bundle
+
+
+def register_stage(bundle: StageBundle, model: AppearanceModel | None = None) -> StageBundle:
+    """Fill the bundle's registered silhouettes and matched cluster means (in a worker)."""
+    model = model or _get_model()
+    first = int(bundle.extra.get("from_frame", 0))
+    used: set[int] = set()
+    for name, crops in bundle.crops.items():
+        todo = [k for k in range(first, len(crops)) if crops[k] is not None]
+        if not todo:
+            continue
+        reg, _ = model.register([crops[k] for k in todo])
+        labels = bundle.labels[name]
+        for k, r in zip(todo, reg):
+            bundle.registered[name][k] = (r * 255).astype(np.uint8)
+            if labels[k] >= 0:
+                used.add(int(labels[k]))
+    bundle.means = {k: (model.means[k] * 255).astype(np.uint8) for k in sorted(used)}
+    return bundle
+
+
+def json_safe(value: Any) -> Any:
+    """The result with NaN/inf (e.g. the viewpoint of a camera without silhouettes) as None:
+    strict JSON for REST and Zenoh."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        return json_safe(value.item())
+    return value
+
+
+# ---------------------------------------------------------------------------- live windows
+
+
+def estimate_window(tracks: dict[str, CameraTrack], indices: list[int],
+                    image_size: dict[str, tuple[int, int]], *, bundle_from: int | None = None
+                    ) -> tuple[dict, StageBundle | None, float]:
+    """Estimate one live window (in a worker): ``(result, bundle or None, seconds)``."""
+    model = _get_model()
+    t0 = time.perf_counter()
+    est = estimate_walk(tracks, model)
+    result = json_safe(est.to_result(first_index=indices[0]))
+    for frame, index in zip(result["frames"], indices):
+        frame["index"] = int(index)
+    seconds = time.perf_counter() - t0
+    bundle = None
+    if bundle_from is not None:  # registration for display is done later (register_stage)
+        bundle = make_bundle(tracks, est, model, indices, image_size, from_frame=bundle_from,
+                             register=False)
+    return result, bundle, seconds
+
+
+# ---------------------------------------------------------------------------- batch jobs
+
+
+def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[str, Any],
+            *, want_bundle: bool = False) -> StageBundle | None:
+    """Run one claimed job to its end (in a worker).
+
+    Writes progress and the result (or the failure) to the store itself; raises
+    nothing for bad input. Returns the stage bundle for Rerun when asked and done.
+    """
+    store = _store(db_url)
+    try:
+        store.report(job_id, 0.05, "reading input")
+        if kind == "sequence":
+            seq = read_sequence(input_dir)
+            store.report(job_id, 0.3, "building tracks")
+            tracks = tracks_from_sequence(seq)
+            image_size = {c: tuple(seq.image_size) for c in seq.cameras}
+            fps = seq.fps
+            truth = seq.truth
+        elif kind == "videos":
+            tracks, image_size, fps = _tracks_from_videos(
+                Path(input_dir), warmup=options.get("warmup"),
+                report=lambda p, s: store.report(job_id, 0.05 + 0.45 * p, s))
+            truth = None
+        else:
+            raise ValueError(f"unknown job kind {kind!r}")
+        tracks = _pad_tracks(tracks)
+        store.report(job_id, 0.5, "estimating")
+        model = _get_model()
+        t0 = time.perf_counter()
+        est = estimate_walk(tracks, model)
+        store.report(job_id, 0.9, "writing result")
+        result = json_safe(est.to_result(first_index=0))
+        result["fps"] = fps
+        result["timing"] = {"estimate_s": round(time.perf_counter() - t0, 4)}
+        if truth is not None and "cameras" in truth:
+            result["truth_cameras"] = {
+                c: {k: v for k, v in t.items() if k in ("azimuth_deg", "elevation_deg")}
+                for c, t in truth["cameras"].items()}
+        bundle = None
+        if want_bundle:
+            n = len(next(iter(tracks.values())).silhouettes)
+            bundle = make_bundle(tracks, est, model, list(range(n)), image_size)
+        if not store.finish(job_id, result):
+            return None  # cancelled or deleted meanwhile
+        return bundle
+    except JobGone:
+        return None
+    except (ValueError, OSError) as exc:  # SequenceError, unreadable video, nothing to estimate
+        store.fail(job_id, str(exc))
+        return None
+    except Exception as exc:  # a bug: record it on the job, keep the worker alive
+        store.fail(job_id, f"internal error: {type(exc).__name__}: {exc}")
+        raise
+
+
+def _pad_tracks(tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:
+    """Give every camera the same number of frames (missing trailing frames = no data)."""
+    n = max(len(t.silhouettes) for t in tracks.values())
+    out = {}
+    for name, t in tracks.items():
+        k = n - len(t.silhouettes)
+        out[name] = t if k == 0 else CameraTrack(
+            t.silhouettes + [None] * k, np.vstack([t.boxes, np.full((k, 4), np.nan)]), t.full_frame)
+    return out
+
+
+def _tracks_from_videos(folder: Path, *, warmup: int | None, report) -> tuple[dict[str, CameraTrack], dict, float]:
+    """Background subtraction (capture's segmenter) over each ``<camera>.<ext>`` video."""
+    import cv2
+
+    from capture.segment import Segmenter, SegmentSettings
+
+    videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
+    tracks, sizes, fps = {}, {}, 0.0
+    for i, path in enumerate(videos):
+        cap = cv2.VideoCapture(str(path))
+        if not cap.isOpened():
+            raise ValueError(f"video {path.name} cannot be opened")
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 0
+        fps = fps or float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        w = warmup if warmup is not None else max(1, min(100, n // 4 if n else 30))
+        seg = Segmenter(SegmentSettings(warmup_frames=w))
+        sils, boxes, k = [], [], 0
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            s = seg.apply(frame, k)
+            k += 1
+            sizes[path.stem] = (frame.shape[1], frame.shape[0])
+            cropped = None if s is None or s.box.empty else crop_to_box(s.mask)
+            if cropped is None:
+                sils.append(None)
+                boxes.append([np.nan] * 4)
+            else:
+                crop, b = cropped
+                sils.append(crop)
+                boxes.append([s.box.x + b[0], s.box.y + b[1], b[2], b[3]])
+        cap.release()
+        if k == 0:
+            raise ValueError(f"video {path.name} has no decodable frames")
+        tracks[path.stem] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=True)
+        report((i + 1) / len(videos), f"segmented {path.name}")
+    return tracks, sizes, fps or 15.0

@@ -1,0 +1,82 @@
+"""Helpers shared by the service tests: a small appearance model, a real uvicorn
+server on 127.0.0.1 in a thread, free ports, synthetic sequence zips.
+
+Imported by the ``test_service_*`` modules (``tests/conftest.py`` is not ours).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import httpx
+
+from service.server import BackgroundServer, free_port
+from service.settings import Settings
+
+SMALL_MODEL_KEY = {"azimuth_step_deg": 15, "elevations_deg": (-10.0, 10.0, 30.0), "n_clusters": 40, "rng": 0}
+
+
+def small_model_path() -> Path:
+    """A 40-cluster model (15 deg azimuth steps, 3 elevations), built once and kept in the
+    temp directory across sessions (~10-30 s to build)."""
+    from estimator import appearance, examples
+
+    key = repr((SMALL_MODEL_KEY, getattr(examples, "RENDER_VERSION", ""), appearance.FORMAT_VERSION))
+    path = Path(tempfile.gettempdir()) / f"posecal-test-model-{hashlib.sha256(key.encode()).hexdigest()[:10]}.npz"
+    if not path.exists():
+        from estimator.appearance import build_model, save_model
+        from estimator.examples import ExampleGrid, render_examples
+
+        ex = render_examples(ExampleGrid(azimuth_step_deg=15, elevations_deg=(-10.0, 10.0, 30.0)))
+        save_model(build_model(ex, n_clusters=40, rng=0), path)
+    return path
+
+
+def make_settings(tmp: Path, **overrides) -> Settings:
+    """Settings for a test server: files under ``tmp``, Zenoh on a free loopback port."""
+    base = dict(db=str(tmp / "jobs.db"), data_dir=tmp / "data", model_path=small_model_path(),
+                live=False, zenoh_listen=[f"tcp/127.0.0.1:{free_port()}"], job_workers=1)
+    base.update(overrides)
+    return Settings(**base)
+
+
+class ServerThread(BackgroundServer):
+    """The app with ``settings`` under uvicorn on 127.0.0.1 in a thread, plus an httpx client."""
+
+    def __init__(self, settings: Settings) -> None:
+        super().__init__(settings, start_timeout=60.0)
+        self.client = httpx.Client(base_url=self.url, timeout=30.0)
+
+    def stop(self) -> None:
+        self.client.close()
+        super().stop()
+
+
+def wait_for(predicate, *, timeout: float, interval: float = 0.05, what: str = "condition"):
+    """Poll until ``predicate()`` is truthy; return its value or fail after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
+def sequence_zip(seq_dir: Path) -> bytes:
+    """Zip a sequence folder (under one top folder, as a user would)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        for p in sorted(seq_dir.rglob("*")):
+            if p.is_file():
+                zf.write(p, Path(seq_dir.name) / p.relative_to(seq_dir))
+    return buf.getvalue()

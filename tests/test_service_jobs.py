@@ -1,0 +1,191 @@
+"""Batch jobs against a real uvicorn server on 127.0.0.1 with a real SQLite file."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from conftest_service import ServerThread, make_settings, sequence_zip, wait_for
+from estimator.sequence import write_sequence
+from estimator.synth import SynthSpec, synthesize
+from service.jobs import JobStore
+
+TRUTH = (60.0, 150.0)
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory) -> Path:
+    """A synthetic 2-camera, 40-frame sequence folder with truth."""
+    path = tmp_path_factory.mktemp("seq") / "walk"
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=40, seed=1, azimuths=TRUTH, elevations=(10.0, 10.0)))
+    write_sequence(path, seq)
+    return path
+
+
+@pytest.fixture(scope="module")
+def good_zip(seq_dir) -> bytes:
+    return sequence_zip(seq_dir)
+
+
+def _submit(srv: ServerThread, data: bytes, name: str = "walk.zip"):
+    return srv.client.post("/v1/jobs", files={"files": (name, data, "application/zip")})
+
+
+def _done(srv: ServerThread, job_id: str, timeout: float = 30.0) -> dict:
+    return wait_for(lambda: (j := srv.client.get(f"/v1/jobs/{job_id}").json())["state"]
+                    in ("done", "failed", "cancelled") and j, timeout=timeout, what=f"job {job_id}")
+
+
+def test_job_round_trip_and_lifecycle(tmp_path, good_zip):
+    with ServerThread(make_settings(tmp_path)) as srv:
+        r = _submit(srv, good_zip)
+        assert r.status_code == 202, r.text
+        job = r.json()
+        assert job["state"] == "queued" and job["cameras"] == ["c0", "c1"] and job["n_frames"] == 40
+        assert r.headers["location"] == f"/v1/jobs/{job['id']}"
+        # The API answers while the job runs in the process pool.
+        assert srv.client.get("/healthz", timeout=2.0).json()["status"] == "ok"
+        done = _done(srv, job["id"])
+        assert done["state"] == "done" and done["progress"] == 1.0 and done["attempts"] == 1
+        result = srv.client.get(f"/v1/jobs/{job['id']}/result").json()
+        assert len(result["joint_names"]) == 13 and len(result["frames"]) == 40
+        assert len(result["frames"][0]["joints3d"]) == 13
+        for cam, az in zip(("c0", "c1"), TRUTH):
+            assert abs((result["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 25
+        listed = srv.client.get("/v1/jobs").json()
+        assert [j["id"] for j in listed["jobs"]] == [job["id"]] and listed["counts"]["done"] == 1
+        assert srv.client.get("/v1/jobs", params={"state": "queued"}).json()["jobs"] == []
+        # Ended jobs cannot be cancelled; delete removes the row and the files.
+        assert srv.client.post(f"/v1/jobs/{job['id']}/cancel").status_code == 409
+        assert (srv.settings.data_dir / job["id"]).exists()
+        assert srv.client.delete(f"/v1/jobs/{job['id']}").status_code == 204
+        assert srv.client.get(f"/v1/jobs/{job['id']}").status_code == 404
+        assert not (srv.settings.data_dir / job["id"]).exists()
+        metrics = srv.client.get("/metrics").text
+        assert 'posecal_jobs_finished_total{state="done"} 1.0' in metrics
+        assert "posecal_job_duration_seconds_count 1.0" in metrics
+        # One video per camera: background subtraction in the worker, then the same estimate.
+        _check_video_job(srv, tmp_path)
+
+
+def _videos(tmp: Path, frames: int = 36) -> list:
+    """One small MJPG video per camera of the synthetic walker (12 empty frames first)."""
+    import cv2
+
+    from capture.synthetic import SyntheticSource
+
+    files = []
+    for cam, az in zip(("c0", "c1"), TRUTH):
+        src = SyntheticSource.from_spec(f"seed=3,azimuth={az},elevation=10,empty=12,pass=30,gap=0,size=320x240")
+        path = tmp / f"{cam}.avi"
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 15, (320, 240))
+        for i in range(frames):
+            writer.write(src.render(i).image)
+        writer.release()
+        src.close()
+        files.append(("files", (path.name, path.read_bytes(), "video/x-msvideo")))
+    return files
+
+
+def _check_video_job(srv: ServerThread, tmp_path: Path) -> None:
+    r = srv.client.post("/v1/jobs", files=_videos(tmp_path), data={"warmup": "10"})
+    assert r.status_code == 202, r.text
+    assert r.json()["kind"] == "videos" and r.json()["cameras"] == ["c0", "c1"]
+    done = _done(srv, r.json()["id"])
+    assert done["state"] == "done", done
+    result = srv.client.get(f"/v1/jobs/{done['id']}/result").json()
+    assert len(result["frames"]) == 36 and set(result["cameras"]) == {"c0", "c1"}
+    walking = [f for f in result["frames"][12:] if set(f["joints2d"]) == {"c0", "c1"}]
+    assert len(walking) >= 20  # the walker was segmented in both videos
+
+
+def test_restart_runs_queued_and_requeues_interrupted_jobs(tmp_path, good_zip):
+    # First server: no job workers, so submitted jobs stay queued; cancel one.
+    with ServerThread(make_settings(tmp_path, job_workers=0)) as srv:
+        ids = [_submit(srv, good_zip).json()["id"] for _ in range(2)]
+        cancelled = _submit(srv, good_zip).json()["id"]
+        assert srv.client.post(f"/v1/jobs/{cancelled}/cancel").json()["state"] == "cancelled"
+        assert srv.client.get(f"/v1/jobs/{cancelled}/result").status_code == 409
+    # Simulate a crash mid-job: the first job is left "running" in the database.
+    store = JobStore(make_settings(tmp_path).db_url)
+    assert store.claim_next().id == ids[0]
+    store.close()
+    with ServerThread(make_settings(tmp_path)) as srv:
+        for job_id in ids:
+            done = _done(srv, job_id)
+            assert done["state"] == "done", done
+        assert _done(srv, ids[0])["attempts"] == 2  # re-queued after the "crash"
+        assert srv.client.get(f"/v1/jobs/{cancelled}").json()["state"] == "cancelled"
+        assert len(srv.client.get(f"/v1/jobs/{ids[1]}/result").json()["frames"]) == 40
+
+
+def _zip(files: dict[str, bytes]) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name, data in files.items():
+            zf.writestr(name, data)
+    return buf.getvalue()
+
+
+def _zip_of(folder: Path) -> bytes:
+    return sequence_zip(folder)
+
+
+def test_bad_uploads_get_clear_4xx_and_disturb_nothing(tmp_path, seq_dir, good_zip):
+    settings = make_settings(tmp_path, upload_limit_mb=1.0)
+    with ServerThread(settings) as srv:
+        good = _submit(srv, good_zip).json()["id"]
+
+        big = srv.client.post("/v1/jobs", files={"files": ("walk.zip", b"\0" * (2 << 20), "application/zip")})
+        assert big.status_code == 413 and "limit" in big.json()["detail"]
+
+        r = _submit(srv, b"PK\x03\x04 definitely not a zip")
+        assert r.status_code == 400 and "zip" in r.json()["detail"]
+
+        r = _submit(srv, _zip({}))
+        assert r.status_code in (400, 422)
+
+        r = _submit(srv, _zip({"readme.txt": b"hello"}))
+        assert r.status_code == 422 and "rig.json" in r.json()["detail"]
+
+        broken = tmp_path / "broken" / "walk"
+        shutil.copytree(seq_dir, broken)
+        (broken / "c1" / "000003.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+        r = _submit(srv, _zip_of(broken))
+        assert r.status_code == 422 and "000003.png" in r.json()["detail"], r.text
+
+        mismatched = tmp_path / "mismatched" / "walk"
+        shutil.copytree(seq_dir, mismatched)
+        rig = json.loads((mismatched / "rig.json").read_text())
+        rig["cameras"] = ["c0", "c1", "c2"]
+        (mismatched / "rig.json").write_text(json.dumps(rig))
+        r = _submit(srv, _zip_of(mismatched))
+        assert r.status_code == 422 and "c2" in r.json()["detail"]
+
+        evil = _zip({"../../escape.txt": b"x", "walk/rig.json": b"{}"})
+        r = _submit(srv, evil)
+        assert r.status_code == 400 and "outside" in r.json()["detail"]
+
+        r = srv.client.post("/v1/jobs", files={"files": ("c0.mp4", b"not a video", "video/mp4")})
+        assert r.status_code == 422 and "c0.mp4" in r.json()["detail"]
+
+        r = srv.client.post("/v1/jobs", files={"files": ("notes.txt", b"hi", "text/plain")})
+        assert r.status_code == 415
+
+        assert srv.client.post("/v1/jobs").status_code == 422  # no files at all
+        for path in ("/v1/jobs/nope", "/v1/jobs/nope/result"):
+            assert srv.client.get(path).status_code == 404
+        assert srv.client.post("/v1/jobs/nope/cancel").status_code == 404
+        assert srv.client.delete("/v1/jobs/nope").status_code == 404
+
+        # Nothing else was disturbed: the good job finishes; rejected uploads left no rows or files.
+        assert _done(srv, good)["state"] == "done"
+        assert [j["id"] for j in srv.client.get("/v1/jobs").json()["jobs"]] == [good]
+        assert [p.name for p in settings.data_dir.iterdir()] == [good]
+        metrics = srv.client.get("/metrics").text
+        assert 'posecal_uploads_rejected_total{status="422"}' in metrics
