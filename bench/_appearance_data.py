@@ -192,13 +192,16 @@ def fresh_examples(n: int, *, seed: int, source: str = "body", n_bodies: int = 2
 def model_for(*, source: str = "auto", n_clusters: int = 100, size=(64, 48), seed: int = 0,
               verbose: bool = True):
     """Build (or load from the bench cache) a model on ``training_examples(source)``."""
-    from estimator.appearance import build_model, load_model, save_model
+    from estimator.appearance import FORMAT_VERSION, build_model, load_model, save_model
 
     ex, src = training_examples(source=source, verbose=verbose)
     tag = "".join(c if c.isalnum() else "_" for c in src.split(" (")[0])[:40]
-    path = cache_dir() / f"model_{tag}_{n_clusters}_{size[0]}x{size[1]}_{seed}.npz"
+    path = cache_dir() / f"model_v{FORMAT_VERSION}_{tag}_{n_clusters}_{size[0]}x{size[1]}_{seed}.npz"
     if path.exists():
-        return load_model(path), ex, src
+        try:
+            return load_model(path), ex, src
+        except ValueError:
+            pass  # stale: rebuild
     t0 = time.perf_counter()
     model = build_model(ex, n_clusters=n_clusters, rng=seed, size=size, provenance={"source": src})
     if verbose:

@@ -26,6 +26,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from estimator.camera import world_to_camera_rotation  # noqa: E402
 from estimator.joints import N_JOINTS  # noqa: E402
 from estimator.selfcal import self_calibrate  # noqa: E402
 from estimator.selfcal_baselines import liebowitz_carlsson, tresadern_reid  # noqa: E402
@@ -34,12 +35,6 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_MOCAP = ROOT.parent / "shared" / "data" / "mocap" / "16_15.amc"
 
 
-def look(azimuth: float, elevation: float) -> np.ndarray:
-    az, el = np.radians(azimuth), np.radians(elevation)
-    d = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    u = np.cross(d, [0.0, 0.0, 1.0])
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(d, u), d])
 
 
 def walk(path: Path) -> np.ndarray:
@@ -76,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     x = walk(args.mocap)
     rel = Rotation.from_euler("xyz", [-10, -60, 20], degrees=True).as_matrix()
-    rots = np.stack([look(45, 10), rel @ look(45, 10), look(200, 15)])
+    rots = np.stack([world_to_camera_rotation(45, 10), rel @ world_to_camera_rotation(45, 10), world_to_camera_rotation(200, 15)])
     clean = np.einsum("cij,tkj->ctki", rots[:, :2], x) * 130.0
     h = 130.0 * float(np.mean(x[..., 2].max(1) - x[..., 2].min(1)))
 

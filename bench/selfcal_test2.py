@@ -46,6 +46,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from estimator.camera import world_to_camera_rotation  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
 from estimator.joints import N_JOINTS  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
@@ -59,13 +60,6 @@ LEVELS = np.arange(10) / 100.0
 S0 = 130.0  # camera 0 pixels per metre: body height (head to ankle) ~195 px, as in the paper
 
 
-def look(azimuth: float, elevation: float) -> np.ndarray:
-    """World-to-camera rotation (rows u, v, viewing direction) aimed at the origin."""
-    az, el = np.radians(azimuth), np.radians(elevation)
-    d = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    u = np.cross(d, [0.0, 0.0, 1.0])
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(d, u), d])
 
 
 def wrap(deg: np.ndarray) -> np.ndarray:
@@ -123,7 +117,7 @@ def run_varying(x_all, rng, *, trials):
     names = ("closed form (fixed-scale model)", "sec. 4.3 (per-frame U + BA)")
     out = {m: {k: np.full((len(LEVELS), trials), np.nan) for k in ("geo", "es")} for m in names}
     rel = Rotation.from_euler("xyz", TEST2_EULER, degrees=True).as_matrix()
-    ra = look(45, 10)
+    ra = world_to_camera_rotation(45, 10)
     rots = np.stack([ra, rel @ ra])
     for li, level in enumerate(LEVELS):
         for k in range(trials):
@@ -147,10 +141,10 @@ def run_varying(x_all, rng, *, trials):
 
 def fixed_pair(azimuth):
     rel = Rotation.from_euler("xyz", TEST2_EULER, degrees=True).as_matrix()
-    ra = look(azimuth, 10)
+    ra = world_to_camera_rotation(azimuth, 10)
 
     def pair(rng):
-        return np.stack([ra, rel @ ra, look(200, 15)]), [S0, S0, S0]
+        return np.stack([ra, rel @ ra, world_to_camera_rotation(200, 15)]), [S0, S0, S0]
 
     return pair
 

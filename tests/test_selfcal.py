@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from estimator.camera import world_to_camera_rotation
 from estimator._selfcal_core import DEPTH_FLIP, geodesic_deg, kinematic_reflection, link_rows
 from estimator.joints import JOINT_INDEX, N_JOINTS
 from estimator.selfcal import (
@@ -34,13 +35,6 @@ def walk() -> np.ndarray:
     return read_motion(path).person_frame()[20:140:4, :N_JOINTS]
 
 
-def look(azimuth: float, elevation: float) -> np.ndarray:
-    """World-to-camera rotation (rows u, v, viewing direction) of a camera aimed at the origin."""
-    az, el = np.radians(azimuth), np.radians(elevation)
-    d = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    u = np.cross(d, [0.0, 0.0, 1.0])
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(d, u), d])
 
 
 def project(x: np.ndarray, rots: np.ndarray, scales, offsets=None) -> np.ndarray:
@@ -71,7 +65,7 @@ def random_pair(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_test2_geometry_noise_free(walk):
-    ra = look(90, 10)
+    ra = world_to_camera_rotation(90, 10)
     rots = np.stack([ra, TEST2 @ ra])
     y = project(walk, rots, [130.0, 130.0], [(320, 240), (300, 200)])
     res = self_calibrate(y)
@@ -102,7 +96,7 @@ def test_exact_recovery_random_rotations_and_scales(walk, seed):
 
 def test_three_cameras_least_squares(walk):
     rng = np.random.default_rng(7)
-    rots = np.stack([look(60, 5), look(150, 20), look(250, -10)])
+    rots = np.stack([world_to_camera_rotation(60, 5), world_to_camera_rotation(150, 20), world_to_camera_rotation(250, -10)])
     scales = [90.0, 120.0, 70.0]
     res = self_calibrate(project(walk, rots, scales, rng.uniform(0, 300, (3, 2))))
     assert res and res.method == "wang-leow-lsq"
@@ -115,7 +109,7 @@ def test_three_cameras_least_squares(walk):
 def test_three_cameras_noise_is_no_worse_than_two(walk):
     """Extra views over-determine Omega^-1; with noise they should help, not hurt."""
     rng = np.random.default_rng(3)
-    rots = np.stack([look(45, 10), TEST2 @ look(45, 10), look(200, 15)])
+    rots = np.stack([world_to_camera_rotation(45, 10), TEST2 @ world_to_camera_rotation(45, 10), world_to_camera_rotation(200, 15)])
     clean = project(walk, rots, [130.0, 130.0, 130.0])
     e2, e3 = [], []
     for _ in range(8):
@@ -126,7 +120,7 @@ def test_three_cameras_noise_is_no_worse_than_two(walk):
 
 
 def test_varying_scales_section_4_3(walk):
-    ra = look(45, 10)
+    ra = world_to_camera_rotation(45, 10)
     rots = np.stack([ra, TEST2 @ ra])
     t = len(walk)
     sa = 120.0 * np.linspace(1.0, 1.4, t)
@@ -149,7 +143,7 @@ def test_varying_scales_section_4_3(walk):
 
 
 def test_bundle_adjustment_keeps_exact_solution(walk):
-    ra = look(30, 15)
+    ra = world_to_camera_rotation(30, 15)
     rots = np.stack([ra, TEST2 @ ra])
     res = self_calibrate(project(walk, rots, [100.0, 80.0]), refine=True)
     assert res and res.method == "wang-leow+ba"
@@ -164,7 +158,7 @@ def test_bundle_adjustment_keeps_exact_solution(walk):
 def test_sextic_root_is_global_minimum_of_dense_search(walk, noise):
     """The root of f6 (eq. 14) equals a dense search of F(beta) computed directly."""
     rng = np.random.default_rng(11)
-    ra = look(70, 10)
+    ra = world_to_camera_rotation(70, 10)
     y = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0])
     y = y + rng.uniform(-noise, noise, y.shape)
     from estimator._factorization import factorize
@@ -207,7 +201,7 @@ def test_kinematic_prior_on_truth_and_its_mirror(walk):
 @pytest.mark.parametrize("azimuth", [0, 60, 120, 200, 300])
 def test_reflection_resolved_for_many_viewpoints(walk, azimuth):
     """Cholesky leaves the Necker twin (D R D, depth reversed); the prior must pick the truth."""
-    ra = look(azimuth, 15)
+    ra = world_to_camera_rotation(azimuth, 15)
     rb = TEST2 @ ra
     res = self_calibrate(project(walk, np.stack([ra, rb]), [100.0, 100.0]))
     twin = DEPTH_FLIP @ TEST2 @ DEPTH_FLIP
@@ -230,7 +224,7 @@ def test_straight_limbs_give_no_confidence(walk):
 
 def test_missing_joints_are_masked(walk):
     rng = np.random.default_rng(5)
-    ra = look(45, 10)
+    ra = world_to_camera_rotation(45, 10)
     y = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0], [(320, 240), (300, 200)])
     drop = rng.random(y.shape[:3]) < 0.1
     y[drop] = np.nan
@@ -253,7 +247,7 @@ def test_missing_joints_are_masked(walk):
 
 def test_masks_with_noise_still_close(walk):
     rng = np.random.default_rng(8)
-    ra = look(45, 10)
+    ra = world_to_camera_rotation(45, 10)
     clean = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0])
     y = clean + rng.uniform(-0.5, 0.5, clean.shape)
     y[rng.random(y.shape[:3]) < 0.05] = np.nan
@@ -266,7 +260,7 @@ def test_masks_with_noise_still_close(walk):
 
 @pytest.mark.parametrize("method", [liebowitz_carlsson, tresadern_reid])
 def test_baselines_recover_noise_free(walk, method):
-    ra = look(45, 10)
+    ra = world_to_camera_rotation(45, 10)
     res = method(project(walk, np.stack([ra, TEST2 @ ra]), [100.0, 130.0]))
     assert res, res.reason
     assert geodesic_deg(res.rotations[1], TEST2) < 0.05
@@ -275,7 +269,7 @@ def test_baselines_recover_noise_free(walk, method):
 
 def test_liebowitz_carlsson_reports_indefinite_omega(walk):
     rng = np.random.default_rng(2)
-    ra = look(90, 10)
+    ra = world_to_camera_rotation(90, 10)
     clean = project(walk, np.stack([ra, TEST2 @ ra]), [130.0, 130.0])
     seen = {True: 0, False: 0}
     for _ in range(12):
@@ -307,7 +301,7 @@ def test_bad_shapes(shape, match):
 
 
 def test_bad_options(walk):
-    y = project(walk, np.stack([look(0, 0), look(90, 0)]), [1.0, 1.0])
+    y = project(walk, np.stack([world_to_camera_rotation(0, 0), world_to_camera_rotation(90, 0)]), [1.0, 1.0])
     with pytest.raises(ValueError, match="scales"):
         self_calibrate(y, scales="sometimes")
     with pytest.raises(ValueError, match="link"):
@@ -325,7 +319,7 @@ def test_planar_motion_is_a_failed_estimate():
     rng = np.random.default_rng(0)
     x = np.zeros((10, N_JOINTS, 3))
     x[..., :2] = rng.normal(size=(10, N_JOINTS, 2))  # everything in one plane
-    rots = np.stack([look(20, 10), look(80, 30)])
+    rots = np.stack([world_to_camera_rotation(20, 10), world_to_camera_rotation(80, 30)])
     res = self_calibrate(project(x, rots, [50.0, 50.0]))
     assert not res
     assert "planar" in res.reason
@@ -334,7 +328,7 @@ def test_planar_motion_is_a_failed_estimate():
 
 
 def test_identical_views_fail(walk):
-    r = look(45, 10)
+    r = world_to_camera_rotation(45, 10)
     roll = Rotation.from_euler("z", 30, degrees=True).as_matrix() @ r  # same view, rolled
     res = self_calibrate(project(walk, np.stack([r, roll]), [100.0, 100.0]))
     assert not res and res.reason

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from estimator.camera import world_to_camera_rotation
 from estimator._selfcal_core import geodesic_deg
 from estimator.joints import JOINT_NAMES, N_JOINTS
 from service.cli import main
@@ -20,12 +21,6 @@ TEST2 = Rotation.from_euler("xyz", [-10, -60, 20], degrees=True).as_matrix()
 POSECAL = Path(sys.executable).with_name("posecal")
 
 
-def look(azimuth: float, elevation: float) -> np.ndarray:
-    az, el = np.radians(azimuth), np.radians(elevation)
-    d = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    u = np.cross(d, [0.0, 0.0, 1.0])
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(d, u), d])
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +32,7 @@ def tracks() -> np.ndarray:
     from estimator.mocap import read_motion
 
     x = read_motion(path).person_frame()[20:140:4, :N_JOINTS]
-    ra = look(45, 10)
+    ra = world_to_camera_rotation(45, 10)
     rots = np.stack([ra, TEST2 @ ra])
     return np.einsum("cij,tkj->ctki", rots[:, :2], x) * np.array([150.0, 120.0])[:, None, None, None] + 300
 
@@ -127,7 +122,7 @@ def test_planar_motion_exit_2(tmp_path, capsys):
     rng = np.random.default_rng(0)
     x = np.zeros((10, N_JOINTS, 3))
     x[..., :2] = rng.normal(size=(10, N_JOINTS, 2))
-    rots = np.stack([look(20, 10), look(80, 30)])
+    rots = np.stack([world_to_camera_rotation(20, 10), world_to_camera_rotation(80, 30)])
     y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * 50
     assert main(["selfcal", str(write(tmp_path, as_doc(y)))]) == 2
     assert "planar" in capsys.readouterr().err
