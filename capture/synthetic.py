@@ -19,7 +19,6 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass, fields
 
-import cv2
 import numpy as np
 
 from estimator.gait import GaitStyle, load_gait
@@ -28,6 +27,7 @@ from estimator.render import Renderer
 from estimator.skeleton import BodyShape
 from estimator.synth import place_cameras, walk
 
+from .scene import textured_background
 from .sources import Frame, FrameSource, SourceError, parse_options
 
 __all__ = ["SyntheticSource", "SyntheticSpec"]
@@ -80,7 +80,7 @@ class SyntheticSource(FrameSource):
         self.style = GaitStyle.random(rng)
         self._start_phase = float(rng.uniform())
         self._clothing = rng.uniform(20, 235, 3).astype(np.float32)
-        self._background = _background(spec.width, spec.height, rng)
+        self._background = textured_background(spec.width, spec.height, rng, saturation=0.35)
         # Sensor noise: a bank of frames drawn once (a fresh 640x480x3 Gaussian
         # draw per frame costs more than rendering the walker).
         self._noise = rng.normal(0.0, spec.noise, (_NOISE_BANK, spec.height, spec.width, 3)).astype(np.float32)
@@ -165,11 +165,3 @@ class SyntheticSource(FrameSource):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-
-def _background(width: int, height: int, rng: np.random.Generator) -> np.ndarray:
-    """A textured scene: coarse colour blobs plus fine grain, float32 BGR."""
-    small = rng.uniform(40, 220, (height // 16 + 1, width // 16 + 1, 3)).astype(np.float32)
-    small = 0.35 * small + 0.65 * small.mean(axis=2, keepdims=True)  # muted colours, like a room
-    base = cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC)
-    return np.clip(base + rng.normal(0, 12, (height, width, 3)), 0, 255).astype(np.float32)

@@ -22,8 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from sklearn.cluster import KMeans, MiniBatchKMeans
-from threadpoolctl import threadpool_limits
 
 
 @dataclass(frozen=True)
@@ -106,6 +104,8 @@ def fit_gmm(
     init_labels: np.ndarray | None = None,
 ) -> GmmFit:
     """Fit eq. 2 by EM (eqs. 3–5) from a k-means start; ``x`` of shape (n, d)."""
+    from threadpoolctl import threadpool_limits
+
     with threadpool_limits(limits=1, user_api="blas"):
         return _fit_gmm(x, n_components, rng=rng, tol=tol, max_iter=max_iter,
                         reg_covar=reg_covar, init_labels=init_labels)
@@ -117,6 +117,8 @@ def _fit_gmm(x, n_components, *, rng, tol, max_iter, reg_covar, init_labels):
     centre = x.mean(0)
     xc = x - centre
     if init_labels is None:
+        from sklearn.cluster import KMeans  # imported here: scikit-learn takes a second to import
+
         seed = int(rng.integers(2**31 - 1))
         init_labels = KMeans(n_components, n_init=1, random_state=seed).fit(xc).labels_
     sym = _Sym(d)
@@ -145,6 +147,8 @@ def within_scatter(
     x: np.ndarray, ks, *, rng: np.random.Generator, minibatch: bool = False
 ) -> np.ndarray:
     """tr[S_W] (eq. 7) of a k-means partition for each k: the sum of squared errors."""
+    from sklearn.cluster import KMeans, MiniBatchKMeans
+
     out = []
     for k in ks:
         seed = int(rng.integers(2**31 - 1))

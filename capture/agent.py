@@ -1,0 +1,241 @@
+"""The capture agent: frames -> silhouettes -> ``posecal/<rig>/<camera>/silhouette``.
+
+One agent per camera. It opens the source, learns the background from the
+first ``warmup_frames`` frames (recorded sources are read as fast as possible
+during warm-up, then replayed in real time), segments every later frame and
+publishes one :class:`~capture.wire.SilhouetteMessage` per frame, empty or
+not. It subscribes to its ``feedback`` key and hands valid priors to the
+segmenter (paper §7.1).
+
+Each run has an epoch (its start time in ns) and numbers its messages from 0,
+so receivers can tell a restart from a gap. Zenoh re-establishes links by
+itself (connect retries are configured in :mod:`capture.zconfig`); the agent
+keeps producing and logs when subscribers appear and vanish. SIGINT/SIGTERM
+end the loop after the current frame; the session closes cleanly.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import zenoh
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from .receiver import ValidatingSubscriber
+from .segment import Segmenter, SegmentSettings
+from .sources import Frame, FrameSource, make_source, paced
+from .wire import FeedbackMessage, SilhouetteMessage, encode, feedback_key, silhouette_key
+
+__all__ = ["AgentSettings", "AgentStats", "main"]
+
+log = logging.getLogger(__name__)
+
+
+class AgentSettings(BaseSettings):
+    """Everything an agent needs besides the Zenoh config (env: ``POSECAL_CAPTURE_*``)."""
+
+    model_config = SettingsConfigDict(env_prefix="POSECAL_CAPTURE_", env_nested_delimiter="__",
+                                      frozen=True)
+
+    rig: str = Field("rig0", pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    camera: str = Field("c0", pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    source: str = Field("device:0", description="source spec, see capture.sources")
+    fps: float | None = Field(None, gt=0, description="replay rate of recorded sources "
+                                                      "(default: the source's fps, else 30)")
+    max_frames: int | None = Field(None, ge=1, description="stop after this many frames "
+                                                          "(warm-up included)")
+    stale_ms: float = Field(250.0, gt=0, description="drop live frames older than this")
+    stats_interval_s: float = Field(5.0, gt=0, description="how often to log fps/drops/latency")
+    png_compression: int = Field(1, ge=0, le=9)
+    opencv_threads: int | None = Field(None, ge=1, description="cap OpenCV's threads (1 when "
+                                       "several agents share a host); default: OpenCV's choice")
+    segment: SegmentSettings = SegmentSettings()
+
+
+@dataclass
+class AgentStats:
+    """Counters of one agent run; ``latency_ms`` is capture-to-publish of recent messages."""
+
+    epoch_ns: int
+    frames: int = 0  # frames read from the source, warm-up included
+    warmup: int = 0
+    published: int = 0
+    unheard: int = 0  # published while no subscriber matched (Zenoh discards them)
+    dropped_gap: int = 0  # frame indices the source skipped
+    dropped_stale: int = 0  # live frames too old to be worth segmenting
+    errors: int = 0  # publish failures
+    priors: int = 0  # feedback priors received
+    streaming_s: float = 0.0  # wall time from the end of warm-up to the end of the run
+    cpu_s: float = 0.0  # process CPU time over the same span (all threads)
+    latency_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))
+
+    @property
+    def fps(self) -> float:
+        """Silhouettes sent per second after warm-up."""
+        return self.sent / self.streaming_s if self.streaming_s > 0 else 0.0
+
+    @property
+    def sent(self) -> int:
+        """Silhouettes put on the wire, heard or not."""
+        return self.published + self.unheard
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_gap + self.dropped_stale + self.errors
+
+    def latency_percentiles(self) -> tuple[float, float]:
+        """(p50, p99) of recent capture-to-publish latencies in ms (nan if none)."""
+        if not self.latency_ms:
+            return float("nan"), float("nan")
+        p50, p99 = np.percentile(np.fromiter(self.latency_ms, float), [50, 99])
+        return float(p50), float(p99)
+
+
+class _StopOnSignals:
+    """Set ``stop`` on SIGINT/SIGTERM while active (only possible in the main thread)."""
+
+    def __init__(self, stop: threading.Event) -> None:
+        self.stop = stop
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        log.info("%s received, stopping", signal.Signals(signum).name)
+        self.stop.set()
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+class _Matching:
+    """Tracks whether any subscriber matches the publisher, and logs changes."""
+
+    def __init__(self, publisher: zenoh.Publisher, key: str) -> None:
+        self.matching = publisher.matching_status.matching
+        self._key = key
+        self._listener = publisher.declare_matching_listener(zenoh.handlers.Callback(self._on))
+
+    def _on(self, status: zenoh.MatchingStatus) -> None:
+        self.matching = status.matching
+        if status.matching:
+            log.info("subscriber(s) present on %s", self._key)
+        else:
+            log.warning("no subscriber on %s; frames are discarded until one returns", self._key)
+
+
+def _warm_up(frames: Iterator[Frame], segmenter: Segmenter, stats: AgentStats,
+             stop: threading.Event) -> None:
+    """Learn the background from the first frames (paper §7: 100 empty frames)."""
+    while segmenter.warming_up and not stop.is_set():
+        frame = next(frames, None)
+        if frame is None:
+            return
+        segmenter.apply(frame.image, frame.index)
+        stats.frames += 1
+        stats.warmup += 1
+    if segmenter.warming_up and not stop.is_set():
+        log.warning("the source ended during warm-up (%d frames); nothing to segment", stats.warmup)
+    else:
+        log.info("background learned from %d frames", stats.warmup)
+
+
+def _log_stats(stats: AgentStats, sent_before: int, seconds: float, what: str) -> None:
+    p50, p99 = stats.latency_percentiles()
+    log.info("%s: %.1f fps, published %d (unheard %d), dropped %d (gap %d, stale %d, errors %d), "
+             "capture-to-publish p50 %.2f ms p99 %.2f ms, priors %d", what,
+             (stats.sent - sent_before) / max(seconds, 1e-9), stats.published,
+             stats.unheard, stats.dropped, stats.dropped_gap, stats.dropped_stale, stats.errors,
+             p50, p99, stats.priors)
+
+
+def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | None = None,
+         stop: threading.Event | None = None) -> AgentStats:
+    """Run one agent until the source ends, ``max_frames``, ``stop`` or a signal.
+
+    ``source`` overrides ``settings.source`` (benchmarks pass in-memory ones).
+    Raises :class:`~capture.sources.SourceError` if the source cannot be opened.
+    """
+    stop = stop or threading.Event()
+    if settings.opencv_threads is not None:
+        cv2.setNumThreads(settings.opencv_threads)
+    stats = AgentStats(epoch_ns=time.time_ns())
+    segmenter = Segmenter(settings.segment)
+    source_name = settings.source if source is None else type(source).__name__
+    source = source if source is not None else make_source(settings.source)
+    key = silhouette_key(settings.rig, settings.camera)
+    sync = "index" if source.hardware_sync else "time"
+
+    def on_prior(prior: FeedbackMessage) -> None:
+        segmenter.set_prior(prior)
+        stats.priors += 1
+
+    with _StopOnSignals(stop), source, zenoh.open(conf) as session:
+        publisher = session.declare_publisher(
+            key, congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE, express=True)
+        matching = _Matching(publisher, key)
+        feedback = ValidatingSubscriber(session, feedback_key(settings.rig, settings.camera),
+                                        FeedbackMessage, on_message=on_prior)
+        log.info("agent %s/%s epoch %d: source %s (live=%s, sync by %s) -> %s",
+                 settings.rig, settings.camera, stats.epoch_ns, source_name, source.live, sync, key)
+        frames = iter(source)
+        _warm_up(frames, segmenter, stats, stop)
+        if not source.live:
+            frames = paced(frames, settings.fps or source.fps or 30.0)
+        last_index, seq = None, 0
+        started = last_log = time.monotonic()
+        cpu_started = time.process_time()
+        sent_at_log = 0
+        for frame in frames:
+            if stop.is_set() or (settings.max_frames and stats.frames >= settings.max_frames):
+                break
+            stats.frames += 1
+            if last_index is not None and frame.index > last_index + 1:
+                stats.dropped_gap += frame.index - last_index - 1
+            last_index = frame.index
+            if source.live and time.time_ns() - frame.timestamp_ns > settings.stale_ms * 1e6:
+                stats.dropped_stale += 1
+                continue
+            seg = segmenter.apply(frame.image, frame.index)
+            msg = SilhouetteMessage(
+                rig=settings.rig, camera=settings.camera, frame_index=frame.index,
+                capture_ns=frame.timestamp_ns, box=seg.box, image_size=seg.image_size,
+                epoch_ns=stats.epoch_ns, seq=seq,
+                mask=seg.mask, sync=sync, publish_ns=time.time_ns())
+            seq += 1
+            try:
+                publisher.put(encode(msg, png_compression=settings.png_compression))
+            except zenoh.ZError as exc:
+                stats.errors += 1
+                log.error("publish failed on %s: %s", key, exc)
+                continue
+            if matching.matching:
+                stats.published += 1
+            else:
+                stats.unheard += 1
+            stats.latency_ms.append((time.time_ns() - frame.timestamp_ns) / 1e6)
+            now = time.monotonic()
+            if now - last_log >= settings.stats_interval_s:
+                _log_stats(stats, sent_at_log, now - last_log, "last interval")
+                last_log, sent_at_log = now, stats.sent
+        feedback.close()
+        publisher.undeclare()
+        stats.streaming_s = time.monotonic() - started
+        stats.cpu_s = time.process_time() - cpu_started
+        _log_stats(stats, 0, stats.streaming_s,
+                   f"agent {settings.rig}/{settings.camera} stopped after {stats.frames} frames")
+    return stats

@@ -1,0 +1,184 @@
+"""Validating Zenoh subscribers: malformed messages are logged, counted and skipped.
+
+:class:`ValidatingSubscriber` decodes every sample with :func:`capture.wire.decode`
+and hands good messages to a callback or a bounded queue; a bad payload
+never reaches the consumer and never stops the subscriber.
+:class:`SilhouetteReceiver` adds what a consumer of silhouettes needs: the
+receive time, and per camera the agent epoch and sequence, so it can tell an
+agent restart (new epoch) and lost messages (sequence gaps).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Generic, Self, TypeVar
+
+import zenoh
+
+from .wire import FeedbackMessage, SilhouetteMessage, WireError, decode, parse_key, silhouette_key
+
+__all__ = ["Received", "ReceiverStats", "SilhouetteReceiver", "ValidatingSubscriber"]
+
+log = logging.getLogger(__name__)
+
+M = TypeVar("M", SilhouetteMessage, FeedbackMessage)
+_LOG_FIRST = 20  # rejections logged one by one, then one in _LOG_EVERY
+_LOG_EVERY = 100
+
+
+@dataclass
+class ReceiverStats:
+    """Counters of one subscriber; read a snapshot with ``receiver.stats()``."""
+
+    accepted: int = 0
+    rejected: int = 0
+    reasons: Counter[str] = field(default_factory=Counter)
+    overflow: int = 0  # accepted but dropped because the queue was full
+    restarts: int = 0  # epochs that replaced an earlier one of the same camera
+    lost: int = 0  # sequence numbers skipped within an epoch
+    stale: int = 0  # messages from an epoch older than the current one (dropped)
+
+
+class ValidatingSubscriber(Generic[M]):
+    """Subscribe to ``key_expr`` and accept only valid messages of type ``expect``.
+
+    With ``on_message`` each accepted message is passed to it on Zenoh's
+    network thread (``indirect=False``: one thread hop less; in one loaded
+    run of the loopback benchmark p99 publish-to-receive went from 10.3 to
+    6.7 ms), so keep it short;
+    otherwise messages are queued for :meth:`get`. Use as a context manager,
+    or call :meth:`close`.
+    """
+
+    def __init__(self, session: zenoh.Session, key_expr: str, expect: type[M], *,
+                 on_message: Callable[[M], None] | None = None, maxsize: int = 10_000) -> None:
+        self.key_expr = key_expr
+        self.expect = expect
+        self._on_message = on_message
+        self._queue: queue.Queue = queue.Queue(maxsize)
+        self._lock = threading.Lock()
+        self._stats = ReceiverStats()
+        self._sub = session.declare_subscriber(
+            key_expr, zenoh.handlers.Callback(self._on_sample, indirect=False))
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        receive_ns = time.time_ns()  # on arrival, before decoding
+        key = str(sample.key_expr)
+        try:
+            msg = decode(sample.payload.to_bytes(), expect=self.expect)
+            rig, camera, _ = parse_key(key)
+            if (rig, camera) != (msg.rig, msg.camera):
+                raise WireError(f"message for {msg.rig}/{msg.camera} arrived on {key}")
+        except WireError as exc:
+            self._reject(key, str(exc))
+            return
+        item = self._accept(msg, receive_ns)
+        if item is None:
+            return
+        try:
+            if self._on_message is not None:
+                self._on_message(item)
+            else:
+                self._queue.put_nowait(item)
+        except queue.Full:
+            with self._lock:
+                self._stats.overflow += 1
+        except Exception:  # a consumer bug must not kill the subscriber
+            log.exception("message handler failed on %s", key)
+
+    def _accept(self, msg: M, receive_ns: int):
+        """Count ``msg`` and return what to deliver (None = drop); subclasses add state."""
+        with self._lock:
+            self._stats.accepted += 1
+        return msg
+
+    def _reject(self, key: str, reason: str) -> None:
+        with self._lock:
+            self._stats.rejected += 1
+            self._stats.reasons[reason.split(":")[0]] += 1
+            n = self._stats.rejected
+        if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+            log.warning("rejected message #%d on %s: %s", n, key, reason)
+
+    def get(self, timeout: float | None = None):
+        """The next accepted message (queue mode), or None after ``timeout`` seconds."""
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def stats(self) -> ReceiverStats:
+        """A copy of the counters."""
+        with self._lock:
+            s = self._stats
+            return ReceiverStats(s.accepted, s.rejected, Counter(s.reasons), s.overflow,
+                                 s.restarts, s.lost, s.stale)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass(frozen=True, slots=True)
+class Received:
+    """A silhouette as delivered: ``new_epoch`` is True on the first message of
+    an agent run (a restart if the camera was seen before); ``lost`` counts
+    sequence numbers skipped since the previous message of the same epoch."""
+
+    message: SilhouetteMessage
+    receive_ns: int
+    new_epoch: bool
+    lost: int
+
+    @property
+    def latency_ns(self) -> int:
+        """Capture-to-receive time (same clock, or clocks synchronised by NTP/PTP)."""
+        return self.receive_ns - self.message.capture_ns
+
+
+class SilhouetteReceiver(ValidatingSubscriber[SilhouetteMessage]):
+    """Silhouettes of ``rig``/``camera`` (``"*"`` = all), delivered as :class:`Received`."""
+
+    def __init__(self, session: zenoh.Session, rig: str = "*", camera: str = "*", *,
+                 on_message: Callable[[Received], None] | None = None,
+                 maxsize: int = 10_000) -> None:
+        self._epochs: dict[tuple[str, str], tuple[int, int]] = {}  # -> (epoch_ns, last seq)
+        super().__init__(session, silhouette_key(rig, camera), SilhouetteMessage,
+                         on_message=on_message, maxsize=maxsize)  # type: ignore[arg-type]
+
+    def _accept(self, msg: SilhouetteMessage, receive_ns: int) -> Received | None:
+        cam = (msg.rig, msg.camera)
+        with self._lock:
+            known = self._epochs.get(cam)
+            if known is not None and msg.epoch_ns < known[0]:
+                self._stats.stale += 1
+                return None
+            new_epoch = known is None or msg.epoch_ns > known[0]
+            lost = 0
+            if new_epoch:
+                if known is not None:  # a restart: seq 0.. of the new run should have come
+                    self._stats.restarts += 1
+                    lost = msg.seq
+            elif msg.seq > known[1]:
+                lost = msg.seq - known[1] - 1
+            self._stats.lost += lost
+            if new_epoch or msg.seq > known[1]:
+                self._epochs[cam] = (msg.epoch_ns, msg.seq)
+            self._stats.accepted += 1
+        return Received(msg, receive_ns, new_epoch, lost)
+
+    def epochs(self) -> dict[tuple[str, str], int]:
+        """Current agent epoch per ``(rig, camera)``."""
+        with self._lock:
+            return {cam: epoch for cam, (epoch, _) in self._epochs.items()}

@@ -1,0 +1,326 @@
+"""The posecal wire format: silhouette and feedback messages on Zenoh.
+
+This is the one module that defines, versions and validates what travels on
+the key space (``DESIGN.md``, "Wire")::
+
+    posecal/<rig>/<camera>/silhouette   capture -> service   SilhouetteMessage
+    posecal/<rig>/<camera>/feedback     service -> capture   FeedbackMessage
+    posecal/<rig>/estimate              service -> anyone    (JSON result)
+
+Every payload is one self-contained envelope, so a recorded payload can be
+validated and replayed without Zenoh metadata::
+
+    offset  size  field
+    0       4     magic  b"PCAL"
+    4       1     version (WIRE_VERSION)
+    5       1     kind    (1 = silhouette, 2 = feedback)
+    6       4     header length N, unsigned big-endian
+    10      N     header: UTF-8 JSON object (fields below)
+    10+N    ...   PNG image of the crop (absent when the box is empty)
+
+:func:`decode` rejects anything malformed with a :class:`WireError` whose
+message says what was wrong; receivers count and log it and go on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import struct
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "WIRE_VERSION",
+    "Box",
+    "FeedbackMessage",
+    "SilhouetteMessage",
+    "WireError",
+    "decode",
+    "encode",
+    "estimate_key",
+    "feedback_key",
+    "parse_key",
+    "silhouette_key",
+]
+
+WIRE_VERSION = 1
+MAGIC = b"PCAL"
+_PREFIX = struct.Struct(">4sBBI")  # magic, version, kind, header length
+_MAX_HEADER = 64 * 1024
+_MAX_SIDE = 1 << 15
+_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_ROOT = "posecal"
+
+Sync = Literal["index", "time"]
+
+
+class WireError(ValueError):
+    """A payload or key that is not a valid posecal message; ``str()`` is the reason."""
+
+
+# --------------------------------------------------------------------------- keys
+
+
+def _check_name(what: str, name: str, *, wildcard: bool) -> str:
+    if wildcard and name in ("*", "**"):
+        return name
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise WireError(f"{what} must match {_NAME.pattern}, got {name!r}")
+    return name
+
+
+def silhouette_key(rig: str, camera: str) -> str:
+    """``posecal/<rig>/<camera>/silhouette``; ``"*"`` is allowed for subscribing."""
+    return "/".join((_ROOT, _check_name("rig", rig, wildcard=True),
+                     _check_name("camera", camera, wildcard=True), "silhouette"))
+
+
+def feedback_key(rig: str, camera: str) -> str:
+    """``posecal/<rig>/<camera>/feedback``; ``"*"`` is allowed for subscribing."""
+    return "/".join((_ROOT, _check_name("rig", rig, wildcard=True),
+                     _check_name("camera", camera, wildcard=True), "feedback"))
+
+
+def estimate_key(rig: str) -> str:
+    """``posecal/<rig>/estimate``, where the service publishes each window's result."""
+    return f"{_ROOT}/{_check_name('rig', rig, wildcard=True)}/estimate"
+
+
+def parse_key(key: str) -> tuple[str, str | None, str]:
+    """Split a concrete key into ``(rig, camera, kind)``; camera is None for estimates."""
+    parts = str(key).split("/")
+    if len(parts) == 4 and parts[0] == _ROOT and parts[3] in ("silhouette", "feedback"):
+        return (_check_name("rig", parts[1], wildcard=False),
+                _check_name("camera", parts[2], wildcard=False), parts[3])
+    if len(parts) == 3 and parts[0] == _ROOT and parts[2] == "estimate":
+        return _check_name("rig", parts[1], wildcard=False), None, "estimate"
+    raise WireError(f"not a posecal key: {key!r}")
+
+
+# -------------------------------------------------------------------------- messages
+
+
+@dataclass(frozen=True, slots=True)
+class Box:
+    """Axis-aligned box in full-frame pixels: top-left ``(x, y)``, size ``(w, h)``."""
+
+    x: int
+    y: int
+    w: int
+    h: int
+
+    @property
+    def empty(self) -> bool:
+        return self.w == 0 or self.h == 0
+
+    def slices(self) -> tuple[slice, slice]:
+        """``image[box.slices()]`` is the crop."""
+        return slice(self.y, self.y + self.h), slice(self.x, self.x + self.w)
+
+
+def _crop_fields(rig: str, camera: str, frame_index: int, box: Box,
+                 image_size: tuple[int, int], mask: np.ndarray) -> None:
+    """Checks shared by both message kinds; raise WireError with the reason."""
+    _check_name("rig", rig, wildcard=False)
+    _check_name("camera", camera, wildcard=False)
+    if frame_index < 0:
+        raise WireError(f"frame_index must be >= 0, got {frame_index}")
+    width, height = image_size
+    if not (0 < width <= _MAX_SIDE and 0 < height <= _MAX_SIDE):
+        raise WireError(f"image_size must be positive and <= {_MAX_SIDE}, got {image_size}")
+    if min(box.x, box.y, box.w, box.h) < 0 or box.x + box.w > width or box.y + box.h > height:
+        raise WireError(f"box {dataclasses.astuple(box)} is not inside the image {image_size}")
+    if mask.dtype != np.uint8 or mask.ndim != 2:
+        raise WireError(f"mask must be a 2-D uint8 array, got {mask.dtype} {mask.shape}")
+    if mask.shape != (box.h, box.w) and not (box.empty and mask.size == 0):
+        raise WireError(f"mask shape {mask.shape} does not match box size {(box.h, box.w)}")
+
+
+@dataclass(frozen=True, slots=True)
+class SilhouetteMessage:
+    """One segmented frame from one camera (capture -> service).
+
+    ``mask`` is the crop, uint8 0/255 of shape ``(box.h, box.w)``; an empty
+    box (nothing segmented) carries a ``(0, 0)`` mask so every processed frame
+    is reported. ``epoch_ns`` is the agent's start time and ``seq`` counts its
+    messages from 0: a new epoch means the agent restarted. ``sync`` tells how
+    frames of different cameras align: by ``frame_index`` (hardware-triggered
+    or recorded rigs) or by ``capture_ns``.
+    """
+
+    KIND: ClassVar[int] = 1
+
+    rig: str
+    camera: str
+    frame_index: int
+    capture_ns: int
+    box: Box
+    image_size: tuple[int, int]  # (width, height) of the full frame
+    epoch_ns: int
+    seq: int
+    mask: np.ndarray = dataclasses.field(repr=False, compare=False)
+    sync: Sync = "time"
+    publish_ns: int = 0
+
+    def __post_init__(self) -> None:
+        _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
+        if self.capture_ns <= 0 or self.epoch_ns <= 0:
+            raise WireError("capture_ns and epoch_ns must be positive nanoseconds")
+        if self.seq < 0:
+            raise WireError(f"seq must be >= 0, got {self.seq}")
+        if self.sync not in ("index", "time"):
+            raise WireError(f"sync must be 'index' or 'time', got {self.sync!r}")
+        if self.mask.size and np.any((self.mask != 0) & (self.mask != 255)):
+            raise WireError("silhouette mask must be binary 0/255")
+
+    @property
+    def key(self) -> str:
+        return silhouette_key(self.rig, self.camera)
+
+    def full_mask(self) -> np.ndarray:
+        """The silhouette pasted into a full-frame ``(height, width)`` canvas."""
+        out = np.zeros(self.image_size[::-1], np.uint8)
+        if not self.box.empty:
+            out[self.box.slices()] = self.mask
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class FeedbackMessage:
+    """A prior mask for one camera's segmenter (service -> capture, paper §7.1).
+
+    ``mask`` has shape ``(box.h, box.w)``, uint8, 0 = no opinion and 255 =
+    surely the walker; it applies to frames from ``frame_index`` on (the
+    service may predict a future frame).
+    """
+
+    KIND: ClassVar[int] = 2
+
+    rig: str
+    camera: str
+    frame_index: int
+    box: Box
+    image_size: tuple[int, int]
+    mask: np.ndarray = dataclasses.field(repr=False, compare=False)
+    issued_ns: int = 0
+
+    def __post_init__(self) -> None:
+        _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
+
+    @property
+    def key(self) -> str:
+        return feedback_key(self.rig, self.camera)
+
+    def full_mask(self) -> np.ndarray:
+        out = np.zeros(self.image_size[::-1], np.uint8)
+        if not self.box.empty:
+            out[self.box.slices()] = self.mask
+        return out
+
+
+Message = SilhouetteMessage | FeedbackMessage
+_KINDS: dict[int, type[SilhouetteMessage] | type[FeedbackMessage]] = {
+    SilhouetteMessage.KIND: SilhouetteMessage,
+    FeedbackMessage.KIND: FeedbackMessage,
+}
+
+
+# ------------------------------------------------------------------------- encoding
+
+
+def encode(msg: Message, *, png_compression: int = 1) -> bytes:
+    """Serialise a message into one envelope (see the module docstring).
+
+    ``png_compression`` (0-9) trades CPU for bytes; 1 is fast and binary masks
+    compress well anyway.
+    """
+    header: dict[str, Any] = {}
+    for field in dataclasses.fields(msg):
+        if field.name == "mask":
+            continue
+        value = getattr(msg, field.name)
+        header[field.name] = dataclasses.astuple(value) if isinstance(value, Box) else value
+    head = json.dumps(header, separators=(",", ":")).encode()
+    png = b""
+    if not msg.box.empty:
+        ok, buf = cv2.imencode(".png", msg.mask, [cv2.IMWRITE_PNG_COMPRESSION, png_compression])
+        if not ok:
+            raise WireError("PNG encoding failed")
+        png = buf.tobytes()
+    return _PREFIX.pack(MAGIC, WIRE_VERSION, msg.KIND, len(head)) + head + png
+
+
+def _int(header: dict[str, Any], name: str) -> int:
+    value = header.get(name)
+    if type(value) is not int:  # bool is not a valid int here
+        raise WireError(f"header field {name!r} must be an integer, got {value!r}")
+    return value
+
+
+def _ints(header: dict[str, Any], name: str, n: int) -> tuple[int, ...]:
+    value = header.get(name)
+    if not isinstance(value, list) or len(value) != n or any(type(v) is not int for v in value):
+        raise WireError(f"header field {name!r} must be a list of {n} integers, got {value!r}")
+    return tuple(value)
+
+
+def _str(header: dict[str, Any], name: str) -> str:
+    value = header.get(name)
+    if not isinstance(value, str):
+        raise WireError(f"header field {name!r} must be a string, got {value!r}")
+    return value
+
+
+def decode(payload: bytes | bytearray | memoryview, *,
+           expect: type[Message] | None = None) -> Message:
+    """Parse and validate one envelope; raise :class:`WireError` saying why not.
+
+    With ``expect`` set, a message of another kind is rejected too.
+    """
+    data = bytes(payload)
+    if len(data) < _PREFIX.size:
+        raise WireError(f"payload too short ({len(data)} bytes)")
+    magic, version, kind, head_len = _PREFIX.unpack_from(data)
+    if magic != MAGIC:
+        raise WireError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if version != WIRE_VERSION:
+        raise WireError(f"unsupported wire version {version}, this build speaks {WIRE_VERSION}")
+    cls = _KINDS.get(kind)
+    if cls is None:
+        raise WireError(f"unknown message kind {kind}")
+    if expect is not None and cls is not expect:
+        raise WireError(f"expected a {expect.__name__}, got a {cls.__name__}")
+    if head_len > _MAX_HEADER or _PREFIX.size + head_len > len(data):
+        raise WireError(f"header length {head_len} exceeds the payload ({len(data)} bytes)")
+    try:
+        header = json.loads(data[_PREFIX.size:_PREFIX.size + head_len])
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise WireError(f"header is not JSON: {exc}") from None
+    if not isinstance(header, dict):
+        raise WireError("header must be a JSON object")
+
+    box = Box(*_ints(header, "box", 4))
+    width, height = _ints(header, "image_size", 2)
+    png = data[_PREFIX.size + head_len:]
+    if box.empty:
+        if png:
+            raise WireError("empty box but a PNG is attached")
+        mask = np.zeros((0, 0), np.uint8)
+    else:
+        mask = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) if png else None
+        if mask is None:
+            raise WireError("crop is not a decodable PNG")
+    common = dict(rig=_str(header, "rig"), camera=_str(header, "camera"),
+                  frame_index=_int(header, "frame_index"), box=box,
+                  image_size=(width, height), mask=mask)
+    if cls is SilhouetteMessage:
+        return SilhouetteMessage(**common, capture_ns=_int(header, "capture_ns"),
+                                 epoch_ns=_int(header, "epoch_ns"), seq=_int(header, "seq"),
+                                 sync=_str(header, "sync"),  # type: ignore[arg-type]
+                                 publish_ns=_int(header, "publish_ns"))
+    return FeedbackMessage(**common, issued_ns=_int(header, "issued_ns"))

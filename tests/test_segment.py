@@ -1,0 +1,175 @@
+"""Segmentation and frame sources on real generated videos and image folders."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from capture.scene import SceneSpec, iou, scene_frames, write_folder, write_video
+from capture.segment import Segmenter, SegmentSettings
+from capture.sources import (
+    FolderSource,
+    Frame,
+    FrameSource,
+    SourceError,
+    VideoFileSource,
+    make_source,
+    paced,
+)
+from capture.wire import Box, FeedbackMessage
+
+SMALL = SceneSpec(width=320, height=240, frames=130, empty=100)
+
+
+def _ious(frames, segmenter: Segmenter, masks=None) -> list[float]:
+    out = []
+    for k, frame in enumerate(frames):
+        seg = segmenter.apply(frame.image, frame.index)
+        truth = frame.mask if masks is None else masks[k]
+        if seg is not None and truth.any():
+            out.append(iou(seg.full_mask(), truth))
+    return out
+
+
+def test_segmenter_learns_then_finds_the_walker():
+    segmenter = Segmenter(SegmentSettings(warmup_frames=100))
+    frames = list(scene_frames(SMALL))
+    assert all(segmenter.apply(f.image, f.index) is None for f in frames[:100])
+    assert not segmenter.warming_up
+    ious = _ious(frames[100:], segmenter)
+    assert len(ious) == 30
+    assert np.mean(ious) > 0.9 and min(ious) > 0.8, ious
+
+
+def test_empty_scene_gives_an_empty_box():
+    segmenter = Segmenter(SegmentSettings(warmup_frames=60))
+    results = [segmenter.apply(f.image, f.index) for f in scene_frames(SMALL) if f.index < 100]
+    empties = [r for r in results[60:]]
+    assert all(r.box.empty and r.mask.size == 0 and r.area == 0 for r in empties)
+
+
+def test_only_the_largest_component_is_kept():
+    segmenter = Segmenter(SegmentSettings(warmup_frames=100))
+    for frame in scene_frames(SMALL):
+        image = frame.image
+        if frame.index >= 100:  # a small dark distractor far from the walker
+            image = image.copy()
+            cv2.circle(image, (20, 20), 8, (0, 0, 0), -1)
+        seg = segmenter.apply(image, frame.index)
+    assert seg is not None and not seg.box.empty
+    assert seg.box.x > 40 and not seg.full_mask()[:40, :40].any()  # distractor left out
+    assert iou(seg.full_mask(), frame.mask) > 0.85
+
+
+def _prior_from(mask: np.ndarray, index: int, shift: int = 3) -> FeedbackMessage:
+    """A slightly misregistered rendering of the truth, as the service would send."""
+    pm = np.roll(mask, shift, axis=1)
+    x, y, w, h = cv2.boundingRect(pm)
+    return FeedbackMessage(rig="r", camera="c", frame_index=index, box=Box(x, y, w, h),
+                           image_size=(mask.shape[1], mask.shape[0]), mask=pm[y:y + h, x:x + w])
+
+
+@pytest.mark.parametrize("use_prior", [False, True])
+def test_prior_fusion_fills_a_low_contrast_walker(use_prior):
+    # Clothing close to the background: plain MOG2 misses most of the walker (§7.1).
+    spec = SceneSpec(width=320, height=240, frames=120, empty=100, walker_alpha=0.15)
+    segmenter = Segmenter()
+    ious, used = [], []
+    for frame in scene_frames(spec):
+        if use_prior and frame.index >= 100:
+            segmenter.set_prior(_prior_from(frame.mask, frame.index))
+        seg = segmenter.apply(frame.image, frame.index)
+        if seg is not None:
+            ious.append(iou(seg.full_mask(), frame.mask))
+            used.append(seg.used_prior)
+    if use_prior:
+        assert all(used) and np.mean(ious) > 0.8, np.mean(ious)
+    else:
+        assert not any(used) and np.mean(ious) < 0.5, np.mean(ious)
+
+
+def test_prior_applies_only_within_its_frame_window():
+    segmenter = Segmenter(SegmentSettings(warmup_frames=5, prior_max_age=2))
+    frames = list(scene_frames(SceneSpec(width=160, height=120, frames=20, empty=10)))
+    for f in frames[:5]:
+        segmenter.apply(f.image, f.index)
+    segmenter.set_prior(_prior_from(frames[12].mask, 12))
+    used = {f.index: segmenter.apply(f.image, f.index).used_prior for f in frames[5:]}
+    assert [i for i, u in used.items() if u] == [12, 13, 14]
+    other = _prior_from(frames[12].mask, 15)
+    segmenter.set_prior(FeedbackMessage(rig="r", camera="c", frame_index=15, box=Box(0, 0, 1, 1),
+                                        image_size=(640, 480), mask=other.mask[:1, :1]))
+    assert not segmenter.apply(frames[15].image, 15).used_prior  # other image size: ignored
+
+
+def test_video_file_source_and_segmentation(tmp_path):
+    path = tmp_path / "walk.avi"
+    masks = write_video(path, SMALL)
+    with make_source(str(path)) as source:
+        assert isinstance(source, VideoFileSource)
+        assert source.fps == pytest.approx(30) and source.size == (320, 240)
+        assert source.hardware_sync and not source.live
+        frames = list(source)
+    assert [f.index for f in frames] == list(range(130))
+    assert frames[0].image.shape == (240, 320, 3) and frames[0].image.dtype == np.uint8
+    assert all(f.timestamp_ns > 0 for f in frames)
+    ious = _ious(frames, Segmenter(), masks)
+    assert np.mean(ious) > 0.9, np.mean(ious)  # MJPG artefacts included
+
+
+def test_folder_source_loops_and_keeps_counting(tmp_path):
+    masks = write_folder(tmp_path / "seq", SceneSpec(width=64, height=48, frames=5, empty=2))
+    with make_source(f"{tmp_path / 'seq'}?loop=1&sync=time&fps=15") as source:
+        assert isinstance(source, FolderSource) and source.fps == 15 and not source.hardware_sync
+        frames = []
+        for frame in source:
+            frames.append(frame)
+            if len(frames) == 12:
+                source.close()
+    assert [f.index for f in frames] == list(range(12))
+    np.testing.assert_array_equal(frames[7].image, frames[2].image)  # PNG is lossless
+    assert len(masks) == 5
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("", "empty source spec"),
+    ("rtsp2:camera", "unknown source scheme 'rtsp2'"),
+    ("/no/such/video.mp4", "no such file or folder"),
+    ("device:abc", "integer index"),
+    ("device:0,zoom=2", "unknown device option"),
+    ("genicam:/no/producer.cti", "harvesters|GenTL producer not found"),
+])
+def test_bad_source_specs_say_why(spec, message):
+    with pytest.raises(SourceError, match=message):
+        make_source(spec)
+
+
+def test_bad_file_options_and_empty_folder(tmp_path):
+    write_video(tmp_path / "v.avi", SceneSpec(width=32, height=32, frames=2, empty=2))
+    with pytest.raises(SourceError, match="unknown video file option"):
+        make_source(f"{tmp_path / 'v.avi'}?speed=2")
+    with pytest.raises(SourceError, match="sync must be"):
+        make_source(f"{tmp_path / 'v.avi'}?sync=never")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SourceError, match="no images"):
+        make_source(str(tmp_path / "empty"))
+
+
+def test_synthetic_scheme_dispatches_to_the_synthetic_source():
+    synthetic = pytest.importorskip("capture.synthetic")
+    with make_source("synthetic:seed=1,fps=15") as source:
+        assert isinstance(source, synthetic.SyntheticSource) and isinstance(source, FrameSource)
+
+
+def test_paced_releases_in_real_time_and_restamps():
+    frames = [Frame(np.zeros((2, 2, 3), np.uint8), i, 0) for i in range(6)]
+    start = time.monotonic()
+    out = list(paced(frames, fps=50))
+    elapsed = time.monotonic() - start
+    assert 0.09 <= elapsed < 0.5  # 5 periods of 20 ms
+    stamps = [f.timestamp_ns for f in out]
+    gaps = np.diff(stamps) / 1e6
+    assert all(stamps) and np.all(gaps > 10) and np.all(gaps < 60), gaps

@@ -1,0 +1,118 @@
+"""The wire module: round trips, versioning, and rejection of malformed payloads."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from capture.wire import (
+    WIRE_VERSION,
+    Box,
+    FeedbackMessage,
+    SilhouetteMessage,
+    WireError,
+    decode,
+    encode,
+    estimate_key,
+    feedback_key,
+    parse_key,
+    silhouette_key,
+)
+
+
+def _mask(h: int = 30, w: int = 12) -> np.ndarray:
+    m = np.zeros((h, w), np.uint8)
+    m[5:25, 2:10] = 255
+    m[10, 5] = 0  # a hole, so the PNG is not trivially uniform
+    return m
+
+
+def _silhouette(**overrides) -> SilhouetteMessage:
+    fields = dict(rig="lab", camera="c1", frame_index=42, capture_ns=1_700_000_000_123_456_789,
+                  box=Box(100, 50, 12, 30), image_size=(640, 480),
+                  epoch_ns=1_700_000_000_000_000_000,
+                  seq=7, mask=_mask(), sync="index", publish_ns=1_700_000_000_124_000_000)
+    fields.update(overrides)
+    return SilhouetteMessage(**fields)
+
+
+def test_silhouette_round_trip_keeps_every_field():
+    msg = _silhouette()
+    out = decode(encode(msg))
+    assert isinstance(out, SilhouetteMessage)
+    assert out == msg  # every metadata field (mask excluded from ==)
+    np.testing.assert_array_equal(out.mask, msg.mask)
+    full = out.full_mask()
+    assert full.shape == (480, 640) and np.count_nonzero(full) == np.count_nonzero(msg.mask)
+    assert full[50 + 5, 100 + 2] == 255
+
+
+def test_empty_silhouette_round_trip():
+    msg = _silhouette(box=Box(0, 0, 0, 0), mask=np.zeros((0, 0), np.uint8))
+    out = decode(encode(msg))
+    assert out.box.empty and out.mask.size == 0 and out.seq == msg.seq
+
+
+def test_feedback_round_trip_with_soft_prior():
+    prior = np.linspace(0, 255, 40 * 20).astype(np.uint8).reshape(40, 20)
+    msg = FeedbackMessage(rig="lab", camera="c1", frame_index=9, box=Box(0, 0, 20, 40),
+                          image_size=(320, 240), mask=prior, issued_ns=5)
+    out = decode(encode(msg), expect=FeedbackMessage)
+    np.testing.assert_array_equal(out.mask, prior)
+    with pytest.raises(WireError, match="expected a SilhouetteMessage"):
+        decode(encode(msg), expect=SilhouetteMessage)
+
+
+def _envelope(header: dict, png: bytes = b"", *, version: int = WIRE_VERSION,
+              kind: int = 1) -> bytes:
+    head = json.dumps(header).encode()
+    return struct.pack(">4sBBI", b"PCAL", version, kind, len(head)) + head + png
+
+
+def _header_and_png() -> tuple[dict, bytes]:
+    payload = encode(_silhouette())
+    n = struct.unpack_from(">I", payload, 6)[0]
+    return json.loads(payload[10:10 + n]), payload[10 + n:]
+
+
+@pytest.mark.parametrize("mutate, reason", [
+    (lambda h, p: b"", "too short"),
+    (lambda h, p: b"XXXX" + encode(_silhouette())[4:], "bad magic"),
+    (lambda h, p: _envelope(h, p, version=WIRE_VERSION + 1), "unsupported wire version"),
+    (lambda h, p: _envelope(h, p, kind=9), "unknown message kind"),
+    (lambda h, p: encode(_silhouette())[:10] + b"{not json", "exceeds the payload|not JSON"),
+    (lambda h, p: _envelope({**h, "frame_index": "3"}, p), "frame_index"),
+    (lambda h, p: _envelope({**h, "frame_index": -1}, p), "frame_index must be >= 0"),
+    (lambda h, p: _envelope({**h, "box": [630, 0, 12, 30]}, p), "not inside the image"),
+    (lambda h, p: _envelope({**h, "box": [100, 50, 13, 30]}, p), "does not match box size"),
+    (lambda h, p: _envelope(h, p[:20]), "not a decodable PNG"),
+    (lambda h, p: _envelope({**h, "rig": "a/b"}, p), "rig must match"),
+    (lambda h, p: _envelope({**h, "sync": "maybe"}, p), "sync must be"),
+    (lambda h, p: _envelope({k: v for k, v in h.items() if k != "seq"}, p), "'seq'"),
+    (lambda h, p: _envelope({**h, "box": [0, 0, 0, 0]}, p), "empty box but a PNG"),
+])
+def test_malformed_payloads_are_rejected_with_a_reason(mutate, reason):
+    header, png = _header_and_png()
+    with pytest.raises(WireError, match=reason):
+        decode(mutate(header, png))
+
+
+def test_non_binary_silhouette_is_rejected():
+    with pytest.raises(WireError, match="binary"):
+        _silhouette(mask=np.full((30, 12), 7, np.uint8))
+
+
+def test_keys():
+    assert silhouette_key("lab", "c1") == "posecal/lab/c1/silhouette"
+    assert feedback_key("lab", "*") == "posecal/lab/*/feedback"
+    assert estimate_key("lab") == "posecal/lab/estimate"
+    assert parse_key("posecal/lab/c1/feedback") == ("lab", "c1", "feedback")
+    assert parse_key("posecal/lab/estimate") == ("lab", None, "estimate")
+    for bad in ("posecal/lab/c1/other", "other/lab/c1/silhouette", "posecal/lab/*/silhouette"):
+        with pytest.raises(WireError):
+            parse_key(bad)
+    with pytest.raises(WireError):
+        silhouette_key("a b", "c1")
