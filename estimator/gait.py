@@ -63,7 +63,8 @@ class GaitStyle:
         for f in fields(self):
             value = getattr(self, f.name)
             if not np.isfinite(value) or value < 0 or (f.name == "cadence" and value == 0):
-                raise ValueError(f"GaitStyle.{f.name} must be a non-negative number, got {value!r}")
+                kind = "positive" if f.name == "cadence" else "non-negative"
+                raise ValueError(f"GaitStyle.{f.name} must be a {kind} number, got {value!r}")
 
     @classmethod
     def random(cls, rng: np.random.Generator | int | None = None) -> "GaitStyle":

@@ -143,7 +143,7 @@ def tracks_from_sequence(sequence: Sequence) -> dict[str, CameraTrack]:
                 boxes.append([np.nan] * 4)
                 continue
             sils.append(cropped[0])
-            boxes.append(cropped[1] if is_full else [0.0, 0.0, s.shape[1], s.shape[0]])
+            boxes.append(cropped[1])  # in the full frame, or in the crop's own pixels
             full.append(is_full)
         tracks[cam] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=bool(full) and all(full))
     return tracks
@@ -202,7 +202,10 @@ class WalkEstimate:
             "joint_names": list(JOINT_NAMES),
             "cameras": cams,
             "frames": frames,
-            "hmm": {"log_prob": self.log_prob, "half_cycle_margin": round(self.half_cycle_margin, 4)},
+            "hmm": {
+                "log_prob": self.log_prob if np.isfinite(self.log_prob) else None,
+                "half_cycle_margin": round(self.half_cycle_margin, 4) if np.isfinite(self.half_cycle_margin) else None,
+            },
             "notes": self.notes,
         }
 
@@ -217,16 +220,17 @@ def _circular_mean(values: np.ndarray) -> float:
 
 
 def _example_lookup(model: AppearanceModel, n_phases: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cluster of the (first style's) example at each (phase, azimuth, elevation) of the grid."""
-    style0 = model.member_style == model.member_style.min()
-    labels = np.repeat(np.arange(model.n_clusters), np.diff(model.member_offsets))[style0]
-    az = np.unique(model.member_azimuth_deg[style0])
-    el = np.unique(model.member_elevation_deg[style0])
+    """Cluster of the example at each (phase, azimuth, elevation) grid point, -1 where none.
+
+    With several bodies on the grid (taking turns or not) any member at a grid
+    point stands for it.
+    """
+    labels = np.repeat(np.arange(model.n_clusters), np.diff(model.member_offsets))
+    az = np.unique(model.member_azimuth_deg)
+    el = np.unique(model.member_elevation_deg)
     table = np.full((n_phases, len(az), len(el)), -1, np.int64)
-    pi = np.round(model.member_phase[style0] * n_phases).astype(int) % n_phases
-    ai = np.searchsorted(az, model.member_azimuth_deg[style0])
-    ei = np.searchsorted(el, model.member_elevation_deg[style0])
-    table[pi, ai, ei] = labels
+    pi = np.round(model.member_phase * n_phases).astype(int) % n_phases
+    table[pi, np.searchsorted(az, model.member_azimuth_deg), np.searchsorted(el, model.member_elevation_deg)] = labels
     return table, az, el
 
 
@@ -334,7 +338,10 @@ def estimate_walk(
         cam_notes = []
         cue = motion_cue(track.boxes) if track.full_frame else None
         if not track.full_frame:
-            cam_notes.append("cropped silhouettes: no position in the full frame, so no motion cue; ahead/behind decided by the majority of matches")
+            cam_notes.append(
+                "cropped silhouettes: no position in the full frame, so no motion cue (ahead/behind decided by "
+                "the majority of matches), and joints2d are in each crop's own pixels"
+            )
         if present.size:
             registered, tf = model.register([track.silhouettes[k] for k in present])
             ok = tf.valid
@@ -366,6 +373,8 @@ def estimate_walk(
             obs[present] = np.argmin(pd, axis=1) / n_phases
         cams[name] = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes)
 
+    if all(c.viewpoint.n_samples == 0 for c in cams.values()):
+        raise ValueError("no non-empty silhouette in the window")
     hmm = config.hmm
     if exemplars is None:
         log_prob, states = hmm.decode(np.stack([c.observations for c in cams.values()], axis=1))
@@ -401,20 +410,21 @@ def _resolve_half_cycle(
     """Keep the Viterbi path or its half-cycle shift, whichever the clusters at (phase, viewpoint) fit better."""
     table, az_grid, el_grid = _example_lookup(model, n_phases)
     T = len(states)
-    scores = []
-    for shift in (0, n_phases // 2):
-        s = (states + shift) % n_phases
-        total = 0.0
-        for name, c in cams.items():
-            if not np.isfinite(c.viewpoint.azimuth_deg):
-                continue
-            ai = int(np.argmin(_circ_dist_deg(az_grid, c.viewpoint.azimuth_deg)))
-            ei = int(np.argmin(np.abs(el_grid - c.viewpoint.elevation_deg)))
-            lab = table[s, ai, ei]
-            d = distances[name][np.arange(T), np.maximum(lab, 0)]
-            ok = np.isfinite(d) & (lab >= 0)
-            total += float(d[ok].sum())
-        scores.append(total)
+    scores = [0.0, 0.0]
+    for name, c in cams.items():
+        if not np.isfinite(c.viewpoint.azimuth_deg):
+            continue
+        ai = int(np.argmin(_circ_dist_deg(az_grid, c.viewpoint.azimuth_deg)))
+        ei = int(np.argmin(np.abs(el_grid - c.viewpoint.elevation_deg)))
+        d = []
+        for shift in (0, n_phases // 2):
+            lab = table[(states + shift) % n_phases, ai, ei]
+            dd = distances[name][np.arange(T), np.maximum(lab, 0)].astype(float)
+            dd[lab < 0] = np.inf
+            d.append(dd)
+        ok = np.isfinite(d[0]) & np.isfinite(d[1])  # both paths scored on the same frames
+        scores[0] += float(d[0][ok].sum())
+        scores[1] += float(d[1][ok].sum())
     if scores[1] < scores[0]:
         states = (states + n_phases // 2) % n_phases
     return states, abs(scores[0] - scores[1]) / max(min(scores), 1e-9)

@@ -20,7 +20,7 @@ import numpy as np
 from .body import PARTS, bone_lengths, part_meshes, part_transforms
 from .camera import Camera
 from .joints import N_JOINTS
-from .skeleton import BodyShape
+from .skeleton import FULL_JOINT_NAMES, BodyShape
 
 __all__ = ["Renderer"]
 
@@ -135,8 +135,8 @@ class Renderer:
             The 13 public joints projected into the image (u, v).
         """
         joints = np.asarray(joints, dtype=float)
-        if joints.ndim != 2 or joints.shape[1] != 3 or joints.shape[0] < N_JOINTS:
-            raise ValueError(f"joints must have shape (20, 3), got {joints.shape}")
+        if joints.shape != (len(FULL_JOINT_NAMES), 3):
+            raise ValueError(f"joints must have shape ({len(FULL_JOINT_NAMES)}, 3), got {joints.shape}")
         self._pose_body(joints)
         self._set_camera(camera)
         depth = self._gl.render(self._scene, flags=self._pyrender.RenderFlags.DEPTH_ONLY)

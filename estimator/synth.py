@@ -9,6 +9,7 @@ viewpoints (the paper's range) look at the middle of the path. The result is a
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
@@ -139,6 +140,23 @@ def place_cameras(
     }
 
 
+def _keep_in_frame(camera: Camera, world: np.ndarray, stature: float) -> Camera:
+    """Shorten the focal length until the whole walk (joints plus body radii) is in the image.
+
+    Projections scale linearly about the principal point with the focal length,
+    so one factor suffices; head-on and elevated views of a long walk need it.
+    """
+    uv = camera.project(world.reshape(-1, 3))
+    cx, cy = camera.principal_point
+    margin = 0.1 * stature * camera.focal_px / camera.distance  # head and foot radii, in pixels
+    k = min(
+        1.0,
+        (cx - 2.0) / (np.abs(uv[:, 0] - cx).max() + margin),
+        (cy - 2.0) / (np.abs(uv[:, 1] - cy).max() + margin),
+    )
+    return dataclasses.replace(camera, focal_px=camera.focal_px * k) if k < 1.0 else camera
+
+
 def synthesize(
     spec: SynthSpec,
     *,
@@ -180,6 +198,7 @@ def synthesize(
         image_size=spec.image_size,
         distance=spec.distance or float(rng.uniform(8.0, 12.0)),
     )
+    cameras = {name: _keep_in_frame(cam, world, shape.height) for name, cam in cameras.items()}
     silhouettes: dict[str, list[np.ndarray | None]] = {c: [] for c in cameras}
     joints2d: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
     total, done = len(cameras) * spec.n_frames, 0

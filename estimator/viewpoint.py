@@ -42,11 +42,6 @@ class MotionCue:
     travel: float
     n_frames: int
 
-    @property
-    def approaching(self) -> float:
-        """Evidence that the camera is ahead of the walker: growth in units of its noise."""
-        return self.growth
-
     def signs(self, *, min_growth: float = 0.002, min_travel: float = 0.01) -> tuple[int, int]:
         """(sign of cos azimuth, sign of sin azimuth) the motion implies; 0 = no evidence."""
         cos_sign = int(np.sign(self.growth)) if abs(self.growth) >= min_growth else 0
@@ -99,11 +94,12 @@ class Viewpoint:
     spread_deg : float
         Square root of the larger eigenvalue: the ellipse's semi-major axis.
     flip : str
-        How the ahead/behind ambiguity was settled: ``"motion"``, ``"majority"``
-        (no motion cue) or ``"none"`` (the cloud had one mode).
+        How the ahead/behind ambiguity was settled: ``"motion"`` (by the motion
+        cue), ``"majority"`` (no motion cue: the larger mode) or ``"none"`` (the
+        cloud had one clear mode, or a cue too weak to decide).
     flip_margin : float
-        Fraction of the cloud's weight on the chosen side minus the other side,
-        before folding (1 = unambiguous).
+        ``|w_ahead - w_behind|``: how unevenly the cloud's weight lies on the two
+        sides before folding (1 = all on one side).
     n_samples : int
     """
 
@@ -116,13 +112,18 @@ class Viewpoint:
     n_samples: int
 
     def to_dict(self) -> dict:
+        """JSON-able (strict JSON: an undefined viewpoint's numbers are None)."""
+
+        def num(x: float) -> float | None:
+            return round(float(x), 3) if np.isfinite(x) else None
+
         return {
-            "azimuth_deg": round(self.azimuth_deg, 3),
-            "elevation_deg": round(self.elevation_deg, 3),
-            "spread_deg": round(self.spread_deg, 3),
-            "covariance_deg2": np.round(self.covariance, 3).tolist(),
+            "azimuth_deg": num(self.azimuth_deg),
+            "elevation_deg": num(self.elevation_deg),
+            "spread_deg": num(self.spread_deg),
+            "covariance_deg2": [[num(v) for v in row] for row in np.asarray(self.covariance)],
             "flip": self.flip,
-            "flip_margin": round(self.flip_margin, 3),
+            "flip_margin": num(self.flip_margin),
             "n_samples": self.n_samples,
         }
 
@@ -154,8 +155,10 @@ def estimate_viewpoint(
     el = np.asarray(elevation_deg, dtype=float)
     if az.ndim != 1 or az.shape != el.shape or az.size == 0:
         raise ValueError(f"azimuth_deg and elevation_deg must be non-empty (N,) arrays, got {az.shape}, {el.shape}")
+    if not (np.all(np.isfinite(az)) and np.all(np.isfinite(el))):
+        raise ValueError("azimuth_deg and elevation_deg must be finite")
     w = np.ones_like(az) if weights is None else np.asarray(weights, dtype=float)
-    if w.shape != az.shape or np.any(w < 0) or w.sum() <= 0:
+    if w.shape != az.shape or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
         raise ValueError("weights must be non-negative, one per sample, not all zero")
     w = w / w.sum()
     cos_sign, sin_sign = cue.signs() if cue is not None else (0, 0)

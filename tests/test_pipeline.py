@@ -128,3 +128,37 @@ def test_cli_bad_input_exit_2(small_model_path, sequences, tmp_path, capsys, bre
     assert main(["estimate", str(seq_dir), "--out", str(tmp_path / "r.json"), "--model", small_model_path]) == 2
     assert expected in capsys.readouterr().err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_empty_silhouettes_are_no_walk(small_model, sequences):
+    tracks = tracks_from_sequence(sequences[0])
+    blank = {
+        name: CameraTrack([np.zeros((40, 20), np.uint8)] * 30, np.tile([0.0, 0.0, 20.0, 40.0], (30, 1)))
+        for name in tracks
+    }
+    with pytest.raises(ValueError, match="no non-empty silhouette"):
+        estimate_walk(blank, small_model)
+
+
+def test_camera_without_data_gives_strict_json(small_model, sequences):
+    tracks = tracks_from_sequence(sequences[1])
+    tracks["c1"] = CameraTrack([None] * 30, np.full((30, 4), np.nan))
+    result = estimate_walk(tracks, small_model).to_result()
+    json.dumps(result, allow_nan=False)  # no NaN tokens
+    assert result["cameras"]["c1"]["azimuth_deg"] is None and result["cameras"]["c0"]["azimuth_deg"] is not None
+
+
+def test_padded_crops_keep_their_scale(small_model, sequences):
+    """A crop with padding around the silhouette: joints2d fit the silhouette, not the PNG."""
+    seq = sequences[2]
+    tracks = tracks_from_sequence(seq)
+    padded = [np.pad(s, 20) for s in tracks["c0"].silhouettes]
+    seq.silhouettes = {"c0": padded}
+    seq.cameras = ["c0"]
+    crops = tracks_from_sequence(seq)
+    assert not crops["c0"].full_frame
+    est = estimate_walk(crops, small_model)
+    j = est.cameras["c0"].joints2d
+    heights = np.ptp(j[:, :, 1], axis=1)
+    sil_h = np.array([s.shape[0] - 40 for s in padded])
+    assert np.all(heights < sil_h)  # the joints lie within the silhouette's height, not the padded PNG's

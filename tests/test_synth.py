@@ -130,3 +130,10 @@ def test_cli_bad_arguments_exit_2(tmp_path, argv, message):
     assert out.returncode == 2, out.stderr
     assert message in out.stderr
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("az, el", [(0.0, 35.0), (180.0, 30.0)])
+def test_walk_stays_in_frame_for_head_on_elevated_cameras(az, el):
+    seq = synthesize(SynthSpec(n_cameras=1, n_frames=40, seed=1, azimuths=(az,), elevations=(el,), distance=8.0))
+    s = np.array(seq.silhouettes["c0"])
+    assert not s[:, [0, -1], :].any() and not s[:, :, [0, -1]].any()

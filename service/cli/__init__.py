@@ -17,7 +17,7 @@ __all__ = ["CliError", "main"]
 
 # Modules that provide sub-commands, imported lazily so that ``posecal synth``
 # never pays for importing the web stack.
-_COMMANDS = ("synth", "estimate", "model", "selfcal", "capture", "serve", "demo")
+_COMMANDS = ("synth", "estimate", "refine", "model", "selfcal", "capture", "serve", "demo")
 
 
 class CliError(Exception):

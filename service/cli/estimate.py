@@ -49,10 +49,13 @@ def run(args: argparse.Namespace) -> int:
     result["sequence"] = {"fps": sequence.fps, "image_size": list(sequence.image_size), "frames": sequence.n_frames}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
-        json.dump(result, fh)
+        json.dump(result, fh, allow_nan=False)
     print(f"wrote {args.out}: {sequence.n_frames} frames, {len(sequence.cameras)} cameras")
     truth = sequence.truth or {}
     for name, cam in result["cameras"].items():
+        if cam["azimuth_deg"] is None:
+            print(f"  {name}: no silhouette, no viewpoint")
+            continue
         line = f"  {name}: azimuth {cam['azimuth_deg']:6.1f} deg, elevation {cam['elevation_deg']:5.1f} deg (spread {cam['spread_deg']:.1f}, flip: {cam['flip']})"
         if name in truth.get("cameras", {}):
             t = truth["cameras"][name]
