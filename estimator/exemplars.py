@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .viewpoint import azimuth_difference_deg
+
 __all__ = ["ExemplarIndex", "pack", "hamming"]
 
 
@@ -78,7 +80,7 @@ class ExemplarIndex:
 
         Entries are -1 where the grid has no example (e.g. a partial grid).
         """
-        d_az = np.abs((self._az - azimuth_deg + 180.0) % 360.0 - 180.0)
+        d_az = np.abs(azimuth_difference_deg(self._az, azimuth_deg))
         ai = np.argsort(d_az, kind="stable")[:n_azimuths]
         ei = np.argsort(np.abs(self._el - elevation_deg), kind="stable")[:n_elevations]
         return self._table[:, ai][:, :, ei].reshape(self.n_phases, -1)

@@ -39,7 +39,7 @@ from .joints import JOINT_NAMES, N_JOINTS
 from .registration import distance
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
-from .viewpoint import MotionCue, Viewpoint, estimate_viewpoint, motion_cue
+from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, motion_cue
 
 __all__ = ["CameraTrack", "EstimateConfig", "WalkEstimate", "estimate_walk", "tracks_from_sequence"]
 
@@ -210,8 +210,8 @@ class WalkEstimate:
         }
 
 
-def _circ_dist_deg(a: np.ndarray, b: float) -> np.ndarray:
-    return np.abs((a - b + 180.0) % 360.0 - 180.0)
+def _abs_az_diff(a: np.ndarray, b: float) -> np.ndarray:
+    return np.abs(azimuth_difference_deg(a, b))
 
 
 def _circular_mean(values: np.ndarray) -> float:
@@ -361,7 +361,7 @@ def estimate_walk(
             vp = estimate_viewpoint(*_cloud_paper(model, labels[present]), cue=cue)
             for k in present:
                 sl = slice(model.member_offsets[labels[k]], model.member_offsets[labels[k] + 1])
-                near = (_circ_dist_deg(model.member_azimuth_deg[sl], vp.azimuth_deg) <= config.phase_view_window_deg) & (
+                near = (_abs_az_diff(model.member_azimuth_deg[sl], vp.azimuth_deg) <= config.phase_view_window_deg) & (
                     np.abs(model.member_elevation_deg[sl] - vp.elevation_deg) <= config.phase_view_window_deg
                 )
                 obs[k] = _circular_mean(model.member_phase[sl][near] if near.any() else model.member_phase[sl])
@@ -414,7 +414,7 @@ def _resolve_half_cycle(
     for name, c in cams.items():
         if not np.isfinite(c.viewpoint.azimuth_deg):
             continue
-        ai = int(np.argmin(_circ_dist_deg(az_grid, c.viewpoint.azimuth_deg)))
+        ai = int(np.argmin(_abs_az_diff(az_grid, c.viewpoint.azimuth_deg)))
         ei = int(np.argmin(np.abs(el_grid - c.viewpoint.elevation_deg)))
         d = []
         for shift in (0, n_phases // 2):

@@ -54,8 +54,21 @@ class Sequence:
 
 
 def write_sequence(path: str | os.PathLike, sequence: Sequence) -> None:
-    """Write a sequence folder (creating it); frames that are None are not written."""
+    """Write a sequence folder (creating it); frames that are None are not written.
+
+    Frame PNGs and ``truth.json`` left in the folder by an earlier sequence are
+    removed first, so the folder holds this sequence only.
+    """
     os.makedirs(path, exist_ok=True)
+    for cam in sequence.cameras:
+        folder = os.path.join(path, cam)
+        if os.path.isdir(folder):
+            for name in os.listdir(folder):
+                stem, ext = os.path.splitext(name)
+                if ext.lower() == ".png" and stem.isdigit():
+                    os.remove(os.path.join(folder, name))
+    if sequence.truth is None and os.path.exists(os.path.join(path, "truth.json")):
+        os.remove(os.path.join(path, "truth.json"))
     with open(os.path.join(path, "rig.json"), "w") as fh:
         json.dump(sequence.rig(), fh, indent=1)
     for cam in sequence.cameras:

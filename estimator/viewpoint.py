@@ -20,7 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MotionCue", "Viewpoint", "estimate_viewpoint", "motion_cue"]
+__all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "estimate_viewpoint", "motion_cue"]
+
+
+def azimuth_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
+    """Signed difference ``a - b`` of azimuths on the circle, in [-180, 180)."""
+    return (np.asarray(a, dtype=float) - b + 180.0) % 360.0 - 180.0
 
 
 @dataclass(frozen=True)
@@ -180,7 +185,7 @@ def estimate_viewpoint(
     if flip == "majority" and margin > 0.8:
         flip = "none"
     centre = _circular_mean_deg(folded, w)
-    d_az = (folded - centre + 180.0) % 360.0 - 180.0
+    d_az = azimuth_difference_deg(folded, centre)
     mean_el = float(np.sum(w * el))
     X = np.stack([d_az, el - mean_el])
     cov = (X * w) @ X.T

@@ -137,3 +137,13 @@ def test_walk_stays_in_frame_for_head_on_elevated_cameras(az, el):
     seq = synthesize(SynthSpec(n_cameras=1, n_frames=40, seed=1, azimuths=(az,), elevations=(el,), distance=8.0))
     s = np.array(seq.silhouettes["c0"])
     assert not s[:, [0, -1], :].any() and not s[:, :, [0, -1]].any()
+
+
+def test_rewriting_a_folder_leaves_no_stale_frames(tmp_path):
+    long = synthesize(SynthSpec(n_cameras=1, n_frames=6, seed=0, image_size=(160, 120)))
+    short = synthesize(SynthSpec(n_cameras=1, n_frames=3, seed=1, image_size=(160, 120)))
+    write_sequence(tmp_path / "s", long)
+    short.truth = None
+    write_sequence(tmp_path / "s", short)
+    back = read_sequence(tmp_path / "s")
+    assert len(back.silhouettes["c0"]) == 3 and back.truth is None
