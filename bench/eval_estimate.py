@@ -203,7 +203,7 @@ def _subset(rows: dict[str, list], source: str) -> dict[str, list]:
 
 _REPORT = """# Estimation accuracy (issue 4)
 
-Produced by `python bench/eval_estimate.py --sequences {n} --seed {seed} --paper` with the default
+Produced by `OPENBLAS_NUM_THREADS=1 python bench/eval_estimate.py --sequences {n} --seed {seed} --paper` with the default
 appearance model ({examples} examples, {clusters} clusters). Sequences: {n} randomized synthetic walks
 (random body size and style, 2-4 cameras at random azimuth 0-360 and elevation -20..35 degrees,
 30-40 frames at 15 Hz, 640x480 full-frame silhouettes) plus 10 whose motion is a real CMU walk
@@ -225,8 +225,8 @@ the cloud of all members of the matched clusters, the clusters' mean phases thro
 mixture; with equal weights eq. 9 cannot tell a phase from its opposite, hence ~50% left/right
 swaps. **paper + ...** restricts each cluster's phase to members seen from near the estimated
 viewpoint and picks the Viterbi path or its half-cycle shift by the clusters' fit.
-The ms column ran on a machine shared with other jobs and multi-threaded BLAS; the one-core
-figure is `bench/bench_estimate.py` in `docs/BENCHMARKS.md`.
+The ms column ran on a machine shared with other jobs (run with `OPENBLAS_NUM_THREADS=1`); the
+one-core figure is `bench/bench_estimate.py` in `docs/BENCHMARKS.md`.
 
 {table}
 
