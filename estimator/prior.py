@@ -1,0 +1,591 @@
+"""Silhouette priors from an estimated walk (Izo–Grimson §7.1).
+
+For each frame and camera of an estimated window the model body is rendered in
+the decoded phase from the camera's estimated viewpoint, brought onto the
+observed silhouette by the inverse of the matching registration (scale,
+centroid, principal axis; §5), optionally nudged by the translation that best
+overlaps the observation, and softened into a per-pixel prior in full-frame
+coordinates: 255 deep inside the body, 128 on the rendered outline, falling to
+0 a few pixels outside, so a segmenter trusts the interior and stays unsure at
+the edges where the model body and the real one differ. An evidence gate keeps
+the prior near what was observed — close for a complete silhouette, farther
+for a torn one — and :func:`explained` / :func:`weigh` measure and act on how
+much of an observation a prior accounts for (a wrong prior explains little).
+
+For live use :func:`predict_phases` continues the decoded HMM path at its mean
+speed and :func:`predict_priors` renders priors for frames not seen yet, so a
+prior can reach a capture agent before its frame.
+
+:func:`refine_silhouette` fuses a prior with a given binary silhouette when no
+image is left to re-segment: holes the model explains are filled, blobs away
+from the body are dropped. Fusion with raw frames lives in the capture
+package's segmenter (``capture.segment.Segmenter.set_prior``).
+
+This module is pure: arrays and dataclasses in and out; the renderer is passed in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .camera import Camera
+from .gait import GaitModel, load_gait
+from .joints import N_JOINTS
+from .pipeline import CameraTrack, WalkEstimate
+from .registration import register
+from .skeleton import BodyShape, forward_kinematics
+
+__all__ = [
+    "Prior",
+    "PriorConfig",
+    "explained",
+    "phase_speed",
+    "predict_boxes",
+    "predict_phases",
+    "predict_priors",
+    "prior_from_render",
+    "priors_for_window",
+    "refine_silhouette",
+    "render_body",
+    "rotate_prior",
+    "soften",
+    "trim_silhouette",
+    "weigh",
+]
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """Options of the priors; one default each.
+
+    Parameters
+    ----------
+    pixels_per_metre : float
+        Scale of the orthographic render of the model body (it is then resampled
+        onto the observation; 120 px/m gives a ~210 px tall body).
+    band : float
+        Width of the soft edge as a fraction of the body's height: the prior is
+        ``255 * sigmoid(signed_distance / (band * height))``.
+    inset : float
+        Shift of the 50% level into the body, fraction of the height (0 = the
+        rendered outline is the 128 level).
+    rotate : bool
+        Follow the observed principal axis (the full similarity of §5); off by
+        default: a walker is upright, and a torn silhouette's axis is noise.
+    search : float
+        Translation search, fraction of the observed height, for the shift of the
+        registered render that overlaps the observation most (0 = off).
+    pad : float
+        Margin of the prior's box around the observed box, fraction of the height.
+    reach_min, reach_max : float
+        Evidence gate, fractions of the height: the prior fades beyond
+        ``reach`` of the observed foreground (its enclosed holes count as
+        observed), with ``reach`` from ``reach_min`` for an observation of at
+        least ``complete_ratio`` of the model body's area (bodies differ: a
+        walker slimmer than the model is still complete) to ``reach_max`` for
+        one of half its area or less. A
+        complete silhouette needs no help and a misfit model would only add
+        false foreground at its edges; a torn one needs the model to bridge
+        gaps. ``reach_max = inf`` turns the gate off.
+    body : BodyShape
+        The model body (the estimator reports its joints).
+    """
+
+    pixels_per_metre: float = 120.0
+    band: float = 0.015
+    inset: float = 0.0
+    rotate: bool = False
+    search: float = 0.06
+    pad: float = 0.1
+    reach_min: float = 0.0
+    reach_max: float = 0.2
+    complete_ratio: float = 0.7
+    body: BodyShape = field(default_factory=BodyShape)
+
+    def __post_init__(self) -> None:
+        if self.pixels_per_metre <= 0 or self.band <= 0:
+            raise ValueError(f"pixels_per_metre and band must be positive, got {self.pixels_per_metre}, {self.band}")
+        if self.search < 0 or self.pad < 0:
+            raise ValueError(f"search and pad must be >= 0, got {self.search}, {self.pad}")
+        if not 0 <= self.reach_min <= self.reach_max:
+            raise ValueError(f"need 0 <= reach_min <= reach_max, got {self.reach_min}, {self.reach_max}")
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A soft foreground prior for one frame of one camera.
+
+    Attributes
+    ----------
+    frame_index : int
+        Frame of the window (or a predicted frame after it).
+    box : (int, int, int, int)
+        ``(x, y, w, h)`` of ``mask`` in the full frame.
+    image_size : (int, int)
+        ``(width, height)`` of the full frame.
+    mask : ndarray of shape (h, w), uint8
+        0 = surely background / no opinion ... 255 = surely the walker.
+    """
+
+    frame_index: int
+    box: tuple[int, int, int, int]
+    image_size: tuple[int, int]
+    mask: np.ndarray = field(repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        x, y, w, h = self.box
+        if self.mask.dtype != np.uint8 or self.mask.shape != (h, w):
+            raise ValueError(f"mask must be uint8 of shape ({h}, {w}), got {self.mask.dtype} {self.mask.shape}")
+        if min(x, y, w, h) < 0 or x + w > self.image_size[0] or y + h > self.image_size[1]:
+            raise ValueError(f"box {self.box} is not inside the image {self.image_size}")
+
+    def full_mask(self) -> np.ndarray:
+        """The prior pasted into a full-frame ``(height, width)`` canvas of zeros."""
+        out = np.zeros(self.image_size[::-1], np.uint8)
+        x, y, w, h = self.box
+        out[y : y + h, x : x + w] = self.mask
+        return out
+
+
+# ------------------------------------------------------------------------ rendering
+
+
+def render_body(
+    phases: np.ndarray,
+    azimuth_deg: float,
+    elevation_deg: float,
+    *,
+    renderer,
+    body: BodyShape | None = None,
+    gait: GaitModel | None = None,
+    pixels_per_metre: float = 120.0,
+) -> list[np.ndarray]:
+    """Orthographic silhouettes (uint8 0/255) of the model body at each phase.
+
+    ``renderer`` is an :class:`estimator.render.Renderer` (its shape is used
+    unless ``body`` is given and differs, which the caller should avoid).
+    """
+    body = body or renderer.shape
+    gait = gait or load_gait()
+    phases = np.atleast_1d(np.asarray(phases, float))
+    skel = forward_kinematics(gait.angles(phases % 1.0), body)
+    skel = skel - skel[:, :N_JOINTS].mean(axis=1, keepdims=True)
+    side = int(np.ceil(2.4 * body.height * pixels_per_metre)) | 1
+    cam = Camera(azimuth_deg, elevation_deg, distance=10.0, image_size=(side, side),
+                 focal_px=pixels_per_metre, orthographic=True)
+    return [renderer.render(j, cam)[0] for j in skel]
+
+
+def soften(mask: np.ndarray, *, band_px: float, inset_px: float = 0.0) -> np.ndarray:
+    """Soft prior of a binary mask: ``255 * sigmoid((signed distance - inset) / band)``, float32."""
+    m = (mask > 0).astype(np.uint8)
+    inside = cv2.distanceTransform(m, cv2.DIST_L2, 5)
+    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, 5)
+    sd = np.where(m > 0, inside - 0.5, 0.5 - outside) - inset_px
+    return (255.0 / (1.0 + np.exp(-sd / max(band_px, 1e-3)))).astype(np.float32)
+
+
+def _inverse(m: np.ndarray) -> np.ndarray:
+    a = np.vstack([m, [0.0, 0.0, 1.0]])
+    return np.linalg.inv(a)[:2]
+
+
+def _best_shift(observed: np.ndarray, predicted: np.ndarray, r: int) -> tuple[int, int]:
+    """Integer shift (dx, dy) of ``predicted`` within +-r that overlaps ``observed`` most."""
+    if r <= 0 or not predicted.any() or not observed.any():
+        return 0, 0
+    obs = cv2.copyMakeBorder((observed > 0).astype(np.float32), r, r, r, r, cv2.BORDER_CONSTANT, value=0)
+    score = cv2.matchTemplate(obs, (predicted > 0).astype(np.float32), cv2.TM_CCORR)
+    # Prefer small shifts among near-ties (a flat overlap landscape = no evidence).
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    score = score - 1e-3 * float(predicted.astype(bool).sum()) * np.hypot(xx, yy) / max(r, 1)
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    return int(ix - r), int(iy - r)
+
+
+def prior_from_render(
+    rendered: np.ndarray,
+    observed: np.ndarray,
+    box: np.ndarray,
+    image_size: tuple[int, int],
+    *,
+    frame_index: int,
+    config: PriorConfig | None = None,
+    shift: tuple[float, float] = (0.0, 0.0),
+) -> Prior | None:
+    """Register a rendered silhouette onto an observed crop and soften it.
+
+    Parameters
+    ----------
+    rendered : ndarray of shape (H, W), uint8
+        The model body (any placement).
+    observed : ndarray of shape (h, w), uint8
+        The observed silhouette crop.
+    box : ndarray of shape (4,)
+        ``(x, y, w, h)`` of ``observed`` in the full frame.
+    image_size : (int, int)
+        Full frame ``(width, height)``.
+    shift : (float, float)
+        Extra translation in pixels (prediction of the motion to a later frame).
+
+    Returns
+    -------
+    Prior or None
+        None when either silhouette is empty.
+
+    Notes
+    -----
+    The map render -> observation is ``inv(T_obs) @ T_render`` with ``T`` the
+    §5 registrations: equal heights along the principal axis, equal centroids,
+    (with ``rotate``) equal axes.
+    """
+    config = config or PriorConfig()
+    _, tf = register([rendered, observed], rotate=config.rotate)
+    if not tf.valid.all():
+        return None
+    a = np.vstack([tf.matrix[0], [0, 0, 1]])
+    m = _inverse(tf.matrix[1]) @ a  # rendered pixels -> observed crop pixels
+    height = float(tf.height[1])
+    W, H = image_size
+    x, y, w, h = (float(v) for v in box)
+    pad = config.pad * height
+    x0, y0 = int(max(0, np.floor(x - pad + shift[0]))), int(max(0, np.floor(y - pad + shift[1])))
+    x1, y1 = int(min(W, np.ceil(x + w + pad + shift[0]))), int(min(H, np.ceil(y + h + pad + shift[1])))
+    if x1 <= x0 or y1 <= y0:
+        return None
+    m = m.copy()
+    m[:, 2] += (x - x0 + shift[0], y - y0 + shift[1])
+    out_size = (x1 - x0, y1 - y0)
+    binary = cv2.warpAffine(rendered, m, out_size, flags=cv2.INTER_LINEAR) > 127
+    # The observation in the prior's box (moved along with a predicted shift).
+    obs_box = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    ox, oy = int(round(x + shift[0])) - x0, int(round(y + shift[1])) - y0
+    crop = (observed > 0).astype(np.uint8)[max(0, -oy) :, max(0, -ox) :]
+    hh, ww = min(crop.shape[0], obs_box.shape[0] - max(oy, 0)), min(crop.shape[1], obs_box.shape[1] - max(ox, 0))
+    if hh > 0 and ww > 0:
+        obs_box[max(oy, 0) : max(oy, 0) + hh, max(ox, 0) : max(ox, 0) + ww] = crop[:hh, :ww]
+    if config.search > 0 and not any(shift):
+        dx, dy = _best_shift(obs_box, binary, int(round(config.search * height)))
+        if dx or dy:
+            m[:, 2] += (dx, dy)
+            binary = cv2.warpAffine(rendered, m, out_size, flags=cv2.INTER_LINEAR) > 127
+    band = config.band * height
+    soft = soften(binary.astype(np.uint8), band_px=band, inset_px=config.inset * height)
+    if np.isfinite(config.reach_max) and binary.any():
+        ratio = float(obs_box.sum()) / float(binary.sum())
+        span = max(config.complete_ratio - 0.5, 1e-6)
+        reach = config.reach_min + (config.reach_max - config.reach_min) * float(
+            np.clip((config.complete_ratio - ratio) / span, 0.0, 1.0))
+        soft *= _gate(obs_box, reach * height) / 255.0
+    return Prior(frame_index, (x0, y0, x1 - x0, y1 - y0), (int(W), int(H)), np.clip(soft + 0.5, 0, 255).astype(np.uint8))
+
+
+def _gate(observed: np.ndarray, reach_px: float) -> np.ndarray:
+    """255 within ``reach_px`` of the observed foreground or its enclosed holes, fading outside."""
+    filled = observed.copy()
+    h, w = filled.shape
+    flood = np.zeros((h + 2, w + 2), np.uint8)
+    background = (1 - observed).astype(np.uint8)
+    cv2.floodFill(background, flood, (0, 0), 0)  # what remains 1 is enclosed by foreground
+    filled |= background
+    dist = cv2.distanceTransform(1 - filled, cv2.DIST_L2, 5)
+    fade = 255.0 / (1.0 + np.exp(np.minimum(dist - reach_px - 1.0, 50.0)))  # 1-pixel fade beyond the reach
+    return np.where(dist <= reach_px, np.float32(255.0), fade).astype(np.float32)
+
+
+# ------------------------------------------------------------------------ windows
+
+
+def priors_for_window(
+    estimate: WalkEstimate,
+    tracks: dict[str, CameraTrack],
+    image_sizes: dict[str, tuple[int, int]] | tuple[int, int],
+    *,
+    renderer,
+    config: PriorConfig | None = None,
+    gait: GaitModel | None = None,
+    first_index: int = 0,
+) -> dict[str, list[Prior]]:
+    """Priors for every frame of every camera that has a silhouette and a viewpoint.
+
+    Parameters
+    ----------
+    estimate : WalkEstimate
+        From :func:`estimator.pipeline.estimate_walk` on ``tracks``.
+    tracks : dict of str to CameraTrack
+        The window's silhouettes; their boxes must be full-frame positions.
+    image_sizes : (int, int) or dict of str to (int, int)
+        Full frame ``(width, height)``, one for all cameras or per camera.
+    renderer : estimator.render.Renderer
+        Draws the model body (``config.body`` is installed in it).
+    first_index : int
+        Frame index of the window's first frame (``Prior.frame_index``).
+
+    Returns
+    -------
+    dict of str to list of Prior
+        Per camera, in frame order; frames without data are skipped.
+    """
+    config = config or PriorConfig()
+    gait = gait or load_gait()
+    if renderer.shape != config.body:
+        renderer.set_shape(config.body)
+    out: dict[str, list[Prior]] = {}
+    for name, track in tracks.items():
+        size = image_sizes[name] if isinstance(image_sizes, dict) else image_sizes
+        cam = estimate.cameras.get(name)
+        out[name] = []
+        if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg):
+            continue
+        rows = [t for t, s in enumerate(track.silhouettes) if s is not None and np.isfinite(track.boxes[t, 0])]
+        if not rows:
+            continue
+        renders = render_body(estimate.phase[rows], cam.viewpoint.azimuth_deg, cam.viewpoint.elevation_deg,
+                              renderer=renderer, body=config.body, gait=gait,
+                              pixels_per_metre=config.pixels_per_metre)
+        for t, r in zip(rows, renders):
+            p = prior_from_render(r, track.silhouettes[t], track.boxes[t], size,
+                                  frame_index=first_index + t, config=config)
+            if p is not None:
+                out[name].append(p)
+    return out
+
+
+def predict_phases(estimate: WalkEstimate, n_ahead: int, *, n_states: int | None = None) -> np.ndarray:
+    """Phases of the ``n_ahead`` frames after the window, continuing the decoded path.
+
+    The speed is the decoded HMM path's mean advance per frame (states unwrapped
+    on the cycle; the cyclic feed-forward HMM only moves forward).
+
+    Returns
+    -------
+    ndarray of shape (n_ahead,), phases in [0, 1)
+    """
+    if n_ahead < 0:
+        raise ValueError(f"n_ahead must be >= 0, got {n_ahead}")
+    phase = np.asarray(estimate.phase, float)
+    if phase.size == 0:
+        raise ValueError("the estimate has no frames")
+    speed = phase_speed(phase)
+    return (phase[-1] + speed * np.arange(1, n_ahead + 1)) % 1.0
+
+
+def phase_speed(phase: np.ndarray) -> float:
+    """Mean forward advance of a phase path per frame (cycles per frame, >= 0)."""
+    phase = np.asarray(phase, float)
+    if phase.size < 2:
+        return 0.0
+    d = np.diff(phase) % 1.0  # forward only
+    d = np.where(d > 0.5, d - 1.0, d)  # a backward step (should not happen) counts as such
+    return float(max(0.0, d.mean()))
+
+
+def predict_boxes(boxes: np.ndarray, n_ahead: int, *, history: int = 8) -> np.ndarray:
+    """Boxes of the next frames by a straight-line fit to the last ``history`` known boxes.
+
+    Parameters
+    ----------
+    boxes : ndarray of shape (T, 4)
+        ``(x, y, w, h)`` per frame, NaN where unknown.
+
+    Returns
+    -------
+    ndarray of shape (n_ahead, 4); NaN when fewer than one box is known.
+    """
+    boxes = np.asarray(boxes, float)
+    known = np.flatnonzero(np.isfinite(boxes[:, 0]))[-history:]
+    T = len(boxes)
+    if known.size == 0:
+        return np.full((n_ahead, 4), np.nan)
+    future = np.arange(T, T + n_ahead, dtype=float)
+    if known.size == 1:
+        return np.repeat(boxes[known], n_ahead, axis=0)
+    out = np.empty((n_ahead, 4))
+    for k in range(4):
+        slope, icpt = np.polyfit(known.astype(float), boxes[known, k], 1)
+        out[:, k] = icpt + slope * future
+    return out
+
+
+def predict_priors(
+    estimate: WalkEstimate,
+    tracks: dict[str, CameraTrack],
+    image_sizes: dict[str, tuple[int, int]] | tuple[int, int],
+    n_ahead: int,
+    *,
+    renderer,
+    config: PriorConfig | None = None,
+    gait: GaitModel | None = None,
+    first_index: int = 0,
+) -> dict[str, list[Prior]]:
+    """Priors for the ``n_ahead`` frames after the window (live feedback, §7.1).
+
+    The phase continues the HMM path (:func:`predict_phases`); the body is
+    registered onto the camera's last silhouette, then moved by the box motion
+    extrapolated from the window (:func:`predict_boxes`).
+    """
+    config = config or PriorConfig()
+    gait = gait or load_gait()
+    if renderer.shape != config.body:
+        renderer.set_shape(config.body)
+    phases = predict_phases(estimate, n_ahead)
+    T = len(estimate.phase)
+    out: dict[str, list[Prior]] = {}
+    for name, track in tracks.items():
+        size = image_sizes[name] if isinstance(image_sizes, dict) else image_sizes
+        cam = estimate.cameras.get(name)
+        out[name] = []
+        known = [t for t, s in enumerate(track.silhouettes) if s is not None and np.isfinite(track.boxes[t, 0])]
+        if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg) or not known or n_ahead == 0:
+            continue
+        last = known[-1]
+        future = predict_boxes(track.boxes, n_ahead)
+        renders = render_body(phases, cam.viewpoint.azimuth_deg, cam.viewpoint.elevation_deg,
+                              renderer=renderer, body=config.body, gait=gait,
+                              pixels_per_metre=config.pixels_per_metre)
+        lb = track.boxes[last]
+        for k, r in enumerate(renders):
+            fb = future[k]
+            # Centre of the predicted box minus centre of the last observed one.
+            shift = (fb[0] + fb[2] / 2 - lb[0] - lb[2] / 2, fb[1] + fb[3] / 2 - lb[1] - lb[3] / 2)
+            p = prior_from_render(r, track.silhouettes[last], lb, size, frame_index=first_index + T + k,
+                                  config=config, shift=shift)
+            if p is not None:
+                out[name].append(p)
+    return out
+
+
+def rotate_prior(prior: Prior, angle_deg: float = 90.0) -> Prior:
+    """The prior turned by ``angle_deg`` about its weighted centroid (a deliberately wrong prior)."""
+    full = prior.full_mask()
+    m = cv2.moments(full)
+    if m["m00"] == 0:
+        return prior
+    c = (m["m10"] / m["m00"], m["m01"] / m["m00"])
+    rot = cv2.getRotationMatrix2D(c, angle_deg, 1.0)
+    turned = cv2.warpAffine(full, rot, prior.image_size, flags=cv2.INTER_LINEAR)
+    x, y, w, h = cv2.boundingRect((turned > 0).astype(np.uint8))
+    if w == 0:
+        return prior
+    return Prior(prior.frame_index, (x, y, w, h), prior.image_size, turned[y : y + h, x : x + w].copy())
+
+
+# ------------------------------------------------------------------------ fusion
+
+
+def explained(prior: Prior, silhouette: np.ndarray, *, level: int = 64) -> float:
+    """Fraction of an observed silhouette's foreground that the prior covers (value >= ``level``).
+
+    A prior that does not explain the evidence — wrong viewpoint, wrong
+    placement, a stale prediction — covers little of it, while a right prior
+    covers even a torn silhouette's fragments. NaN for an empty silhouette.
+
+    Parameters
+    ----------
+    silhouette : ndarray of shape (H, W)
+        Full-frame observation (e.g. the segmenter's output without prior).
+    """
+    if silhouette.shape != prior.image_size[::-1]:
+        raise ValueError(f"silhouette must have shape {prior.image_size[::-1]}, got {silhouette.shape}")
+    fg = silhouette > 0
+    n = int(np.count_nonzero(fg))
+    if n == 0:
+        return float("nan")
+    return float(np.count_nonzero(fg & (prior.full_mask() >= level))) / n
+
+
+def weigh(prior: Prior, coverage: float, *, low: float = 0.5, high: float = 0.8) -> Prior | None:
+    """The prior scaled by how well it explains the evidence; None below ``low``.
+
+    ``coverage`` from :func:`explained`: at or above ``high`` the prior is kept
+    as is, between ``low`` and ``high`` its values shrink linearly (fewer pixels
+    reach a segmenter's trust level), below ``low`` it is dropped. NaN (no
+    observation to check against) keeps it.
+    """
+    if not np.isfinite(coverage) or coverage >= high:
+        return prior
+    if coverage < low:
+        return None
+    f = (coverage - low) / (high - low)
+    return Prior(prior.frame_index, prior.box, prior.image_size, (prior.mask * f + 0.5).astype(np.uint8))
+
+
+def trim_silhouette(silhouette: np.ndarray, prior: np.ndarray, *, reach: float = 0.1, level: int = 64) -> np.ndarray:
+    """Drop foreground farther than ``reach`` x the prior's height from the prior's support.
+
+    For offline refinement after a segmenter that only *adds* foreground under
+    a prior: background the model cannot explain (lighting drift, shadows,
+    a second mover) is cut away; within ``reach`` of the model body the
+    observation is kept as it is. An empty prior leaves the silhouette alone.
+
+    Parameters
+    ----------
+    silhouette, prior : ndarray of shape (H, W), uint8
+        Full frame; ``prior`` soft 0..255 (:meth:`Prior.full_mask`).
+    """
+    if silhouette.shape != prior.shape:
+        raise ValueError(f"silhouette and prior must have the same shape, got {silhouette.shape} and {prior.shape}")
+    support = (prior >= level).astype(np.uint8)
+    rows = np.flatnonzero(support.any(axis=1))
+    if rows.size == 0:
+        return np.where(silhouette > 0, np.uint8(255), np.uint8(0))
+    dist = cv2.distanceTransform(1 - support, cv2.DIST_L2, 3)
+    keep = dist <= reach * float(rows[-1] - rows[0] + 1)
+    return np.where((silhouette > 0) & keep, np.uint8(255), np.uint8(0))
+
+
+def refine_silhouette(
+    silhouette: np.ndarray,
+    prior: np.ndarray,
+    *,
+    fill_level: int = 200,
+    keep_level: int = 64,
+    reach: float = 0.04,
+) -> np.ndarray:
+    """Fuse a binary silhouette with a soft prior when no image is left (offline, §7.1).
+
+    Parameters
+    ----------
+    silhouette : ndarray of shape (H, W), uint8
+        Observed silhouette (non-zero = foreground), full frame.
+    prior : ndarray of shape (H, W), uint8
+        Soft prior on the same frame (:meth:`Prior.full_mask`).
+    fill_level : int
+        Prior value from which a missing pixel is filled ...
+    reach : float
+        ... if it lies within ``reach * height`` of observed foreground (the
+        model explains a hole or a thin gap, it does not invent a limb far from
+        any evidence).
+    keep_level : int
+        Connected components of the observation touching no pixel with a prior
+        of at least this value are dropped (blobs far from the body). The
+        largest component is always kept.
+
+    Returns
+    -------
+    ndarray of shape (H, W), uint8 0/255
+    """
+    silhouette = np.asarray(silhouette)
+    prior = np.asarray(prior)
+    if silhouette.shape != prior.shape:
+        raise ValueError(f"silhouette and prior must have the same shape, got {silhouette.shape} and {prior.shape}")
+    fg = (silhouette > 0).astype(np.uint8)
+    if not fg.any():
+        return fg * 255
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+    support = prior >= keep_level
+    keep = np.zeros(n, bool)
+    hit = np.unique(labels[support & (labels > 0)])
+    keep[hit] = True
+    keep[1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))] = True
+    keep[0] = False
+    fg = keep[labels].astype(np.uint8)
+    rows = np.flatnonzero(fg.any(axis=1))
+    height = float(rows[-1] - rows[0] + 1)
+    dist = cv2.distanceTransform(1 - fg, cv2.DIST_L2, 3)
+    fill = (prior >= fill_level) & (dist <= reach * height)
+    out = (fg.astype(bool) | fill).astype(np.uint8) * 255
+    return out

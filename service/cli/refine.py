@@ -1,0 +1,196 @@
+"""``posecal refine SEQ --out DIR``: silhouettes improved by model feedback (Izo–Grimson §7.1).
+
+Two inputs:
+
+- a sequence folder of PNG silhouettes (``rig.json`` + ``<camera>/NNNNNN.png``):
+  no image is left to re-segment, so each silhouette is fused with the model's
+  prior (:func:`estimator.prior.refine_silhouette`: holes the model explains
+  are filled, blobs away from the body dropped);
+- raw video, one file per camera (``SEQ/<camera>.mp4`` etc., ``rig.json``
+  optional): background subtraction, estimate, priors, background subtraction
+  again with the priors (:func:`capture.refine.refine_cameras`).
+
+The output is a sequence folder (full-frame PNGs, or crops where the input was
+crops) plus ``refine.json`` with the walk estimated from the input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+from . import CliError
+
+_VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "refine",
+        help="improve the silhouettes of a sequence folder (PNG silhouettes or raw video) with model feedback",
+        description="Estimate the walk, render the model body in the estimated poses and viewpoints, "
+        "register it onto each silhouette and use it as a foreground prior (paper section 7.1). "
+        "PNG silhouettes are fused with the prior; raw videos (<camera>.mp4) are background-subtracted "
+        "again with the prior.",
+    )
+    p.add_argument("sequence", metavar="SEQ", help="sequence folder (rig.json + <camera>/ PNGs, or <camera>.mp4 videos)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output sequence folder")
+    p.add_argument("--model", help="appearance model file (default: the cached default model)")
+    p.add_argument("--warmup", type=int, default=None,
+                   help="videos: empty frames learned by the background model (default: min(100, frames/4))")
+    p.set_defaults(func=run)
+
+
+def _videos(folder: str) -> dict[str, str]:
+    out = {}
+    for name in sorted(os.listdir(folder)):
+        stem, ext = os.path.splitext(name)
+        if ext.lower() in _VIDEO_EXTENSIONS and os.path.isfile(os.path.join(folder, name)):
+            out[stem] = os.path.join(folder, name)
+    return out
+
+
+def _has_png_cameras(folder: str) -> bool:
+    try:
+        with open(os.path.join(folder, "rig.json")) as fh:
+            cams = json.load(fh).get("cameras", [])
+    except (OSError, ValueError, AttributeError):
+        return False
+    return bool(cams) and all(os.path.isdir(os.path.join(folder, str(c))) for c in cams)
+
+
+def run(args: argparse.Namespace) -> int:
+    from estimator.appearance import load_model
+
+    from .model import get_default_model
+
+    if not os.path.isdir(args.sequence):
+        raise CliError(f"{args.sequence} is not a folder")
+    if os.path.abspath(args.out) == os.path.abspath(args.sequence):
+        raise CliError("--out must differ from SEQ (the input is not overwritten)")
+    videos = _videos(args.sequence)
+    pngs = _has_png_cameras(args.sequence)
+    if not pngs and not videos:
+        raise CliError(f"{args.sequence}: neither rig.json with per-camera PNG folders nor <camera>.mp4 videos")
+    if args.model:
+        try:
+            model = load_model(args.model)
+        except (OSError, ValueError) as exc:
+            raise CliError(f"cannot load model {args.model}: {exc}") from None
+    else:
+        model = get_default_model(progress=True)
+    if pngs:
+        return _refine_pngs(args, model)
+    return _refine_videos(args, model, videos)
+
+
+def _refine_pngs(args: argparse.Namespace, model) -> int:
+    import numpy as np
+
+    from estimator.pipeline import estimate_walk, tracks_from_sequence
+    from estimator.prior import PriorConfig, priors_for_window, refine_silhouette
+    from estimator.render import Renderer
+    from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
+
+    try:
+        seq = read_sequence(args.sequence)
+    except SequenceError as exc:
+        raise CliError(str(exc)) from None
+    tracks = tracks_from_sequence(seq)
+    try:
+        estimate = estimate_walk(tracks, model)
+    except ValueError as exc:
+        raise CliError(f"{args.sequence}: {exc}") from None
+    config = PriorConfig()
+    with Renderer(config.body) as renderer:
+        priors = priors_for_window(estimate, tracks, tuple(seq.image_size), renderer=renderer, config=config)
+    out: dict[str, list] = {}
+    changed = 0
+    for cam in seq.cameras:
+        by_frame = {p.frame_index: p for p in priors[cam]}
+        out[cam] = []
+        for k, sil in enumerate(seq.silhouettes[cam]):
+            p = by_frame.get(k)
+            if sil is None or p is None:
+                out[cam].append(sil)
+                continue
+            full = (sil.shape[1], sil.shape[0]) == tuple(seq.image_size)
+            if full:
+                frame = sil
+            else:  # a crop: its own extent was the box (no position), pasted at the origin
+                frame = np.zeros(tuple(seq.image_size)[::-1], np.uint8)
+                frame[: sil.shape[0], : sil.shape[1]] = sil
+            refined = refine_silhouette(frame, p.full_mask())
+            if not full:
+                refined = refined[: sil.shape[0], : sil.shape[1]]
+            changed += int(np.count_nonzero((refined > 0) != (sil > 0)))
+            out[cam].append(refined)
+    write_sequence(args.out, Sequence(fps=seq.fps, cameras=seq.cameras, image_size=seq.image_size,
+                                      silhouettes=out, truth=seq.truth, extra=seq.extra))
+    _write_summary(args.out, estimate, "silhouettes", sum(len(v) for v in priors.values()))
+    print(f"wrote {args.out}: {seq.n_frames} frames, {len(seq.cameras)} cameras, {changed} pixels changed")
+    return 0
+
+
+def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> int:
+    import cv2
+
+    from capture.refine import refine_cameras
+    from capture.segment import SegmentSettings
+    from estimator.prior import PriorConfig
+    from estimator.render import Renderer
+    from estimator.sequence import Sequence, write_sequence
+
+    counts, fps = {}, 0.0
+    for cam, path in videos.items():
+        cap = cv2.VideoCapture(path)
+        if not cap.isOpened():
+            raise CliError(f"video {path} cannot be opened")
+        counts[cam] = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 0
+        fps = fps or float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        cap.release()
+    n = min(counts.values())
+    warmup = args.warmup if args.warmup is not None else max(1, min(100, n // 4 if n else 30))
+
+    def reader(path: str):
+        def frames():
+            cap = cv2.VideoCapture(path)
+            try:
+                while True:
+                    ok, image = cap.read()
+                    if not ok:
+                        return
+                    yield image
+            finally:
+                cap.release()
+        return frames
+
+    config = PriorConfig()
+    try:
+        with Renderer(config.body) as renderer:
+            result = refine_cameras({c: reader(p) for c, p in videos.items()}, model, renderer=renderer,
+                                    settings=SegmentSettings(warmup_frames=warmup), config=config)
+    except ValueError as exc:
+        raise CliError(f"{args.sequence}: {exc}") from None
+    sils = {c: [None if s is None or s.box.empty else s.full_mask() for s in segs] for c, segs in result.refined.items()}
+    size = next(iter(result.image_sizes.values()))
+    rig_fps = fps or 15.0
+    truth = None
+    truth_path = os.path.join(args.sequence, "truth.json")
+    if os.path.exists(truth_path):
+        with open(truth_path) as fh:
+            truth = json.load(fh)
+    write_sequence(args.out, Sequence(fps=rig_fps, cameras=list(videos), image_size=size, silhouettes=sils, truth=truth))
+    _write_summary(args.out, result.estimate, "video", sum(len(v) for v in result.priors.values()))
+    print(f"wrote {args.out}: {n} frames (warm-up {warmup}), {len(videos)} cameras")
+    return 0
+
+
+def _write_summary(out: str, estimate, kind: str, n_priors: int) -> None:
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "refine.json"), "w") as fh:
+        json.dump({"input": kind, "priors": n_priors, "estimate": estimate.to_result()}, fh)
+
+
+__all__ = ["register", "run"]

@@ -1,0 +1,208 @@
+"""Silhouette priors (§7.1): rendering, registration onto observations, prediction, fusion, CLI."""
+
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from capture.scene import iou
+from estimator.camera import Camera
+from estimator.gait import load_gait
+from estimator.joints import N_JOINTS
+from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.prior import (
+    Prior,
+    PriorConfig,
+    predict_boxes,
+    predict_phases,
+    predict_priors,
+    prior_from_render,
+    priors_for_window,
+    refine_silhouette,
+    render_body,
+    rotate_prior,
+    soften,
+)
+from estimator.render import Renderer
+from estimator.sequence import read_sequence, write_sequence
+from estimator.skeleton import BodyShape, forward_kinematics
+from estimator.synth import SynthSpec, synthesize
+from service.cli import main
+
+SIZE = (320, 240)
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    with Renderer(BodyShape()) as r:
+        yield r
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    # The model's own body, so that a perfect prior is possible.
+    return synthesize(SynthSpec(n_cameras=2, n_frames=16, seed=1, azimuths=(90.0, 40.0), elevations=(5.0, 20.0),
+                                image_size=SIZE, shape=BodyShape()))
+
+
+def _estimate(phase):
+    phase = np.asarray(phase, float)
+    T = len(phase)
+    return WalkEstimate(phase=phase, states=np.round(phase * 20).astype(int) % 20, joints3d=np.zeros((T, N_JOINTS, 3)),
+                        cameras={}, log_prob=0.0, half_cycle_margin=0.0)
+
+
+def test_predict_phases_continues_the_path_across_the_cycle():
+    est = _estimate((0.8 + 0.05 * np.arange(6)) % 1.0)
+    np.testing.assert_allclose(predict_phases(est, 3), [0.1, 0.15, 0.2], atol=1e-9)
+    assert predict_phases(est, 0).shape == (0,)
+    with pytest.raises(ValueError, match="n_ahead"):
+        predict_phases(est, -1)
+
+
+def test_predict_boxes_extrapolates_a_straight_walk():
+    t = np.arange(10.0)
+    boxes = np.stack([100 + 4 * t, 50 + 0 * t, 40 + 0 * t, 120 + 0.5 * t], 1)
+    boxes[3] = np.nan
+    pred = predict_boxes(boxes, 2)
+    np.testing.assert_allclose(pred[:, 0], [140, 144], atol=1e-6)
+    np.testing.assert_allclose(pred[:, 3], [125, 125.5], atol=1e-6)
+    assert np.isnan(predict_boxes(np.full((3, 4), np.nan), 2)).all()
+
+
+def test_soften_is_confident_inside_and_unsure_at_the_edge():
+    m = np.zeros((60, 60), np.uint8)
+    m[10:50, 20:40] = 255
+    s = soften(m, band_px=2.0)
+    assert s[30, 30] > 250 and s[30, 5] < 5
+    assert 80 < s[30, 20] < 200  # on the outline
+
+
+def test_prior_registers_the_render_onto_the_observation(renderer):
+    body = BodyShape()
+    phase = np.array([0.3])
+    skel = forward_kinematics(load_gait().angles(phase), body)[0]
+    cam = Camera(70.0, 10.0, distance=9.0, image_size=SIZE, focal_px=500.0, target=tuple(skel[:N_JOINTS].mean(0) + [0.4, 0, 0]))
+    observed_full, _ = renderer.render(skel, cam)
+    crop, box = crop_to_box(observed_full)
+    rendered = render_body(phase, 70.0, 10.0, renderer=renderer)[0]
+    assert rendered.shape[0] == rendered.shape[1] and rendered.any()
+    prior = prior_from_render(rendered, crop, box, SIZE, frame_index=7)
+    assert prior.frame_index == 7 and prior.image_size == SIZE and prior.mask.dtype == np.uint8
+    full = prior.full_mask()
+    # Same body, same pose: orthographic vs perspective at 9 m only.
+    assert iou(full >= 128, observed_full) > 0.88
+    assert full[observed_full == 0].mean() < 20
+    wrong = rotate_prior(prior)
+    assert iou(wrong.full_mask() >= 128, observed_full) < 0.5
+
+
+def test_prior_checks_its_box():
+    with pytest.raises(ValueError, match="shape"):
+        Prior(0, (0, 0, 4, 4), (10, 10), np.zeros((3, 4), np.uint8))
+    with pytest.raises(ValueError, match="inside"):
+        Prior(0, (8, 0, 4, 4), (10, 10), np.zeros((4, 4), np.uint8))
+
+
+def test_priors_for_window_cover_the_observed_walker(small_model, sequence, renderer):
+    tracks = tracks_from_sequence(sequence)
+    est = estimate_walk(tracks, small_model)
+    priors = priors_for_window(est, tracks, SIZE, renderer=renderer, first_index=100)
+    for cam in sequence.cameras:
+        assert [p.frame_index for p in priors[cam]] == list(range(100, 116))
+        ious = [iou(p.full_mask() >= 128, sequence.silhouettes[cam][p.frame_index - 100]) for p in priors[cam]]
+        assert np.median(ious) > 0.7, ious
+    ahead = predict_priors(est, tracks, SIZE, 3, renderer=renderer, first_index=100)
+    assert [p.frame_index for p in ahead["c0"]] == [116, 117, 118]
+    # The walker keeps moving: the predicted prior is displaced along the box motion.
+    last = priors["c0"][-1]
+    dx = (ahead["c0"][0].box[0] + ahead["c0"][0].box[2] / 2) - (last.box[0] + last.box[2] / 2)
+    step = np.nanmedian(np.diff(tracks["c0"].boxes[:, 0] + tracks["c0"].boxes[:, 2] / 2))
+    assert abs(dx - step) < max(3.0, abs(step))
+
+
+def test_refine_silhouette_fills_holes_and_drops_far_blobs(sequence, renderer):
+    truth = sequence.silhouettes["c0"][5]
+    crop, box = crop_to_box(truth)
+    phase = np.array([sequence.truth["frames"][5]["phase"]])
+    az, el = sequence.truth["cameras"]["c0"]["azimuth_deg"], sequence.truth["cameras"]["c0"]["elevation_deg"]
+    prior = prior_from_render(render_body(phase, az, el, renderer=renderer)[0], crop, box, SIZE, frame_index=5)
+    damaged = truth.copy()
+    ys, xs = np.nonzero(truth)
+    cy, cx = int(ys.mean()), int(xs.mean())
+    damaged[cy - 6 : cy + 6, cx - 3 : cx + 3] = 0  # a hole in the torso
+    cv2.circle(damaged, (10, 10), 5, 255, -1)  # a blob far away
+    fixed = refine_silhouette(damaged, prior.full_mask())
+    assert iou(fixed, truth) > iou(damaged, truth) + 0.02
+    assert fixed[10, 10] == 0 and fixed[cy, cx] == 255
+    with pytest.raises(ValueError, match="same shape"):
+        refine_silhouette(damaged, prior.full_mask()[:-1])
+
+
+def test_estimator_prior_imports_no_capture_or_network():
+    code = ("import sys, estimator.prior; bad = [m for m in ('capture', 'fastapi', 'zenoh', 'rerun') if m in sys.modules];"
+            "print(bad); sys.exit(1 if bad else 0)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_cli_refine_silhouette_sequence(small_model_path, sequence, tmp_path):
+    damaged = {c: [s.copy() for s in sils] for c, sils in sequence.silhouettes.items()}
+    for sils in damaged.values():
+        for s in sils:
+            ys, xs = np.nonzero(s)
+            s[int(ys.mean()) - 5 : int(ys.mean()) + 5, int(xs.mean()) - 2 : int(xs.mean()) + 2] = 0
+    src = tmp_path / "seq"
+    write_sequence(src, type(sequence)(fps=sequence.fps, cameras=sequence.cameras, image_size=sequence.image_size,
+                                       silhouettes=damaged, truth=sequence.truth))
+    out = tmp_path / "out"
+    assert main(["refine", str(src), "--out", str(out), "--model", small_model_path]) == 0
+    refined = read_sequence(out)
+    for c in sequence.cameras:
+        before = np.mean([iou(a, b) for a, b in zip(damaged[c], sequence.silhouettes[c])])
+        after = np.mean([iou(a, b) for a, b in zip(refined.silhouettes[c], sequence.silhouettes[c])])
+        assert after > before, (c, before, after)
+    summary = json.loads((out / "refine.json").read_text())
+    assert summary["input"] == "silhouettes" and len(summary["estimate"]["frames"]) == 16
+    assert main(["refine", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    os.makedirs(tmp_path / "empty")
+    assert main(["refine", str(tmp_path / "empty"), "--out", str(out)]) == 2
+
+
+def test_a_prior_that_does_not_explain_the_evidence_is_weakened_or_dropped(sequence, renderer):
+    from estimator.prior import explained, weigh
+
+    truth = sequence.silhouettes["c0"][3]
+    crop, box = crop_to_box(truth)
+    phase = np.array([sequence.truth["frames"][3]["phase"]])
+    az, el = sequence.truth["cameras"]["c0"]["azimuth_deg"], sequence.truth["cameras"]["c0"]["elevation_deg"]
+    prior = prior_from_render(render_body(phase, az, el, renderer=renderer)[0], crop, box, SIZE, frame_index=3)
+    assert explained(prior, truth) > 0.9 and weigh(prior, explained(prior, truth)) is prior
+    wrong = rotate_prior(prior)
+    assert explained(wrong, truth) < 0.5 and weigh(wrong, explained(wrong, truth)) is None
+    half = weigh(prior, 0.65)
+    assert half.mask.max() < prior.mask.max() and half.box == prior.box
+    assert np.isnan(explained(prior, np.zeros_like(truth)))
+
+
+def test_cli_refine_videos(small_model_path, tmp_path):
+    from capture.synthetic import SyntheticSource
+
+    src = SyntheticSource.from_spec("seed=2,azimuth=80,elevation=10,size=320x240,empty=20,pass=24,gap=2,contrast=0.5")
+    seq = tmp_path / "vid"
+    seq.mkdir()
+    writer = cv2.VideoWriter(str(seq / "c0.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 15.0, (320, 240))
+    for k in range(46):
+        writer.write(src.render(k).image)
+    writer.release()
+    src.close()
+    out = tmp_path / "out"
+    assert main(["refine", str(seq), "--out", str(out), "--model", small_model_path, "--warmup", "20"]) == 0
+    refined = read_sequence(out)
+    assert refined.cameras == ["c0"] and refined.image_size == (320, 240)
+    assert sum(s is not None for s in refined.silhouettes["c0"]) >= 20
+    assert json.loads((out / "refine.json").read_text())["input"] == "video"
