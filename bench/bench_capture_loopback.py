@@ -10,6 +10,7 @@ released at its due time, so segmentation, encoding, transport and decoding
 are all inside it).
 
     .venv/bin/python bench/bench_capture_loopback.py [--seconds 60] [--agents 4] [--fps 30]
+        [--scale 1]
 
 Targets (issue 6): 4 agents x 30 fps for 60 s deliver every frame; p99 latency <= 10 ms.
 """
@@ -103,7 +104,8 @@ def main() -> int:
 
     scale = args.scale if args.scale is not None else SegmentSettings().scale
     print(f"{args.agents} agents x {args.fps:g} fps x {args.seconds:g} s, "
-          f"{args.width}x{args.height}, model scale {scale:g}, OpenCV threads "
+          f"{args.width}x{args.height}, model scale {scale:g}, refine "
+          f"{SegmentSettings().refine_px if scale < 1 else 0} px, OpenCV threads "
           f"{args.opencv_threads}/agent, Zenoh peer on 127.0.0.1, {os.cpu_count()} cores, "
           f"load avg before {load_before[0]:.2f} after {load_after[0]:.2f}")
     total_sent = total_received = 0

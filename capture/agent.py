@@ -19,8 +19,10 @@ from __future__ import annotations
 import collections
 import logging
 import signal
+import re
 import threading
 import time
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -173,7 +175,11 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
     if settings.opencv_threads is not None:
         cv2.setNumThreads(settings.opencv_threads)
     stats = AgentStats(epoch_ns=time.time_ns())
-    segmenter = Segmenter(settings.segment)
+    # Spread the rig's background updates over the frames: a phase per camera
+    # (its number, c0, c1, ..., else a hash of its name).
+    number = re.search(r"(\d+)$", settings.camera)
+    phase = (int(number.group(1)) if number else zlib.crc32(settings.camera.encode())) % settings.segment.update_every
+    segmenter = Segmenter(settings.segment.model_copy(update={"update_phase": phase}))
     source_name = settings.source if source is None else type(source).__name__
     source = source if source is not None else make_source(settings.source)
     key = silhouette_key(settings.rig, settings.camera)
@@ -228,6 +234,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
             else:
                 stats.unheard += 1
             stats.latency_ms.append((time.time_ns() - frame.timestamp_ns) / 1e6)
+            segmenter.learn()  # the deferred background update, off the latency path
             now = time.monotonic()
             if now - last_log >= settings.stats_interval_s:
                 _log_stats(stats, sent_at_log, now - last_log, "last interval")

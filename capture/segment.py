@@ -6,11 +6,21 @@ empty frames (the paper used 100); each later frame is classified per pixel,
 cleaned with morphology, and the largest connected component is kept as the
 walker. The result is the crop and its box in the full frame.
 
+The model runs at half resolution by default (``scale``), 4x fewer pixels,
+and only finds *where* the walker is: every pixel within ``refine_px`` of its
+upsampled mask is then re-tested at full resolution against a full-resolution
+running mean of the background, with MOG2's own threshold on the noise
+variance measured next to the walker. Thin limbs keep their full-resolution
+edges (docs/CAPTURE.md: IoU as good as the full-resolution model, at a third
+of its cost).
+
 The model keeps adapting (lighting drifts) but *selectively*: every
 ``update_every`` frames it learns from the frame with the walker's region
 (dilated) replaced by the current background estimate, so a walker who keeps
 covering the same pixels — walking towards the camera, or pass after pass on
-the same path — is not absorbed into the background. Measured on the
+the same path — is not absorbed into the background. The update runs in
+:meth:`Segmenter.learn`, which the agent calls after publishing the frame's
+silhouette (else the next ``apply`` does), off the latency path. Measured on the
 synthetic camera, the plain ``learningRate=-1`` update lost up to 30 points of
 IoU on such paths (docs/CAPTURE.md).
 
@@ -43,16 +53,26 @@ class SegmentSettings(BaseModel):
 
     warmup_frames: int = Field(100, ge=1, description="empty frames learned before segmenting "
                                "(paper: 100)")
-    scale: float = Field(1.0, gt=0, le=1, description="resolution at which the background model "
-                         "runs (0.5 = 4x cheaper, coarser limbs); crop and box stay full-frame")
+    scale: float = Field(0.5, gt=0, le=1, description="resolution at which the background model "
+                         "runs (0.5 = 4x fewer pixels), its mask then refined at full "
+                         "resolution (refine_px); crop and box stay full-frame")
+    refine_px: int = Field(4, ge=0, description="when scale < 1, pixels within this many "
+                           "full-frame pixels of the model's upsampled mask are re-tested at full "
+                           "resolution; 0 = plain upsampled mask (coarser limbs)")
+    refine_threshold: float = Field(16.0, gt=0, description="near the mask, foreground = squared "
+                                    "colour distance to the full-resolution background above "
+                                    "this many times the local noise variance (MOG2's test)")
     history: int = Field(500, ge=1, description="MOG2 history length in frames (warm-up rate)")
     var_threshold: float = Field(16.0, gt=0, description="MOG2 squared Mahalanobis threshold")
     detect_shadows: bool = Field(False, description="mark shadows and drop them; off because dark "
                                  "clothing is then taken for shadow (the paper does not do it)")
     learning_rate: float = Field(0.04, gt=0, le=1, description="MOG2 rate of each selective update")
     update_every: int = Field(4, ge=1, description="frames between selective background updates")
-    update_guard_px: int = Field(15, ge=1, description="dilation at model resolution of the "
-                                 "foreground kept out of the update")
+    update_phase: int = Field(0, ge=0, description="offset of the update schedule; the agents of "
+                              "a synchronised rig take different phases so that their updates "
+                              "(the costliest frames) do not coincide")
+    update_guard_px: int = Field(15, ge=1, description="dilation in full-frame pixels of the "
+                                 "foreground kept out of the update (applied at model resolution)")
     open_px: int = Field(0, ge=0, description="opening kernel at model resolution (removes "
                          "speckle; thins limbs); 0 = off")
     close_px: int = Field(9, ge=0, description="closing kernel at full resolution (fills "
@@ -92,10 +112,10 @@ def _kernel(size: int) -> np.ndarray | None:
 
 
 class Segmenter:
-    """MOG2 + morphology + largest component, with a prior-fusion hook.
+    """Downscaled MOG2 + full-resolution refinement + clean-up, with a prior-fusion hook.
 
-    Not thread-safe for :meth:`apply`; :meth:`set_prior` may be called from
-    another thread (the Zenoh feedback callback).
+    Not thread-safe for :meth:`apply` and :meth:`learn`; :meth:`set_prior` may
+    be called from another thread (the Zenoh feedback callback).
     """
 
     def __init__(self, settings: SegmentSettings = SegmentSettings()) -> None:
@@ -104,19 +124,28 @@ class Segmenter:
             history=settings.history, varThreshold=settings.var_threshold,
             detectShadows=settings.detect_shadows)
         self._open = _kernel(settings.open_px)
-        self._guard = _kernel(settings.update_guard_px)
-        self._since_update = 0
+        self._guard = _kernel(max(1, round(settings.update_guard_px * settings.scale)))
+        self._near = _kernel(2 * settings.refine_px + 1) if settings.refine_px else None
+        self._since_update = settings.update_phase % settings.update_every
+        self._pending: tuple | None = None  # the selective update learn() still owes
         self._close = _kernel(settings.close_px)
         self._learned = 0
-        # frame_index -> (image size, trusted pixels at model resolution); the
-        # service may send priors for frames it predicts, ahead of time.
-        self._priors: dict[int, tuple[tuple[int, int], np.ndarray]] = {}
+        # Full-resolution running mean of the background (float32 BGR), kept only
+        # when the model runs downscaled: the refinement compares against it.
+        self._full_bg: np.ndarray | None = None
+        # frame_index -> (image size, trusted pixels at model resolution, and at
+        # full resolution when refining); the service may send priors ahead of time.
+        self._priors: dict[int, tuple[tuple[int, int], np.ndarray, np.ndarray | None]] = {}
         self._lock = threading.Lock()
 
     @property
     def warming_up(self) -> bool:
         """True until ``warmup_frames`` frames have been learned."""
         return self._learned < self.settings.warmup_frames
+
+    @property
+    def _refines(self) -> bool:
+        return self.settings.scale < 1 and self.settings.refine_px > 0
 
     def _model_size(self, size: tuple[int, int]) -> tuple[int, int]:
         s = self.settings.scale
@@ -129,25 +158,34 @@ class Segmenter:
         ``prior_max_age`` frames old; priors for future frames wait (up to
         :data:`MAX_PRIORS` are kept).
         """
-        small = cv2.resize(prior.full_mask(), self._model_size(prior.image_size),
+        full = prior.full_mask()
+        small = cv2.resize(full, self._model_size(prior.image_size),
                            interpolation=cv2.INTER_AREA) >= self.settings.prior_level
+        trusted = (cv2.compare(full, self.settings.prior_level, cv2.CMP_GE)
+                   if self._refines else None)  # full resolution, for the refinement
         with self._lock:
-            self._priors[prior.frame_index] = (prior.image_size, small)
+            self._priors[prior.frame_index] = (prior.image_size, small, trusted)
             while len(self._priors) > MAX_PRIORS:
                 del self._priors[min(self._priors)]
 
-    def _prior_for(self, index: int, size: tuple[int, int]) -> np.ndarray | None:
+    def _prior_for(self, index: int,
+                   size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None] | None:
         with self._lock:
             for old in [k for k in self._priors if k < index - self.settings.prior_max_age]:
                 del self._priors[old]
             usable = [k for k in self._priors if k <= index]
             if not usable:
                 return None
-            prior_size, small = self._priors[max(usable)]
-        return small if prior_size == size else None
+            prior_size, small, full = self._priors[max(usable)]
+        return (small, full) if prior_size == size else None
 
     def apply(self, image: np.ndarray, index: int) -> Segmentation | None:
         """Learn from or segment one BGR frame; None while warming up.
+
+        The selective background update a frame calls for is deferred to
+        :meth:`learn` (the agent calls it after publishing, off the
+        capture-to-publish path) or else to the start of the next ``apply``:
+        the model that classifies each frame is the same either way.
 
         Parameters
         ----------
@@ -156,41 +194,99 @@ class Segmenter:
         """
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be (H, W, 3) uint8, got {image.dtype} {image.shape}")
+        self.learn()
         size = (image.shape[1], image.shape[0])
         small = image if self.settings.scale == 1 else cv2.resize(
             image, self._model_size(size), interpolation=cv2.INTER_AREA)
         if self.warming_up:
             self._mog.apply(small, learningRate=-1)  # running average over the empty frames
+            if self._refines:
+                if self._full_bg is None or self._full_bg.shape[:2] != image.shape[:2]:
+                    self._full_bg = image.astype(np.float32)
+                else:
+                    cv2.accumulateWeighted(image, self._full_bg, 1.0 / (self._learned + 1))
             self._learned += 1
             return None
         raw = self._mog.apply(small, learningRate=0)  # classify only; learning is selective
         fg = cv2.compare(raw, 200, cv2.CMP_GT)  # 255 = foreground, 127 = shadow -> background
         prior = self._prior_for(index, size)
         background = None
+        if prior is not None:
+            background = self._mog.getBackgroundImage()
         self._since_update += 1
         if self._since_update >= self.settings.update_every:
             # Guard MOG2's own foreground only: guarding the prior's additions too
-            # would keep a wrong prior's region out of the model for good.
-            background = self._mog.getBackgroundImage()
-            self._update(small, fg, background)
+            # would keep a wrong prior's region out of the model for good. Copies:
+            # the source may reuse its buffers before learn() runs.
+            self._pending = (small.copy(), fg, image.copy() if self._refines else None, background)
+            self._since_update = 0
         if prior is not None:
-            if background is None:
-                background = self._mog.getBackgroundImage()
-            fg = self._fuse(fg, small, background, prior)
+            fg = self._fuse(fg, small, background, prior[0])
         if self._open is not None:
             fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, self._open)
         if fg.shape[::-1] != size:  # back to full resolution, smoothing the 2x2 steps
             fg = cv2.compare(cv2.resize(fg, size, interpolation=cv2.INTER_LINEAR), 127, cv2.CMP_GT)
-        if self._close is not None:
-            fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, self._close)
+            if self._refines:
+                fg = self._refine(fg, image, None if prior is None else prior[1])
         return self._largest(fg, size, used_prior=prior is not None)
 
-    def _update(self, image: np.ndarray, fg: np.ndarray, background: np.ndarray) -> None:
-        """Learn from ``image`` with the (dilated) foreground replaced by the background."""
-        composite = image.copy()
-        cv2.copyTo(background, cv2.dilate(fg, self._guard), composite)
+    def learn(self) -> None:
+        """Run the pending selective background update, if any (cheap no-op otherwise).
+
+        Learns from the frame with the (dilated) foreground replaced by the
+        background estimate, at model resolution and, when refining, into the
+        full-resolution background at the same rate.
+        """
+        if self._pending is None:
+            return
+        small, fg, image, background = self._pending
+        self._pending = None
+        if background is None:
+            background = self._mog.getBackgroundImage()
+        guard = cv2.dilate(fg, self._guard)
+        composite = small.copy()
+        cv2.copyTo(background, guard, composite)
         self._mog.apply(composite, learningRate=self.settings.learning_rate)
-        self._since_update = 0
+        if image is not None and self._full_bg is not None:
+            keep = cv2.compare(cv2.resize(guard, (image.shape[1], image.shape[0]),
+                                          interpolation=cv2.INTER_NEAREST), 0, cv2.CMP_EQ)
+            cv2.accumulateWeighted(image, self._full_bg, self.settings.learning_rate, mask=keep)
+
+    def _refine(self, fg: np.ndarray, image: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
+        """Re-test at full resolution every pixel within ``refine_px`` of the mask.
+
+        A pixel is foreground if its squared colour distance to the
+        full-resolution background exceeds ``refine_threshold`` times the noise
+        variance (MOG2's test), after removing the lighting offset; offset and
+        noise are measured on the sure background around the walker (outside
+        the dilated mask, inside the bounding rectangle, the only region
+        processed). Thin limbs that the downscaled model blurs get their
+        full-resolution edges back; where a prior is trusted, the model's mask
+        (which fused the prior's weak evidence) is kept.
+        """
+        rx, ry, rw, rh = cv2.boundingRect(fg)
+        if rw == 0 or rh == 0:
+            return fg
+        s = self.settings
+        pad = 2 * s.refine_px + s.close_px  # room for the dilation, the noise sample, closing
+        x0, y0 = max(0, rx - pad), max(0, ry - pad)
+        x1, y1 = min(fg.shape[1], rx + rw + pad), min(fg.shape[0], ry + rh + pad)
+        coarse = fg[y0:y1, x0:x1]
+        near = cv2.dilate(coarse, self._near)  # the pixels re-tested
+        d = cv2.subtract(image[y0:y1, x0:x1], self._full_bg[y0:y1, x0:x1], dtype=cv2.CV_32F)
+        # Lighting moves between updates: remove the local offset measured on the sure
+        # background (outside the dilated mask), whose spread is then the noise.
+        offset, spread = cv2.meanStdDev(d, mask=cv2.bitwise_not(near))
+        d = cv2.subtract(d, tuple(float(v) for v in offset.ravel()) + (0.0,))
+        d2 = cv2.transform(cv2.multiply(d, d), np.ones((1, 3), np.float32))
+        # Variance summed over channels, bounded like MOG2's (4..75 by default).
+        var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
+        level = s.refine_threshold * var
+        refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
+        if prior is not None:  # refinement must not undo the prior's weak evidence
+            refined = cv2.bitwise_or(refined, cv2.bitwise_and(coarse, prior[y0:y1, x0:x1]))
+        fg[y0:y1, x0:x1] = refined
+        return fg
 
     def _fuse(self, fg: np.ndarray, image: np.ndarray, background: np.ndarray,
               prior: np.ndarray) -> np.ndarray:
@@ -203,13 +299,27 @@ class Segmenter:
         return np.where(weak, np.uint8(255), fg)
 
     def _largest(self, fg: np.ndarray, size: tuple[int, int], *, used_prior: bool) -> Segmentation:
-        # Label only inside the bounding rectangle of all foreground: usually a small
-        # region around the walker, and labelling is the costliest step after MOG2.
+        """Close holes, keep the largest component, crop it.
+
+        Closing and labelling run only inside the bounding rectangle of all
+        foreground (plus room for the closing kernel): usually a small region
+        around the walker. With a convex kernel the closing stays inside that
+        rectangle, so the result equals closing the whole frame.
+        """
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
             return self._empty(size, used_prior)
-        _, labels, stats, _ = cv2.connectedComponentsWithStats(
-            fg[ry:ry + rh, rx:rx + rw], connectivity=8)
+        if self._close is not None:
+            m = self.settings.close_px
+            x0, y0 = max(0, rx - m), max(0, ry - m)
+            x1, y1 = min(size[0], rx + rw + m), min(size[1], ry + rh + m)
+            region = cv2.morphologyEx(fg[y0:y1, x0:x1], cv2.MORPH_CLOSE, self._close)
+            rx, ry = x0, y0
+        else:
+            region = fg[ry:ry + rh, rx:rx + rw]
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
+        if len(stats) < 2:
+            return self._empty(size, used_prior)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         area = int(stats[best, cv2.CC_STAT_AREA])
         if area < self.settings.min_area:
