@@ -32,7 +32,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from estimator.appearance import AppearanceModel, load_model
-from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.pipeline import CameraTrack, WalkEstimate, estimate_walk, tracks_from_sequence
 from estimator.sequence import SequenceError, read_sequence
 
 from .jobs import JobGone, JobStore
@@ -417,6 +417,7 @@ def _tracks_from_videos(folder: Path, *, warmup: int | None, report) -> tuple[di
     """Background subtraction (capture's segmenter) over each ``<camera>.<ext>`` video."""
     import cv2
 
+    from capture.refine import track_from_segmentations
     from capture.segment import Segmenter, SegmentSettings
 
     videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
@@ -429,25 +430,16 @@ def _tracks_from_videos(folder: Path, *, warmup: int | None, report) -> tuple[di
         fps = fps or float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         w = warmup if warmup is not None else max(1, min(100, n // 4 if n else 30))
         seg = Segmenter(SegmentSettings(warmup_frames=w))
-        sils, boxes, k = [], [], 0
+        segs = []
         while True:
             ok, frame = cap.read()
             if not ok:
                 break
-            s = seg.apply(frame, k)
-            k += 1
+            segs.append(seg.apply(frame, len(segs)))
             sizes[path.stem] = (frame.shape[1], frame.shape[0])
-            cropped = None if s is None or s.box.empty else crop_to_box(s.mask)
-            if cropped is None:
-                sils.append(None)
-                boxes.append([np.nan] * 4)
-            else:
-                crop, b = cropped
-                sils.append(crop)
-                boxes.append([s.box.x + b[0], s.box.y + b[1], b[2], b[3]])
         cap.release()
-        if k == 0:
+        if not segs:
             raise ValueError(f"video {path.name} has no decodable frames")
-        tracks[path.stem] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=True)
+        tracks[path.stem] = track_from_segmentations(segs)
         report((i + 1) / len(videos), f"segmented {path.name}")
     return tracks, sizes, fps or 15.0

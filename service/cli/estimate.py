@@ -24,23 +24,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from estimator.appearance import load_model
     from estimator.pipeline import estimate_walk, tracks_from_sequence
     from estimator.sequence import SequenceError, read_sequence
 
-    from .model import get_default_model
+    from .model import model_from_arg
 
     try:
         sequence = read_sequence(args.sequence)
     except SequenceError as exc:
         raise CliError(str(exc)) from None
-    if args.model:
-        try:
-            model = load_model(args.model)
-        except (OSError, ValueError) as exc:
-            raise CliError(f"cannot load model {args.model}: {exc}") from None
-    else:
-        model = get_default_model(progress=True)
+    model = model_from_arg(args.model)
     try:
         estimate = estimate_walk(tracks_from_sequence(sequence), model)
     except ValueError as exc:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from . import CliError
 
-__all__ = ["register", "cache_dir", "get_default_model", "default_model_path"]
+__all__ = ["register", "cache_dir", "get_default_model", "default_model_path", "model_from_arg"]
 
 
 def cache_dir() -> Path:
@@ -47,6 +47,18 @@ def get_default_model(*, progress: bool = False):
         model = default_model(cache_dir(), make_examples=bar.render_examples, progress=bar.stage)
         bar.finish()
         return model
+
+
+def model_from_arg(path: str | None):
+    """The model a command's ``--model PATH`` names, else the default one (CliError if unreadable)."""
+    if not path:
+        return get_default_model(progress=True)
+    from estimator.appearance import load_model
+
+    try:
+        return load_model(path)
+    except (OSError, ValueError) as exc:
+        raise CliError(f"cannot load model {path}: {exc}") from None
 
 
 class _Progress:

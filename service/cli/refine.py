@@ -61,9 +61,8 @@ def _has_png_cameras(folder: str) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from estimator.appearance import load_model
 
-    from .model import get_default_model
+    from .model import model_from_arg
 
     if not os.path.isdir(args.sequence):
         raise CliError(f"{args.sequence} is not a folder")
@@ -73,13 +72,7 @@ def run(args: argparse.Namespace) -> int:
     pngs = _has_png_cameras(args.sequence)
     if not pngs and not videos:
         raise CliError(f"{args.sequence}: neither rig.json with per-camera PNG folders nor <camera>.mp4 videos")
-    if args.model:
-        try:
-            model = load_model(args.model)
-        except (OSError, ValueError) as exc:
-            raise CliError(f"cannot load model {args.model}: {exc}") from None
-    else:
-        model = get_default_model(progress=True)
+    model = model_from_arg(args.model)
     if pngs:
         return _refine_pngs(args, model)
     return _refine_videos(args, model, videos)
