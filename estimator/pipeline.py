@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .appearance import AppearanceModel
+from .body import PARTS
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, hamming, pack
 from .gait import GaitModel, load_gait
@@ -243,9 +244,12 @@ def _place_joints(person: np.ndarray, body: BodyShape, vp: Viewpoint, boxes: np.
     """
     R = world_to_camera_rotation(vp.azimuth_deg, vp.elevation_deg)
     uv = person @ R[:2].T  # (T, 20, 2) metres, v down
-    head_r = 0.055 * body.height * body.girth
-    foot_r = 0.024 * body.height * body.girth
-    top = uv[:, _J["head"], 1] - 0.28 * 0.105 * body.height - head_r  # head sphere centre above the head joint
+    radius = body.height * body.girth
+    head = next(p for p in PARTS if p.name == "head")
+    # Top of the head: the head capsule's far end, beyond the head joint along the neck-head bone.
+    head_top = (head.t1 - 1.0) * body.lengths()["head"] + head.r1 * radius
+    foot_r = max(p.r0 for p in PARTS if p.name.endswith("_foot")) * radius
+    top = uv[:, _J["head"], 1] - head_top
     bottom = uv[:, :, 1].max(axis=1) + foot_r
     left, right = uv[:, :, 0].min(axis=1) - foot_r, uv[:, :, 0].max(axis=1) + foot_r
     scale = boxes[:, 3] / np.maximum(bottom - top, 1e-6)
