@@ -23,6 +23,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from _appearance_data import training_examples  # noqa: E402
+from _onecore import pin  # noqa: E402
 from estimator.appearance import build_model, save_model  # noqa: E402
 
 
@@ -39,8 +40,8 @@ def main() -> None:
     parser.add_argument("--cached", action="store_true",
                         help="reuse cached examples (time the model part only)")
     args = parser.parse_args()
-    if args.one_core and hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    if args.one_core:
+        pin()
     t0 = time.perf_counter()
     ex, src = training_examples(source=args.source, cache=args.cached)
     t_examples = time.perf_counter() - t0

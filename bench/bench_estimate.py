@@ -10,13 +10,12 @@ evidence, HMM, joints. One process pinned to one core, the default model.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
+from _onecore import pin, single_threaded  # noqa: E402
+
 # One core: BLAS must not start threads that then fight over it.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("LP_NUM_THREADS", "1")
+single_threaded()
 
 import numpy as np  # noqa: E402
 
@@ -36,8 +35,7 @@ def main() -> None:
 
     model = get_default_model(progress=True)
     seqs = [synthesize(SynthSpec(n_cameras=args.cameras, n_frames=args.frames, seed=s)) for s in range(4)]
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    pin()
     estimate_walk(tracks_from_sequence(seqs[0]), model)  # warm-up
     times = []
     for w in range(args.windows):

@@ -18,10 +18,10 @@ import time
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from _appearance_data import fresh_examples, model_for  # noqa: E402
+from _onecore import pin  # noqa: E402
 from estimator.registration import distance  # noqa: E402
 
 TARGET_MS = 1.0
@@ -35,8 +35,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2000)
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split(","))
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    pin()
     model, _, src = model_for(source=args.source, n_clusters=args.clusters, size=size)
     fresh = fresh_examples(200, seed=101, source="stick" if args.source == "stick" else "body")
     sils = fresh.silhouettes

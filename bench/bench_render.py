@@ -13,7 +13,9 @@ import argparse
 import os
 import time
 
-os.environ.setdefault("LP_NUM_THREADS", "1")
+from _onecore import pin, single_threaded  # noqa: E402
+
+single_threaded()
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
@@ -32,8 +34,7 @@ def main() -> None:
     parser.add_argument("--size", default="160,320")
     args = parser.parse_args()
     w, h = (int(v) for v in args.size.split(","))
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    pin()
     shape = BodyShape()
     poses = forward_kinematics(load_gait().angles(np.linspace(0, 1, 20, endpoint=False)), shape)
     centre = poses[:, :13].mean(axis=(0, 1))
