@@ -22,7 +22,6 @@ from tqdm import tqdm
 from estimator.appearance import load_model
 from estimator.mocap import read_motion
 from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence
-from estimator.skeleton import BodyShape
 from estimator.synth import SynthSpec, synthesize
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

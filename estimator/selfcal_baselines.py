@@ -29,7 +29,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from ._factorization import factorize
-from ._selfcal_core import camera_constraint_rows, link_rows, sym_bilinear, sym_from_vec, sym_quad
+from ._selfcal_core import link_rows, sym_bilinear, sym_from_vec, sym_quad
 from .selfcal import (
     Link,
     Ratio,

@@ -13,10 +13,9 @@ from capture.scene import iou
 from estimator.camera import Camera
 from estimator.gait import load_gait
 from estimator.joints import N_JOINTS
-from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.pipeline import WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
 from estimator.prior import (
     Prior,
-    PriorConfig,
     predict_boxes,
     predict_phases,
     predict_priors,
