@@ -9,7 +9,7 @@ receiver process pinned to the other core subscribes over Zenoh on 127.0.0.1,
 scores every silhouette *as received* against the ground truth (IoU) and
 reports capture-to-receive latency.
 
-    .venv/bin/python bench/bench_capture.py [--frames 600] [--core 0] [--scale 1] [--refine-px 0]
+    .venv/bin/python bench/bench_capture.py [--frames 600] [--core 0] [--model-width 0] [--refine-px 0]
     .venv/bin/python bench/bench_capture.py --source synthetic:seed=3,azimuth=90 --frames 300
 
 Target (issue 6): >= 30 fps at 640x480 on one core; IoU is reported.
@@ -124,10 +124,10 @@ def agent(args: argparse.Namespace) -> int:
         raise SystemExit("receiver failed to start")
     os.sched_setaffinity(0, {args.core})
     cv2.setNumThreads(1)
-    from capture.segment import SegmentSettings
+    from capture.segment import SegmentSettings, describe
 
-    overrides = {k: v for k, v in (("scale", args.scale), ("refine_px", args.refine_px))
-                 if v is not None}
+    overrides = {k: v for k, v in (("model_width", args.model_width),
+                                   ("refine_px", args.refine_px)) if v is not None}
     segment = SegmentSettings(warmup_frames=warmup, **overrides)
     settings = capture_agent.AgentSettings(rig="bench", camera="c0", stats_interval_s=1e9,
                                            segment=segment)
@@ -138,8 +138,7 @@ def agent(args: argparse.Namespace) -> int:
     width, height = frames[0].size
     p50, p99 = stats.latency_percentiles()
     ok = stats.fps >= TARGET_FPS
-    print(f"source {args.source}, {width}x{height}, model scale {segment.scale:g}, refine "
-          f"{segment.refine_px if segment.scale < 1 else 0} px: {stats.sent} "
+    print(f"source {args.source}, {width}x{height}, {describe(segment, (width, height))}: {stats.sent} "
           f"segmented+published after {stats.warmup} warm-up, on core {args.core}, OpenCV "
           f"threads 1, load avg {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     print(f"throughput     {stats.fps:8.1f} fps   target >= {TARGET_FPS:.0f}   "
@@ -167,10 +166,10 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=640, help="scene only")
     parser.add_argument("--height", type=int, default=480, help="scene only")
     parser.add_argument("--core", type=int, default=0)
-    parser.add_argument("--scale", type=float, default=None,
-                        help="background-model resolution (default: SegmentSettings')")
-    parser.add_argument("--refine-px", type=int, default=None,
-                        help="full-resolution refinement band (default: SegmentSettings')")
+    parser.add_argument("--model-width", type=int, default=None,
+                        help="background-model width, 0 = full (default: SegmentSettings')")
+    parser.add_argument("--refine-px", type=float, default=None,
+                        help="refinement band in model pixels (default: SegmentSettings')")
     parser.add_argument("--timeout", type=float, default=120.0)
     args = parser.parse_args()
     args.endpoint = args.endpoint or _free_endpoint()

@@ -10,7 +10,7 @@ released at its due time, so segmentation, encoding, transport and decoding
 are all inside it).
 
     .venv/bin/python bench/bench_capture_loopback.py [--seconds 60] [--agents 4] [--fps 30]
-        [--scale 1]
+        [--model-width 0]
 
 Targets (issue 6): 4 agents x 30 fps for 60 s deliver every frame; p99 latency <= 10 ms.
 """
@@ -34,7 +34,7 @@ import zenoh
 
 from capture.receiver import SilhouetteReceiver
 from capture.scene import SceneSpec, write_video
-from capture.segment import SegmentSettings
+from capture.segment import SegmentSettings, describe
 from capture.zconfig import build_config
 
 TARGET_P99_MS = 10.0
@@ -54,8 +54,8 @@ def _spawn(k: int, video: Path, endpoint: str, args: argparse.Namespace) -> subp
            "--source", f"{video}?loop=1", "--fps", str(args.fps), "--max-frames", str(frames),
            "--warmup", str(WARMUP), "--connect", endpoint, "--stats-interval", "10"]
     env = {**os.environ, "POSECAL_CAPTURE_OPENCV_THREADS": str(args.opencv_threads)}
-    if args.scale is not None:
-        env["POSECAL_CAPTURE_SEGMENT__SCALE"] = str(args.scale)
+    if args.model_width is not None:
+        env["POSECAL_CAPTURE_SEGMENT__MODEL_WIDTH"] = str(args.model_width)
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             cwd=Path(__file__).parents[1], env=env)
 
@@ -68,8 +68,9 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--opencv-threads", type=int, default=1, help="per agent")
-    parser.add_argument("--scale", type=float, default=None,
-                        help="background-model scale per agent (default: SegmentSettings')")
+    parser.add_argument("--model-width", type=int, default=None,
+                        help="background-model width per agent, 0 = full resolution "
+                             "(default: SegmentSettings')")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -102,10 +103,10 @@ def main() -> int:
             outputs.append(p.communicate()[0])
     load_after = os.getloadavg()
 
-    scale = args.scale if args.scale is not None else SegmentSettings().scale
+    segment = SegmentSettings(**({} if args.model_width is None
+                                 else {"model_width": args.model_width}))
     print(f"{args.agents} agents x {args.fps:g} fps x {args.seconds:g} s, "
-          f"{args.width}x{args.height}, model scale {scale:g}, refine "
-          f"{SegmentSettings().refine_px if scale < 1 else 0} px, OpenCV threads "
+          f"{args.width}x{args.height}, {describe(segment, (args.width, args.height))}, OpenCV threads "
           f"{args.opencv_threads}/agent, Zenoh peer on 127.0.0.1, {os.cpu_count()} cores, "
           f"load avg before {load_before[0]:.2f} after {load_after[0]:.2f}")
     total_sent = total_received = 0

@@ -25,11 +25,11 @@ from capture.sources import make_source
 # (name, SegmentSettings overrides, plain MOG2 update instead of the selective one)
 VARIANTS = [
     ("MOG2 defaults (shadows on, learningRate=-1), open 3",
-     dict(scale=1.0, detect_shadows=True, open_px=3), True),
-    ("shadows off, open 3", dict(scale=1.0, open_px=3), True),
-    ("shadows off, no opening", dict(scale=1.0), True),
-    ("+ selective update every 4 frames, full resolution", dict(scale=1.0), False),
-    ("same, model at scale=0.5, mask upsampled", dict(refine_px=0), False),
+     dict(model_width=0, detect_shadows=True, open_px=3), True),
+    ("shadows off, open 3", dict(model_width=0, open_px=3), True),
+    ("shadows off, no opening", dict(model_width=0), True),
+    ("+ selective update every 4 frames, full resolution", dict(model_width=0), False),
+    ("same, model 160 px wide, mask upsampled", dict(refine_px=0), False),
     ("**+ full-resolution refinement (default)**", {}, False),
 ]
 
@@ -40,12 +40,12 @@ class _Plain(Segmenter):
     def apply(self, image, index):  # noqa: D102 - same contract as Segmenter.apply
         if self.warming_up:
             return super().apply(image, index)
-        size = (image.shape[1], image.shape[0])
+        g = self._geometry_for((image.shape[1], image.shape[0]))
         raw = self._mog.apply(image, learningRate=-1)
         fg = cv2.compare(raw, 200, cv2.CMP_GT)
         if self._open is not None:
             fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, self._open)
-        return self._largest(fg, size, used_prior=False)  # closes, keeps the largest
+        return self._largest(fg, g, used_prior=False)  # closes, keeps the largest
 
 
 def _frames(spec: str, n: int) -> list:

@@ -6,13 +6,15 @@ empty frames (the paper used 100); each later frame is classified per pixel,
 cleaned with morphology, and the largest connected component is kept as the
 walker. The result is the crop and its box in the full frame.
 
-The model runs at half resolution by default (``scale``), 4x fewer pixels,
-and only finds *where* the walker is: every pixel within ``refine_px`` of its
-upsampled mask is then re-tested at full resolution against a full-resolution
-running mean of the background, with MOG2's own threshold on the noise
-variance measured next to the walker. Thin limbs keep their full-resolution
-edges (docs/CAPTURE.md: IoU as good as the full-resolution model, at a third
-of its cost).
+The model runs downscaled to ``model_width`` (160: a quarter of 640x480,
+16x fewer pixels) and only finds *where* the walker is: every pixel within
+``refine_px`` model pixels of its upsampled mask is then re-tested at full
+resolution against a full-resolution running mean of the background, with
+MOG2's own threshold on the noise variance measured next to the walker. Thin
+limbs keep their full-resolution edges (docs/CAPTURE.md: IoU as good as the
+full-resolution model, at a fraction of its cost). Sizes in pixels (closing,
+update guard, minimum area, margin) are given for a ``reference_width``-wide
+frame and scale with the frame, so a 320x240 camera segments like a 640x480 one.
 
 The model keeps adapting (lighting drifts) but *selectively*: every
 ``update_every`` frames it learns from the frame with the walker's region
@@ -41,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .wire import Box, FeedbackMessage
 
-__all__ = ["MAX_PRIORS", "SegmentSettings", "Segmentation", "Segmenter"]
+__all__ = ["MAX_PRIORS", "SegmentSettings", "Segmentation", "Segmenter", "describe"]
 
 MAX_PRIORS = 64  # priors kept per segmenter, newest frame indices first
 
@@ -53,12 +55,14 @@ class SegmentSettings(BaseModel):
 
     warmup_frames: int = Field(100, ge=1, description="empty frames learned before segmenting "
                                "(paper: 100)")
-    scale: float = Field(0.5, gt=0, le=1, description="resolution at which the background model "
-                         "runs (0.5 = 4x fewer pixels), its mask then refined at full "
-                         "resolution (refine_px); crop and box stay full-frame")
-    refine_px: int = Field(4, ge=0, description="when scale < 1, pixels within this many "
-                           "full-frame pixels of the model's upsampled mask are re-tested at full "
-                           "resolution; 0 = plain upsampled mask (coarser limbs)")
+    model_width: int = Field(160, ge=0, description="width in pixels at which the background "
+                             "model runs (frames no wider run at full resolution; 0 = always "
+                             "full resolution); its mask is then refined at full resolution")
+    refine_px: float = Field(2.0, ge=0, description="when the model runs downscaled, pixels "
+                             "within this many *model* pixels of its upsampled mask are "
+                             "re-tested at full resolution; 0 = plain upsampled mask")
+    reference_width: int = Field(640, ge=1, description="frame width for which the pixel sizes "
+                                 "below are given; they scale with the frame's width")
     refine_threshold: float = Field(16.0, gt=0, description="near the mask, foreground = squared "
                                     "colour distance to the full-resolution background above "
                                     "this many times the local noise variance (MOG2's test)")
@@ -71,20 +75,24 @@ class SegmentSettings(BaseModel):
     update_phase: int = Field(0, ge=0, description="offset of the update schedule; the agents of "
                               "a synchronised rig take different phases so that their updates "
                               "(the costliest frames) do not coincide")
-    update_guard_px: int = Field(15, ge=1, description="dilation in full-frame pixels of the "
+    update_guard_px: int = Field(15, ge=1, description="dilation in reference pixels of the "
                                  "foreground kept out of the update (applied at model resolution)")
     open_px: int = Field(0, ge=0, description="opening kernel at model resolution (removes "
                          "speckle; thins limbs); 0 = off")
-    close_px: int = Field(9, ge=0, description="closing kernel at full resolution (fills "
-                          "holes); 0 = off")
+    close_px: int = Field(9, ge=0, description="closing kernel in reference pixels, applied at "
+                          "full resolution (fills holes); 0 = off")
     min_area: int = Field(150, ge=1, description="a largest component below this many "
-                          "full-frame pixels = nothing")
-    margin_px: int = Field(2, ge=0, description="margin around the component in the crop")
+                          "reference pixels = nothing")
+    margin_px: int = Field(2, ge=0, description="margin in full-frame pixels around the "
+                           "component in the crop")
     prior_level: int = Field(128, ge=1, le=255, description="prior value from which it is trusted")
     prior_diff: float = Field(6.0, ge=0, description="grey-level distance to the background "
                               "that counts as foreground inside a trusted prior (floor)")
     prior_noise_k: float = Field(1.5, ge=0, description="... and at least this many times the "
                                  "frame's mean distance (its noise level)")
+    prior_threshold: float = Field(4.0, gt=0, description="inside a trusted prior, at full "
+                                   "resolution: foreground above this many times the noise "
+                                   "variance (refine_threshold's weaker twin)")
     prior_max_age: int = Field(5, ge=0, description="frames after its frame_index a prior "
                                "stays valid")
 
@@ -107,8 +115,52 @@ class Segmentation:
         return out
 
 
-def _kernel(size: int) -> np.ndarray | None:
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)) if size > 0 else None
+def _kernel(size: float) -> np.ndarray | None:
+    """An elliptic kernel about ``size`` pixels wide, made odd so that it is centred
+    (an even kernel's anchor is off centre and closing would shift the mask)."""
+    n = round(size)
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (n | 1, n | 1)) if n > 0 else None
+
+
+@dataclass(frozen=True, slots=True)
+class _Geometry:
+    """The pixel sizes of :class:`SegmentSettings` resolved for one frame size."""
+
+    size: tuple[int, int]  # full frame (width, height)
+    model_size: tuple[int, int]  # where MOG2 runs
+    refine_px: int  # full-frame pixels re-tested around the upsampled mask (0 = none)
+    close_px: int
+    min_area: int
+    guard: np.ndarray | None  # update guard kernel, model resolution
+    near: np.ndarray | None  # refinement band kernel, full resolution
+    close: np.ndarray | None  # closing kernel, full resolution
+
+    @property
+    def downscaled(self) -> bool:
+        return self.model_size != self.size
+
+    @classmethod
+    def of(cls, settings: "SegmentSettings", size: tuple[int, int]) -> "_Geometry":
+        width, height = size
+        scale = 1.0 if not settings.model_width else min(1.0, settings.model_width / width)
+        model_size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        if model_size[0] >= width:
+            model_size, scale = size, 1.0
+        k = width / settings.reference_width  # reference pixels -> this frame's pixels
+        refine = 0 if scale == 1.0 else int(np.ceil(settings.refine_px / scale))
+        close = _kernel(settings.close_px * k)
+        return cls(size, model_size, refine, 0 if close is None else close.shape[0],
+                   max(1, round(settings.min_area * k * k)),
+                   _kernel(max(1.0, settings.update_guard_px * k * scale)),
+                   _kernel(2 * refine + 1) if refine else None,
+                   close)
+
+
+def describe(settings: SegmentSettings, size: tuple[int, int]) -> str:
+    """One line on how frames of ``size`` are segmented (for logs and benchmarks)."""
+    g = _Geometry.of(settings, size)
+    return (f"model {g.model_size[0]}x{g.model_size[1]}, refine {g.refine_px} px, "
+            f"close {g.close_px} px")
 
 
 class Segmenter:
@@ -124,11 +176,9 @@ class Segmenter:
             history=settings.history, varThreshold=settings.var_threshold,
             detectShadows=settings.detect_shadows)
         self._open = _kernel(settings.open_px)
-        self._guard = _kernel(max(1, round(settings.update_guard_px * settings.scale)))
-        self._near = _kernel(2 * settings.refine_px + 1) if settings.refine_px else None
+        self._geometry: _Geometry | None = None  # of the last frame size seen
         self._since_update = settings.update_phase % settings.update_every
         self._pending: tuple | None = None  # the selective update learn() still owes
-        self._close = _kernel(settings.close_px)
         self._learned = 0
         # Full-resolution running mean of the background (float32 BGR), kept only
         # when the model runs downscaled: the refinement compares against it.
@@ -143,13 +193,11 @@ class Segmenter:
         """True until ``warmup_frames`` frames have been learned."""
         return self._learned < self.settings.warmup_frames
 
-    @property
-    def _refines(self) -> bool:
-        return self.settings.scale < 1 and self.settings.refine_px > 0
-
-    def _model_size(self, size: tuple[int, int]) -> tuple[int, int]:
-        s = self.settings.scale
-        return max(1, round(size[0] * s)), max(1, round(size[1] * s))
+    def _geometry_for(self, size: tuple[int, int]) -> _Geometry:
+        g = self._geometry
+        if g is None or g.size != size:
+            g = self._geometry = _Geometry.of(self.settings, size)
+        return g
 
     def set_prior(self, prior: FeedbackMessage) -> None:
         """Install a prior mask (paper §7.1) for frames ``prior.frame_index`` onward.
@@ -159,10 +207,11 @@ class Segmenter:
         :data:`MAX_PRIORS` are kept).
         """
         full = prior.full_mask()
-        small = cv2.resize(full, self._model_size(prior.image_size),
+        g = _Geometry.of(self.settings, prior.image_size)  # not cached: another thread
+        small = cv2.resize(full, g.model_size,
                            interpolation=cv2.INTER_AREA) >= self.settings.prior_level
         trusted = (cv2.compare(full, self.settings.prior_level, cv2.CMP_GE)
-                   if self._refines else None)  # full resolution, for the refinement
+                   if g.refine_px else None)  # full resolution, for the refinement
         with self._lock:
             self._priors[prior.frame_index] = (prior.image_size, small, trusted)
             while len(self._priors) > MAX_PRIORS:
@@ -196,11 +245,12 @@ class Segmenter:
             raise ValueError(f"image must be (H, W, 3) uint8, got {image.dtype} {image.shape}")
         self.learn()
         size = (image.shape[1], image.shape[0])
-        small = image if self.settings.scale == 1 else cv2.resize(
-            image, self._model_size(size), interpolation=cv2.INTER_AREA)
+        g = self._geometry_for(size)
+        small = cv2.resize(image, g.model_size, interpolation=cv2.INTER_AREA) if g.downscaled \
+            else image
         if self.warming_up:
             self._mog.apply(small, learningRate=-1)  # running average over the empty frames
-            if self._refines:
+            if g.refine_px:
                 if self._full_bg is None or self._full_bg.shape[:2] != image.shape[:2]:
                     self._full_bg = image.astype(np.float32)
                 else:
@@ -218,17 +268,17 @@ class Segmenter:
             # Guard MOG2's own foreground only: guarding the prior's additions too
             # would keep a wrong prior's region out of the model for good. Copies:
             # the source may reuse its buffers before learn() runs.
-            self._pending = (small.copy(), fg, image.copy() if self._refines else None, background)
+            self._pending = (small.copy(), fg, image.copy() if g.refine_px else None, background)
             self._since_update = 0
         if prior is not None:
             fg = self._fuse(fg, small, background, prior[0])
         if self._open is not None:
             fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, self._open)
-        if fg.shape[::-1] != size:  # back to full resolution, smoothing the 2x2 steps
+        if g.downscaled:  # back to full resolution, smoothing the steps
             fg = cv2.compare(cv2.resize(fg, size, interpolation=cv2.INTER_LINEAR), 127, cv2.CMP_GT)
-            if self._refines:
-                fg = self._refine(fg, image, None if prior is None else prior[1])
-        return self._largest(fg, size, used_prior=prior is not None)
+            if g.refine_px:
+                fg = self._refine(fg, image, None if prior is None else prior[1], g)
+        return self._largest(fg, g, used_prior=prior is not None)
 
     def learn(self) -> None:
         """Run the pending selective background update, if any (cheap no-op otherwise).
@@ -243,7 +293,7 @@ class Segmenter:
         self._pending = None
         if background is None:
             background = self._mog.getBackgroundImage()
-        guard = cv2.dilate(fg, self._guard)
+        guard = cv2.dilate(fg, self._geometry.guard)
         composite = small.copy()
         cv2.copyTo(background, guard, composite)
         self._mog.apply(composite, learningRate=self.settings.learning_rate)
@@ -252,8 +302,9 @@ class Segmenter:
                                           interpolation=cv2.INTER_NEAREST), 0, cv2.CMP_EQ)
             cv2.accumulateWeighted(image, self._full_bg, self.settings.learning_rate, mask=keep)
 
-    def _refine(self, fg: np.ndarray, image: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
-        """Re-test at full resolution every pixel within ``refine_px`` of the mask.
+    def _refine(self, fg: np.ndarray, image: np.ndarray, prior: np.ndarray | None,
+                g: _Geometry) -> np.ndarray:
+        """Re-test at full resolution every pixel within ``refine_px`` model pixels of the mask.
 
         A pixel is foreground if its squared colour distance to the
         full-resolution background exceeds ``refine_threshold`` times the noise
@@ -267,12 +318,11 @@ class Segmenter:
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
             return fg
-        s = self.settings
-        pad = 2 * s.refine_px + s.close_px  # room for the dilation, the noise sample, closing
+        pad = 2 * g.refine_px + g.close_px  # room for the dilation, the noise sample, closing
         x0, y0 = max(0, rx - pad), max(0, ry - pad)
         x1, y1 = min(fg.shape[1], rx + rw + pad), min(fg.shape[0], ry + rh + pad)
         coarse = fg[y0:y1, x0:x1]
-        near = cv2.dilate(coarse, self._near)  # the pixels re-tested
+        near = cv2.dilate(coarse, g.near)  # the pixels re-tested
         d = cv2.subtract(image[y0:y1, x0:x1], self._full_bg[y0:y1, x0:x1], dtype=cv2.CV_32F)
         # Lighting moves between updates: remove the local offset measured on the sure
         # background (outside the dilated mask), whose spread is then the noise.
@@ -281,10 +331,14 @@ class Segmenter:
         d2 = cv2.transform(cv2.multiply(d, d), np.ones((1, 3), np.float32))
         # Variance summed over channels, bounded like MOG2's (4..75 by default).
         var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
-        level = s.refine_threshold * var
+        level = self.settings.refine_threshold * var
         refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
-        if prior is not None:  # refinement must not undo the prior's weak evidence
-            refined = cv2.bitwise_or(refined, cv2.bitwise_and(coarse, prior[y0:y1, x0:x1]))
+        if prior is not None:
+            # Inside a trusted prior weaker evidence will do, at full resolution too
+            # (§7.1), and the refinement must not undo the model's fused evidence.
+            trusted = prior[y0:y1, x0:x1]
+            weak = cv2.compare(d2, self.settings.prior_threshold * var, cv2.CMP_GT)
+            refined |= cv2.bitwise_and(cv2.bitwise_or(weak, coarse), cv2.bitwise_and(trusted, near))
         fg[y0:y1, x0:x1] = refined
         return fg
 
@@ -298,7 +352,7 @@ class Segmenter:
         weak = (diff > level) & prior
         return np.where(weak, np.uint8(255), fg)
 
-    def _largest(self, fg: np.ndarray, size: tuple[int, int], *, used_prior: bool) -> Segmentation:
+    def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool) -> Segmentation:
         """Close holes, keep the largest component, crop it.
 
         Closing and labelling run only inside the bounding rectangle of all
@@ -306,14 +360,15 @@ class Segmenter:
         around the walker. With a convex kernel the closing stays inside that
         rectangle, so the result equals closing the whole frame.
         """
+        size = g.size
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
             return self._empty(size, used_prior)
-        if self._close is not None:
-            m = self.settings.close_px
+        if g.close is not None:
+            m = g.close_px
             x0, y0 = max(0, rx - m), max(0, ry - m)
             x1, y1 = min(size[0], rx + rw + m), min(size[1], ry + rh + m)
-            region = cv2.morphologyEx(fg[y0:y1, x0:x1], cv2.MORPH_CLOSE, self._close)
+            region = cv2.morphologyEx(fg[y0:y1, x0:x1], cv2.MORPH_CLOSE, g.close)
             rx, ry = x0, y0
         else:
             region = fg[ry:ry + rh, rx:rx + rw]
@@ -322,7 +377,7 @@ class Segmenter:
             return self._empty(size, used_prior)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         area = int(stats[best, cv2.CC_STAT_AREA])
-        if area < self.settings.min_area:
+        if area < g.min_area:
             return self._empty(size, used_prior)
         x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region
         m = self.settings.margin_px
