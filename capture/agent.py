@@ -33,7 +33,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .receiver import ValidatingSubscriber
-from .segment import Segmenter, SegmentSettings
+from .segment import PriorStats, Segmenter, SegmentSettings
 from .sources import Frame, FrameSource, make_source, paced
 from .wire import FeedbackMessage, SilhouetteMessage, encode, feedback_key, silhouette_key
 
@@ -75,7 +75,11 @@ class AgentStats:
     dropped_gap: int = 0  # frame indices the source skipped
     dropped_stale: int = 0  # live frames too old to be worth segmenting
     errors: int = 0  # publish failures
-    priors: int = 0  # feedback priors received
+    priors: int = 0  # feedback priors received and valid for this run
+    priors_other_epoch: int = 0  # ... meant for another run of this camera (ignored)
+    priors_ahead: int = 0  # frames whose own prior had arrived before their capture time
+    priors_behind: int = 0  # frames, once priors flow, whose prior had not (late or missing)
+    prior_use: PriorStats = field(default_factory=PriorStats)  # the segmenter's
     streaming_s: float = 0.0  # wall time from the end of warm-up to the end of the run
     cpu_s: float = 0.0  # process CPU time over the same span (all threads)
     latency_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))
@@ -93,6 +97,12 @@ class AgentStats:
     @property
     def dropped(self) -> int:
         return self.dropped_gap + self.dropped_stale + self.errors
+
+    @property
+    def prior_ahead_fraction(self) -> float:
+        """Of the frames since the first prior, the fraction whose prior came in time."""
+        n = self.priors_ahead + self.priors_behind
+        return self.priors_ahead / n if n else float("nan")
 
     def latency_percentiles(self) -> tuple[float, float]:
         """(p50, p99) of recent capture-to-publish latencies in ms (nan if none)."""
@@ -158,10 +168,12 @@ def _warm_up(frames: Iterator[Frame], segmenter: Segmenter, stats: AgentStats,
 def _log_stats(stats: AgentStats, sent_before: int, seconds: float, what: str) -> None:
     p50, p99 = stats.latency_percentiles()
     log.info("%s: %.1f fps, published %d (unheard %d), dropped %d (gap %d, stale %d, errors %d), "
-             "capture-to-publish p50 %.2f ms p99 %.2f ms, priors %d", what,
+             "capture-to-publish p50 %.2f ms p99 %.2f ms, priors %d (used %d, rejected %d, "
+             "stale %d, in time for %d/%d frames)", what,
              (stats.sent - sent_before) / max(seconds, 1e-9), stats.published,
              stats.unheard, stats.dropped, stats.dropped_gap, stats.dropped_stale, stats.errors,
-             p50, p99, stats.priors)
+             p50, p99, stats.priors, stats.prior_use.used, stats.prior_use.rejected,
+             stats.prior_use.stale, stats.priors_ahead, stats.priors_ahead + stats.priors_behind)
 
 
 def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | None = None,
@@ -185,9 +197,19 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
     key = silhouette_key(settings.rig, settings.camera)
     sync = "index" if source.hardware_sync else "time"
 
+    arrivals: dict[int, int] = {}  # frame index -> wall-clock ns its prior arrived
+    arrivals_lock = threading.Lock()
+    stats.prior_use = segmenter.prior_stats
+
     def on_prior(prior: FeedbackMessage) -> None:
-        segmenter.set_prior(prior)
-        stats.priors += 1
+        if prior.epoch_ns and prior.epoch_ns != stats.epoch_ns:
+            stats.priors_other_epoch += 1
+            return
+        now = time.time_ns()
+        if segmenter.set_prior(prior, now_ns=now):
+            stats.priors += 1
+            with arrivals_lock:
+                arrivals.setdefault(prior.frame_index, now)
 
     with _StopOnSignals(stop), source, zenoh.open(conf) as session:
         publisher = session.declare_publisher(
@@ -216,6 +238,15 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
             if source.live and time.time_ns() - frame.timestamp_ns > settings.stale_ms * 1e6:
                 stats.dropped_stale += 1
                 continue
+            if stats.priors:  # the feedback loop runs: was this frame's prior in time?
+                with arrivals_lock:
+                    arrived = arrivals.pop(frame.index, None)
+                    for old in [k for k in arrivals if k < frame.index]:
+                        del arrivals[old]
+                if arrived is not None and arrived <= frame.timestamp_ns:
+                    stats.priors_ahead += 1
+                else:
+                    stats.priors_behind += 1
             seg = segmenter.apply(frame.image, frame.index)
             msg = SilhouetteMessage(
                 rig=settings.rig, camera=settings.camera, frame_index=frame.index,

@@ -9,20 +9,32 @@ same fusion a live agent applies to the service's feedback messages.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+import os
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from estimator.appearance import AppearanceModel
-from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk
-from estimator.prior import Prior, PriorConfig, explained, priors_for_window, trim_silhouette, weigh
+from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.prior import (
+    Prior,
+    PriorConfig,
+    explained,
+    priors_for_window,
+    refine_silhouette,
+    trim_silhouette,
+    weigh,
+)
+from estimator.sequence import Sequence
 
 from .segment import Segmentation, Segmenter, SegmentSettings
 from .wire import Box, FeedbackMessage
 
-__all__ = ["RefineResult", "check_priors", "trim", "feedback_from_prior", "refine_cameras", "segment",
-           "track_from_segmentations"]
+__all__ = ["RefineResult", "RefinedSequence", "check_priors", "feedback_from_prior", "refine_cameras",
+           "refine_sequence", "refine_videos", "segment", "track_from_segmentations", "trim",
+           "video_frames"]
 
 
 def feedback_from_prior(prior: Prior, *, rig: str = "offline", camera: str = "c0") -> FeedbackMessage:
@@ -168,3 +180,118 @@ def refine_cameras(
         segs = segment(make(), settings, checked)
         refined[name] = trim(segs, checked, reach=trim_reach) if trim_reach is not None else segs
     return RefineResult(raw, refined, estimate, priors, sizes)
+
+
+# ------------------------------------------------------------------ whole recordings
+
+
+@dataclass
+class RefinedSequence:
+    """A recording's silhouettes refined with model feedback, and what it took.
+
+    ``raw`` and ``priors`` are per camera and frame, full-frame (uint8, or None),
+    kept for display (Rerun shows raw, prior and refined side by side).
+    """
+
+    sequence: Sequence
+    estimate: WalkEstimate
+    n_priors: int
+    changed_pixels: int
+    raw: dict[str, list[np.ndarray | None]]
+    priors: dict[str, list[np.ndarray | None]]
+
+
+def _prior_frames(priors: list[Prior], n: int) -> list[np.ndarray | None]:
+    out: list[np.ndarray | None] = [None] * n
+    for p in priors:
+        if 0 <= p.frame_index < n:
+            out[p.frame_index] = p.full_mask()
+    return out
+
+
+def _changed(a: list[np.ndarray | None], b: list[np.ndarray | None]) -> int:
+    return sum(int(np.count_nonzero((x > 0) != (y > 0))) for x, y in zip(a, b)
+               if x is not None and y is not None and x.shape == y.shape)
+
+
+def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
+                    config: PriorConfig | None = None) -> RefinedSequence:
+    """Silhouettes fused with the model's priors (no images left to re-segment).
+
+    Estimate the walk, render priors (:func:`estimator.prior.priors_for_window`)
+    and fuse each silhouette with its frame's prior
+    (:func:`estimator.prior.refine_silhouette`: holes the model explains are
+    filled, blobs away from the body dropped). Crops (silhouettes smaller than
+    the frame) are refined at the origin of a full canvas and cut back.
+
+    Raises ValueError if nothing can be estimated.
+    """
+    tracks = tracks_from_sequence(seq)
+    estimate = estimate_walk(tracks, model)
+    size = tuple(seq.image_size)
+    priors = priors_for_window(estimate, tracks, size, renderer=renderer, config=config)
+    out, raw_full, prior_full = {}, {}, {}
+    for cam in seq.cameras:
+        n = len(seq.silhouettes[cam])
+        prior_full[cam] = _prior_frames(priors[cam], n)
+        out[cam], raw_full[cam] = [], []
+        for sil, p in zip(seq.silhouettes[cam], prior_full[cam]):
+            if sil is None:
+                out[cam].append(None)
+                raw_full[cam].append(None)
+                continue
+            full = (sil.shape[1], sil.shape[0]) == size
+            frame = sil if full else np.zeros(size[::-1], np.uint8)
+            if not full:  # a crop: its own extent was the box (no position), pasted at the origin
+                frame[: sil.shape[0], : sil.shape[1]] = sil
+            raw_full[cam].append(frame)
+            if p is None:
+                out[cam].append(sil)
+                continue
+            refined = refine_silhouette(frame, p)
+            out[cam].append(refined if full else refined[: sil.shape[0], : sil.shape[1]])
+    changed = sum(_changed(seq.silhouettes[c], out[c]) for c in seq.cameras)
+    refined_seq = Sequence(fps=seq.fps, cameras=list(seq.cameras), image_size=seq.image_size,
+                           silhouettes=out, truth=seq.truth, extra=seq.extra)
+    return RefinedSequence(refined_seq, estimate, sum(len(v) for v in priors.values()), changed,
+                           raw_full, prior_full)
+
+
+def video_frames(path: str | os.PathLike) -> Callable[[], Iterator[np.ndarray]]:
+    """A function that reopens the video and yields its BGR frames (one pass each call)."""
+    def frames() -> Iterator[np.ndarray]:
+        cap = cv2.VideoCapture(str(path))
+        if not cap.isOpened():
+            raise ValueError(f"video {os.fspath(path)} cannot be opened")
+        try:
+            while True:
+                ok, image = cap.read()
+                if not ok:
+                    return
+                yield image
+        finally:
+            cap.release()
+    return frames
+
+
+def refine_videos(videos: dict[str, str | os.PathLike], model: AppearanceModel, *, renderer,
+                  warmup: int, fps: float, config: PriorConfig | None = None,
+                  truth: dict | None = None) -> RefinedSequence:
+    """One video per camera, background-subtracted twice (:func:`refine_cameras`).
+
+    Raises ValueError if a video cannot be read or nothing can be estimated.
+    """
+    result = refine_cameras({c: video_frames(p) for c, p in videos.items()}, model,
+                            renderer=renderer, settings=SegmentSettings(warmup_frames=warmup),
+                            config=config)
+
+    def full(segs: list[Segmentation | None]) -> list[np.ndarray | None]:
+        return [None if s is None or s.box.empty else s.full_mask() for s in segs]
+
+    sils = {c: full(segs) for c, segs in result.refined.items()}
+    raw = {c: full(segs) for c, segs in result.raw.items()}
+    size = next(iter(result.image_sizes.values()))
+    seq = Sequence(fps=fps, cameras=list(videos), image_size=size, silhouettes=sils, truth=truth)
+    return RefinedSequence(seq, result.estimate, sum(len(v) for v in result.priors.values()),
+                           sum(_changed(raw[c], sils[c]) for c in sils), raw,
+                           {c: _prior_frames(ps, len(raw[c])) for c, ps in result.priors.items()})

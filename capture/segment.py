@@ -35,6 +35,7 @@ model than MOG2's own test), which fills the holes plain backgrounding leaves.
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -43,7 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .wire import Box, FeedbackMessage
 
-__all__ = ["MAX_PRIORS", "SegmentSettings", "Segmentation", "Segmenter", "describe"]
+__all__ = ["MAX_PRIORS", "PriorStats", "SegmentSettings", "Segmentation", "Segmenter", "describe"]
 
 MAX_PRIORS = 64  # priors kept per segmenter, newest frame indices first
 
@@ -95,6 +96,17 @@ class SegmentSettings(BaseModel):
                                    "variance (refine_threshold's weaker twin)")
     prior_max_age: int = Field(5, ge=0, description="frames after its frame_index a prior "
                                "stays valid")
+    prior_max_age_ms: float = Field(2000.0, gt=0, description="a prior issued or received "
+                                    "longer ago than this is stale and ignored")
+    prior_check_level: int = Field(64, ge=1, le=255, description="prior value counted as "
+                                   "covering the evidence in the agent-side check")
+    prior_check_reach: float = Field(0.04, ge=0, description="... dilated by this fraction of "
+                                     "the prior's height (a prediction a little off, e.g. in "
+                                     "phase, still explains the evidence; a wrong one does not)")
+    prior_min_coverage: float = Field(0.5, ge=0, le=1, description="a prior covering less "
+                                      "of MOG2's own foreground near it is not used")
+    prior_full_coverage: float = Field(0.8, ge=0, le=1, description="... and from this "
+                                       "coverage on it is used at full strength")
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,6 +168,25 @@ class _Geometry:
                    close)
 
 
+@dataclass(slots=True)
+class _StoredPrior:
+    image_size: tuple[int, int]
+    small: np.ndarray  # soft prior (uint8) at model resolution
+    full: np.ndarray | None  # and at full resolution, when refining
+    received: float  # time.monotonic()
+
+
+@dataclass(slots=True)
+class PriorStats:
+    """What became of the priors a segmenter was given (§7.1 loop health)."""
+
+    received: int = 0
+    stale: int = 0  # too old on arrival, or aged out unused
+    used: int = 0  # frames segmented with a prior
+    weakened: int = 0  # ... of which with a raised trust level (partial coverage)
+    rejected: int = 0  # frames whose prior did not explain the evidence
+
+
 def describe(settings: SegmentSettings, size: tuple[int, int]) -> str:
     """One line on how frames of ``size`` are segmented (for logs and benchmarks)."""
     g = _Geometry.of(settings, size)
@@ -183,10 +214,10 @@ class Segmenter:
         # Full-resolution running mean of the background (float32 BGR), kept only
         # when the model runs downscaled: the refinement compares against it.
         self._full_bg: np.ndarray | None = None
-        # frame_index -> (image size, trusted pixels at model resolution, and at
-        # full resolution when refining); the service may send priors ahead of time.
-        self._priors: dict[int, tuple[tuple[int, int], np.ndarray, np.ndarray | None]] = {}
+        # frame_index -> prior; the service sends priors ahead of time.
+        self._priors: dict[int, _StoredPrior] = {}
         self._lock = threading.Lock()
+        self.prior_stats = PriorStats()
 
     @property
     def warming_up(self) -> bool:
@@ -199,34 +230,89 @@ class Segmenter:
             g = self._geometry = _Geometry.of(self.settings, size)
         return g
 
-    def set_prior(self, prior: FeedbackMessage) -> None:
+    def set_prior(self, prior: FeedbackMessage, *, now_ns: int | None = None) -> bool:
         """Install a prior mask (paper §7.1) for frames ``prior.frame_index`` onward.
 
         A frame uses the newest prior at or before its index that is at most
-        ``prior_max_age`` frames old; priors for future frames wait (up to
-        :data:`MAX_PRIORS` are kept).
+        ``prior_max_age`` frames old and was received at most
+        ``prior_max_age_ms`` ago; priors for future frames wait (up to
+        :data:`MAX_PRIORS` are kept). A prior issued (``issued_ns``, the
+        sender's wall clock) longer ago than ``prior_max_age_ms`` is stale and
+        not installed. Returns whether it was installed.
         """
-        full = prior.full_mask()
-        g = _Geometry.of(self.settings, prior.image_size)  # not cached: another thread
-        small = cv2.resize(full, g.model_size,
-                           interpolation=cv2.INTER_AREA) >= self.settings.prior_level
-        trusted = (cv2.compare(full, self.settings.prior_level, cv2.CMP_GE)
-                   if g.refine_px else None)  # full resolution, for the refinement
+        s = self.settings
+        now_ns = time.time_ns() if now_ns is None else now_ns
         with self._lock:
-            self._priors[prior.frame_index] = (prior.image_size, small, trusted)
+            self.prior_stats.received += 1
+            if prior.issued_ns and now_ns - prior.issued_ns > s.prior_max_age_ms * 1e6:
+                self.prior_stats.stale += 1
+                return False
+        full = prior.full_mask()
+        g = _Geometry.of(s, prior.image_size)  # not cached: another thread
+        small = cv2.resize(full, g.model_size, interpolation=cv2.INTER_AREA) if g.downscaled else full
+        stored = _StoredPrior(prior.image_size, small, full if g.refine_px else None,
+                              time.monotonic())
+        with self._lock:
+            self._priors[prior.frame_index] = stored
             while len(self._priors) > MAX_PRIORS:
                 del self._priors[min(self._priors)]
+        return True
 
-    def _prior_for(self, index: int,
-                   size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None] | None:
+    def _prior_for(self, index: int, size: tuple[int, int]) -> _StoredPrior | None:
+        s = self.settings
+        oldest = time.monotonic() - s.prior_max_age_ms / 1e3
         with self._lock:
-            for old in [k for k in self._priors if k < index - self.settings.prior_max_age]:
-                del self._priors[old]
+            for old in [k for k, p in self._priors.items()
+                        if k < index - s.prior_max_age or p.received < oldest]:
+                if self._priors.pop(old).received < oldest:
+                    self.prior_stats.stale += 1
             usable = [k for k in self._priors if k <= index]
             if not usable:
                 return None
-            prior_size, small, full = self._priors[max(usable)]
-        return (small, full) if prior_size == size else None
+            stored = self._priors[max(usable)]
+        return stored if stored.image_size == size else None
+
+    def _trust(self, fg: np.ndarray, stored: _StoredPrior,
+               g: _Geometry) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """The prior's trusted pixels, or None if it does not explain the evidence.
+
+        The agent-side check of §7.1's loop (:func:`estimator.prior.explained`
+        and :func:`~estimator.prior.weigh`, on MOG2's own foreground near the
+        prior, before fusion): a prior covering at least ``prior_full_coverage``
+        of that foreground is trusted from ``prior_level`` on; below
+        ``prior_min_coverage`` it is not used; in between the level rises (fewer
+        pixels trusted). Without enough foreground to judge, it is trusted.
+        A wrong estimate therefore cannot impose its silhouette against the
+        camera's own evidence, and the loop cannot run away.
+        """
+        s = self.settings
+        level = float(s.prior_level)
+        x, y, w, h = cv2.boundingRect(cv2.compare(stored.small, 0, cv2.CMP_GT))
+        x0, y0 = max(0, x - w // 2), max(0, y - h // 2)  # the prior's box grown by half
+        near = fg[y0:y + h + h // 2, x0:x + w + w // 2]
+        n = cv2.countNonZero(near)
+        scale = g.model_size[0] / g.size[0]
+        if n >= g.min_area * scale * scale:
+            inside = cv2.compare(stored.small[y0:y + h + h // 2, x0:x + w + w // 2],
+                                 s.prior_check_level, cv2.CMP_GE)
+            reach = round(s.prior_check_reach * h)  # a prediction a few pixels off still explains
+            if reach > 0:
+                inside = cv2.dilate(inside, _kernel(2 * reach + 1))
+            coverage = cv2.countNonZero(cv2.bitwise_and(near, inside)) / n
+            if coverage < s.prior_min_coverage:
+                self.prior_stats.rejected += 1
+                return None
+            if coverage < s.prior_full_coverage:
+                self.prior_stats.weakened += 1
+                f = (coverage - s.prior_min_coverage) / (s.prior_full_coverage - s.prior_min_coverage)
+                level = level / max(f, 1e-6)
+                if level > 255:
+                    self.prior_stats.rejected += 1
+                    return None
+        self.prior_stats.used += 1
+        level = int(np.ceil(level))
+        return (cv2.compare(stored.small, level, cv2.CMP_GE),
+                None if stored.full is None else cv2.compare(stored.full, level, cv2.CMP_GE))
 
     def apply(self, image: np.ndarray, index: int) -> Segmentation | None:
         """Learn from or segment one BGR frame; None while warming up.
@@ -259,7 +345,8 @@ class Segmenter:
             return None
         raw = self._mog.apply(small, learningRate=0)  # classify only; learning is selective
         fg = cv2.compare(raw, 200, cv2.CMP_GT)  # 255 = foreground, 127 = shadow -> background
-        prior = self._prior_for(index, size)
+        stored = self._prior_for(index, size)
+        prior = None if stored is None else self._trust(fg, stored, g)
         background = None
         if prior is not None:
             background = self._mog.getBackgroundImage()
@@ -349,8 +436,8 @@ class Segmenter:
         # Above the floor and above the frame's typical (mostly noise) difference,
         # so a noisy camera does not turn the whole prior into foreground.
         level = max(self.settings.prior_diff, self.settings.prior_noise_k * float(diff.mean()))
-        weak = (diff > level) & prior
-        return np.where(weak, np.uint8(255), fg)
+        weak = cv2.bitwise_and(cv2.compare(diff, level, cv2.CMP_GT), prior)
+        return cv2.bitwise_or(fg, weak)
 
     def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool) -> Segmentation:
         """Close holes, keep the largest component, crop it.

@@ -196,7 +196,10 @@ class FeedbackMessage:
 
     ``mask`` has shape ``(box.h, box.w)``, uint8, 0 = no opinion and 255 =
     surely the walker; it applies to frames from ``frame_index`` on (the
-    service may predict a future frame).
+    service may predict a future frame). ``issued_ns`` is the sender's wall
+    clock when it was sent (0 = unknown); ``epoch_ns`` the epoch of the agent
+    run whose frame indices it refers to (0 = any): an agent that restarted
+    ignores priors meant for its previous run.
     """
 
     KIND: ClassVar[int] = 2
@@ -208,6 +211,7 @@ class FeedbackMessage:
     image_size: tuple[int, int]
     mask: np.ndarray = dataclasses.field(repr=False, compare=False)
     issued_ns: int = 0
+    epoch_ns: int = 0
 
     def __post_init__(self) -> None:
         _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
@@ -323,4 +327,5 @@ def decode(payload: bytes | bytearray | memoryview, *,
                                  epoch_ns=_int(header, "epoch_ns"), seq=_int(header, "seq"),
                                  sync=_str(header, "sync"),  # type: ignore[arg-type]
                                  publish_ns=_int(header, "publish_ns"))
-    return FeedbackMessage(**common, issued_ns=_int(header, "issued_ns"))
+    return FeedbackMessage(**common, issued_ns=_int(header, "issued_ns"),
+                           epoch_ns=_int(header, "epoch_ns") if "epoch_ns" in header else 0)

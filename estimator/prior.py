@@ -173,7 +173,7 @@ def render_body(
     phases = np.atleast_1d(np.asarray(phases, float))
     skel = forward_kinematics(gait.angles(phases % 1.0), body)
     skel = skel - skel[:, :N_JOINTS].mean(axis=1, keepdims=True)
-    side = int(np.ceil(2.4 * body.height * pixels_per_metre)) | 1
+    side = int(np.ceil(1.5 * body.height * pixels_per_metre)) | 1  # the body, centred, with a margin
     cam = Camera(azimuth_deg, elevation_deg, distance=10.0, image_size=(side, side),
                  focal_px=pixels_per_metre, orthographic=True)
     return [renderer.render(j, cam)[0] for j in skel]
@@ -420,18 +420,22 @@ def predict_priors(
     config: PriorConfig | None = None,
     gait: GaitModel | None = None,
     first_index: int = 0,
+    skip: int = 0,
 ) -> dict[str, list[Prior]]:
-    """Priors for the ``n_ahead`` frames after the window (live feedback, §7.1).
+    """Priors for ``n_ahead`` frames after the window, from ``skip`` frames past its end
+    (live feedback, §7.1: the frames captured while the priors are made need none).
 
     The phase continues the HMM path (:func:`predict_phases`); the body is
     registered onto the camera's last silhouette, then moved by the box motion
     extrapolated from the window (:func:`predict_boxes`).
     """
+    if skip < 0:
+        raise ValueError(f"skip must be >= 0, got {skip}")
     config = config or PriorConfig()
     gait = gait or load_gait()
     if renderer.shape != config.body:
         renderer.set_shape(config.body)
-    phases = predict_phases(estimate, n_ahead)
+    phases = predict_phases(estimate, skip + n_ahead)[skip:]
     T = len(estimate.phase)
     out: dict[str, list[Prior]] = {}
     for name, track in tracks.items():
@@ -442,7 +446,7 @@ def predict_priors(
         if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg) or not known or n_ahead == 0:
             continue
         last = known[-1]
-        future = predict_boxes(track.boxes, n_ahead)
+        future = predict_boxes(track.boxes, skip + n_ahead)[skip:]
         renders = render_body(phases, cam.viewpoint.azimuth_deg, cam.viewpoint.elevation_deg,
                               renderer=renderer, body=config.body, gait=gait,
                               pixels_per_metre=config.pixels_per_metre)
@@ -451,7 +455,7 @@ def predict_priors(
             fb = future[k]
             # Centre of the predicted box minus centre of the last observed one.
             shift = (fb[0] + fb[2] / 2 - lb[0] - lb[2] / 2, fb[1] + fb[3] / 2 - lb[1] - lb[3] / 2)
-            p = prior_from_render(r, track.silhouettes[last], lb, size, frame_index=first_index + T + k,
+            p = prior_from_render(r, track.silhouettes[last], lb, size, frame_index=first_index + T + skip + k,
                                   config=config, shift=shift)
             if p is not None:
                 out[name].append(p)

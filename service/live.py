@@ -16,6 +16,9 @@ Per rig:
    threads send each to the process pool (:func:`service.worker.estimate_window`),
    smooth the viewpoints (:class:`ViewpointTrack`), publish the result on
    ``posecal/<rig>/estimate``, keep it for the REST API and log it to Rerun.
+4. Feedback (§7.1, ``feedback``): the window's estimate predicts the next
+   ``feedback_ahead`` frames of every camera; their rendered, registered priors
+   go to ``posecal/<rig>/<camera>/feedback`` ahead of the frames they are for.
 
 The Zenoh callback thread only does bookkeeping; nothing blocks the event loop.
 """
@@ -36,12 +39,12 @@ import numpy as np
 import zenoh
 
 from capture.receiver import Received, SilhouetteReceiver
-from capture.wire import SilhouetteMessage, estimate_key
+from capture.wire import Box, FeedbackMessage, SilhouetteMessage, encode, estimate_key, feedback_key
 from estimator.pipeline import CameraTrack, crop_to_box
 
 from .metrics import Metrics
 from .settings import Settings
-from .worker import StageBundle, estimate_window, register_stage
+from .worker import StageBundle, estimate_window, predict_feedback, register_stage
 
 __all__ = ["FrameAssembler", "FrameSet", "LiveService", "ViewpointTrack", "WindowBuffer"]
 
@@ -175,6 +178,18 @@ class Window:
         return [fs.index for fs in self.frames]
 
 
+def _frame_period_s(frames: list[FrameSet]) -> float | None:
+    """Median capture interval of consecutive frame sets (None if it cannot be told)."""
+    t = np.array([fs.capture_ns for fs in frames], float)
+    i = np.array([fs.index for fs in frames], float)
+    step = np.diff(i)
+    ok = step > 0
+    if not ok.any():
+        return None
+    period = float(np.median(np.diff(t)[ok] / step[ok])) / 1e9
+    return period if period > 0 else None
+
+
 class WindowBuffer:
     """Cut sliding windows of ``length`` frame sets every ``hop``."""
 
@@ -303,7 +318,10 @@ class RigState:
     dropped: int = 0
     restarts: int = 0
     last_logged_index: int = -1
+    priors_sent: int = 0
+    feedback_lag_s: float = 0.0  # last frame's capture to its window's priors published (EMA)
     publisher: Any = None
+    feedback: dict[str, Any] = field(default_factory=dict)  # camera -> feedback publisher
 
 
 class LiveService:
@@ -466,9 +484,11 @@ class LiveService:
             with self._lock:
                 last = self._rigs[w.rig].last_logged_index
             bundle_from = sum(1 for i in w.indices if i <= last)
-        future = self.pool.submit(estimate_window, tracks, w.indices, sizes, bundle_from=bundle_from)
+        feedback = self.settings.feedback
+        future = self.pool.submit(estimate_window, tracks, w.indices, sizes, bundle_from=bundle_from,
+                                  keep_estimate=feedback)
         try:
-            result, bundle, seconds = future.result(timeout=60)
+            result, bundle, seconds, est = future.result(timeout=60)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
             with self._lock:
@@ -511,6 +531,54 @@ class LiveService:
                 self._rerun_queue.put_nowait((w.rig, bundle, w.indices[-1], smoothed))
             except queue.Full:  # drawing fell behind: skip this window's drawing, not its estimate
                 self.metrics.rerun_skipped.labels(w.rig).inc()
+        if feedback and est is not None:
+            self._feedback(w, est, tracks, sizes)
+
+    def _feedback(self, w: Window, est, tracks: dict[str, CameraTrack],
+                  sizes: dict[str, tuple[int, int]]) -> None:
+        """Render and publish priors for the next frames of every camera (§7.1).
+
+        Each prior names the agent run (epoch) whose frame indices it predicts,
+        so a restarted agent ignores it; the agent checks it against its own
+        evidence before use (``capture.segment``).
+        """
+        t0 = time.perf_counter()
+        with self._lock:
+            lag_s = self._rigs[w.rig].feedback_lag_s
+        # Frames captured before these priors can arrive need none: skip them.
+        period_s = _frame_period_s(w.frames)
+        skip = 0 if period_s is None else int(lag_s / period_s)
+        future = self.pool.submit(predict_feedback, est, tracks, w.indices, sizes,
+                                  self.settings.feedback_ahead, skip)
+        priors = future.result(timeout=60)
+        with self._lock:
+            rig = self._rigs[w.rig]
+            epochs = {cam: c.epoch_ns for cam, c in rig.cameras.items()}
+            publishers = {}
+            for cam in priors:
+                pub = rig.feedback.get(cam)
+                if pub is None:
+                    pub = rig.feedback[cam] = self.session.declare_publisher(
+                        feedback_key(w.rig, cam), congestion_control=zenoh.CongestionControl.DROP,
+                        express=True)
+                publishers[cam] = pub
+        sent = 0
+        for cam, items in priors.items():
+            for index, box, mask in items:
+                msg = FeedbackMessage(rig=w.rig, camera=cam, frame_index=index, box=Box(*box),
+                                      image_size=sizes[cam], mask=mask, issued_ns=time.time_ns(),
+                                      epoch_ns=epochs.get(cam, 0))
+                publishers[cam].put(encode(msg))
+                sent += 1
+        self.metrics.feedback_priors.labels(w.rig).inc(sent)
+        self.metrics.feedback_seconds.observe(time.perf_counter() - t0)
+        lag = (time.time_ns() - w.frames[-1].capture_ns) / 1e9  # last frame captured -> priors out
+        with self._lock:
+            rig.priors_sent += sent
+            if 0 <= lag < 10:  # a moving average of what the next window's priors will take
+                rig.feedback_lag_s += 0.3 * (lag - rig.feedback_lag_s)
+        if self.rerun is not None and priors:
+            self.rerun.log_priors(f"rigs/{w.rig}", priors)
 
     def _draw(self) -> None:
         """Rerun logging, off the estimation path: registration in the pool, then log."""
@@ -545,6 +613,7 @@ class LiveService:
                                 "image_size": list(s.image_size)} for c, s in sorted(rig.cameras.items())},
                 "windows": {"seq": rig.window_seq, "estimated": rig.estimated, "skipped": rig.skipped,
                             "failed": rig.failed, "dropped": rig.dropped},
+                "feedback": {"enabled": self.settings.feedback, "priors_sent": rig.priors_sent},
                 "frames": {"late": a.late, "duplicate": a.duplicate, "missing": a.missing,
                            "restarts": rig.restarts, "gaps": rig.buffer.resets},
                 "viewpoints": {c: t.state() for c, t in sorted(rig.tracks.items())},
@@ -577,8 +646,9 @@ class LiveService:
             t.join(timeout=5)
         with self._lock:
             for rig in self._rigs.values():
-                if rig.publisher is not None:
-                    try:
-                        rig.publisher.undeclare()
-                    except Exception:
-                        pass
+                for pub in [rig.publisher, *rig.feedback.values()]:
+                    if pub is not None:
+                        try:
+                            pub.undeclare()
+                        except Exception:
+                            pass

@@ -48,6 +48,10 @@ class Metrics:
                                         buckets=_LATENCY_BUCKETS, registry=r)
         self.window_estimate = Histogram("posecal_window_estimate_seconds", "estimate_walk time "
                                          "of one window in a worker", buckets=_LATENCY_BUCKETS, registry=r)
+        self.feedback_priors = Counter("posecal_feedback_priors", "priors published to the "
+                                       "segmenters (§7.1)", ["rig"], registry=r)
+        self.feedback_seconds = Histogram("posecal_feedback_seconds", "rendering and publishing "
+                                          "one window's priors", registry=r)
         self.rerun_skipped = Counter("posecal_rerun_windows_skipped", "live windows not drawn in "
                                      "Rerun because drawing fell behind (estimates unaffected)",
                                      ["rig"], registry=r)

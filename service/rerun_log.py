@@ -18,6 +18,9 @@ coordinate spaces, under a prefix per rig (``rigs/<rig>``) or job
     <P>/world/cameras/<cam>               estimated camera: Transform3D + Pinhole
     <P>/world/cameras/<cam>/box           silhouette box in that camera's image
     <P>/world/cameras/<cam>/joints        2D joints in that camera's image
+    <P>/feedback/<cam>/prior              §7.1 prior sent for a frame (live: predicted ahead)
+    <P>/feedback/<cam>/raw                jobs with refine: the raw silhouette, ...
+    <P>/feedback/<cam>/refined            ... and the refined one, cut to the same box as the prior
 
 Fed only by plain arrays (:class:`service.worker.StageBundle`).
 """
@@ -119,6 +122,10 @@ class RerunLog:
             s.log(f"{p}/phase/hmm", rr.Scalars(float(b.phase[t])))
             s.log(f"{p}/world/skeleton", rr.Points3D(
                 b.joints3d[t], class_ids=_WALKER, keypoint_ids=np.arange(len(JOINT_NAMES)), radii=0.03))
+            for cam, views in b.extra.get("feedback", {}).items():
+                if t < len(views) and views[t] is not None:
+                    for name, img in zip(("raw", "prior", "refined"), views[t]):
+                        s.log(f"{p}/feedback/{cam}/{name}", rr.Image(img))
         # Per-window items at the window's last frame.
         s.set_time(TIMELINE, sequence=int(b.indices[-1]))
         for cam, vp in b.viewpoints.items():
@@ -149,6 +156,15 @@ class RerunLog:
                     continue
                 self.stream.log(f"{prefix}/viewpoints/{cam}/smoothed", rr.Points2D(
                     [[sm["azimuth_deg"], sm["elevation_deg"]]], radii=3.0, colors=(255, 80, 80)))
+
+    def log_priors(self, prefix: str, priors: dict[str, list[tuple[int, tuple, np.ndarray]]]) -> None:
+        """Live §7.1 priors, each at the frame it was predicted for (``inputs/<cam>`` then
+        shows the silhouette the agent made with it)."""
+        with self._lock:
+            for cam, items in priors.items():
+                for index, _box, mask in items:
+                    self.stream.set_time(TIMELINE, sequence=int(index))
+                    self.stream.log(f"{prefix}/feedback/{cam}/prior", rr.Image(mask))
 
     def close(self) -> None:
         with self._lock:

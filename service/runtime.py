@@ -96,7 +96,8 @@ class Runtime:
                 log.info("Rerun: connect a viewer with `rerun %s`", rerun.uri)
         job_pool, live_pool = await asyncio.gather(
             asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
-            asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none())
+            asyncio.to_thread(make_pool, settings.live_workers, model_path, renderer=settings.feedback)
+            if settings.live else _none())
         runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
                            rerun=rerun if settings.rerun_jobs else None)
         rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner, rerun=rerun)

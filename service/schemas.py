@@ -74,6 +74,11 @@ class FrameCounts(BaseModel):
     gaps: int = Field(description="frame index jumps that restarted the window")
 
 
+class FeedbackCounts(BaseModel):
+    enabled: bool = Field(description="priors are published to the segmenters (§7.1)")
+    priors_sent: int = Field(description="priors published on posecal/<rig>/<camera>/feedback")
+
+
 class SmoothedViewpoint(BaseModel):
     azimuth_deg: float | None
     elevation_deg: float | None
@@ -88,6 +93,7 @@ class RigOut(BaseModel):
     cameras: dict[str, CameraOut]
     windows: WindowCounts
     frames: FrameCounts
+    feedback: FeedbackCounts
     viewpoints: dict[str, SmoothedViewpoint]
     latest_seq: int | None
 

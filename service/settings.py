@@ -77,6 +77,11 @@ class Settings(BaseSettings):
     change_windows: int = Field(3, ge=1, description="... and this many consecutive agreeing "
                                 "outliers mean the camera moved")
     # zenoh
+    feedback: bool = Field(True, description="publish silhouette priors to the segmenters "
+                           "(§7.1) after each live window")
+    feedback_ahead: int = Field(20, ge=1, description="frames predicted past each window: at "
+                                "least window_hop plus the frames captured while a window is "
+                                "estimated, so every frame's prior arrives before it")
     zenoh_mode: str = Field("peer", pattern="^(peer|client|router)$")
     zenoh_connect: list[str] = Field(default_factory=list)
     zenoh_listen: list[str] = Field(default_factory=lambda: [DEFAULT_ZENOH_LISTEN])

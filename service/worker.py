@@ -7,7 +7,8 @@ futures. Two entry points run in the pool:
 - :func:`run_job`: read the staged input (sequence folder or videos), build the
   camera tracks, :func:`~estimator.pipeline.estimate_walk`, write the result to
   the job store, writing progress as it goes;
-- :func:`estimate_window`: one live window.
+- :func:`estimate_window`: one live window;
+- :func:`predict_feedback`: priors for the frames after a live window (§7.1).
 
 Both can return a :class:`StageBundle`: the plain arrays of every stage that
 :mod:`service.rerun_log` draws (inputs, registration, matched cluster means,
@@ -33,7 +34,7 @@ import numpy as np
 
 from estimator.appearance import AppearanceModel, load_model
 from estimator.pipeline import CameraTrack, WalkEstimate, estimate_walk, tracks_from_sequence
-from estimator.sequence import SequenceError, read_sequence
+from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
 
 from .jobs import JobGone, JobStore
 
@@ -41,6 +42,7 @@ __all__ = [
     "StageBundle",
     "UploadError",
     "estimate_window",
+    "predict_feedback",
     "init_worker",
     "make_pool",
     "run_job",
@@ -182,10 +184,12 @@ def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, *, max_frame
 
 _model: AppearanceModel | None = None
 _stores: dict[str, JobStore] = {}
+_renderer = None  # estimator.render.Renderer, made on first use (feedback priors)
 
 
-def make_pool(n: int, model_path: Path) -> concurrent.futures.ProcessPoolExecutor:
-    """A process pool whose workers hold the model; started (spawn) and warmed up.
+def make_pool(n: int, model_path: Path, *, renderer: bool = False) -> concurrent.futures.ProcessPoolExecutor:
+    """A process pool whose workers hold the model (and a renderer, for feedback
+    priors, if asked); started (spawn) and warmed up.
 
     BLAS is kept to one thread per worker: the eq. 8 product is small, and
     OpenBLAS threads spinning against each other on a shared 2-core host made
@@ -195,19 +199,21 @@ def make_pool(n: int, model_path: Path) -> concurrent.futures.ProcessPoolExecuto
         os.environ.setdefault(var, "1")
     pool = concurrent.futures.ProcessPoolExecutor(
         max_workers=n, mp_context=multiprocessing.get_context("spawn"),
-        initializer=init_worker, initargs=(str(model_path),))
+        initializer=init_worker, initargs=(str(model_path), renderer))
     for f in [pool.submit(_ping) for _ in range(n)]:
         f.result()
     return pool
 
 
-def init_worker(model_path: str) -> None:
-    """Pool initializer: load the model once per process."""
+def init_worker(model_path: str, renderer: bool = False) -> None:
+    """Pool initializer: load the model once per process (and open the renderer)."""
     global _model
     import cv2
 
     cv2.setNumThreads(1)
     _model = load_model(model_path)
+    if renderer:
+        _get_renderer()
 
 
 def _ping() -> int:
@@ -218,6 +224,17 @@ def _get_model() -> AppearanceModel:
     if _model is None:
         raise RuntimeError("worker not initialised (init_worker)")
     return _model
+
+
+def _get_renderer():
+    """This worker's renderer (pyrender, EGL), made on first use."""
+    global _renderer
+    if _renderer is None:
+        from estimator.prior import PriorConfig
+        from estimator.render import Renderer
+
+        _renderer = Renderer(PriorConfig().body)
+    return _renderer
 
 
 def _store(url: str) -> JobStore:
@@ -328,9 +345,14 @@ def json_safe(value: Any) -> Any:
 
 
 def estimate_window(tracks: dict[str, CameraTrack], indices: list[int],
-                    image_size: dict[str, tuple[int, int]], *, bundle_from: int | None = None
-                    ) -> tuple[dict, StageBundle | None, float]:
-    """Estimate one live window (in a worker): ``(result, bundle or None, seconds)``."""
+                    image_size: dict[str, tuple[int, int]], *, bundle_from: int | None = None,
+                    keep_estimate: bool = False
+                    ) -> tuple[dict, StageBundle | None, float, WalkEstimate | None]:
+    """Estimate one live window (in a worker): ``(result, bundle, seconds, estimate)``.
+
+    The bundle is None unless ``bundle_from`` is given; the estimate itself is
+    returned only with ``keep_estimate`` (for :func:`predict_feedback`).
+    """
     model = _get_model()
     t0 = time.perf_counter()
     est = estimate_walk(tracks, model)
@@ -342,7 +364,26 @@ def estimate_window(tracks: dict[str, CameraTrack], indices: list[int],
     if bundle_from is not None:  # registration for display is done later (register_stage)
         bundle = make_bundle(tracks, est, model, indices, image_size, from_frame=bundle_from,
                              register=False)
-    return result, bundle, seconds
+    return result, bundle, seconds, est if keep_estimate else None
+
+
+def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices: list[int],
+                     image_size: dict[str, tuple[int, int]], n_ahead: int, skip: int = 0
+                     ) -> dict[str, list[tuple[int, tuple[int, int, int, int], np.ndarray]]]:
+    """Priors for ``n_ahead`` frames from ``skip`` frames after a live window (§7.1), in a worker.
+
+    Per camera ``(frame index, full-frame box, soft mask crop)``; the renderer
+    is made once per worker process.
+    """
+    from estimator.prior import predict_priors
+
+    priors = predict_priors(est, tracks, image_size, n_ahead, renderer=_get_renderer(),
+                            first_index=indices[0], skip=skip)
+    # Window positions -> frame indices: the window's frames are consecutive but
+    # the last index tells where the prediction starts.
+    shift = indices[-1] + 1 - (indices[0] + len(indices))
+    return {cam: [(p.frame_index + shift, tuple(int(v) for v in p.box), p.mask) for p in ps]
+            for cam, ps in priors.items()}
 
 
 # ---------------------------------------------------------------------------- batch jobs
@@ -385,10 +426,23 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             result["truth_cameras"] = {
                 c: {k: v for k, v in t.items() if k in ("azimuth_deg", "elevation_deg")}
                 for c, t in truth["cameras"].items()}
+        refined = None
+        if options.get("refine"):
+            store.report(job_id, 0.92, "refining silhouettes (model feedback)")
+            refined = _refine(kind, Path(input_dir), options, model, fps)
+            out = Path(options["refined_dir"])
+            write_sequence(out / "silhouettes", refined.sequence)
+            shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
+            result["refined"] = {"silhouettes": f"/v1/jobs/{job_id}/silhouettes",
+                                 "priors": refined.n_priors,
+                                 "changed_pixels": refined.changed_pixels}
         bundle = None
         if want_bundle:
             n = len(next(iter(tracks.values())).silhouettes)
             bundle = make_bundle(tracks, est, model, list(range(n)), image_size)
+            if refined is not None:
+                bundle.extra["feedback"] = feedback_views(refined.raw, refined.priors,
+                                                          refined.sequence)
         if not store.finish(job_id, result):
             return None  # cancelled or deleted meanwhile
         return bundle
@@ -400,6 +454,44 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
     except Exception as exc:  # a bug: record it on the job, keep the worker alive
         store.fail(job_id, f"internal error: {type(exc).__name__}: {exc}")
         raise
+
+
+def _refine(kind: str, input_dir: Path, options: dict[str, Any], model: AppearanceModel,
+            fps: float):
+    """The job's silhouettes refined with model feedback (``capture.refine``)."""
+    from capture.refine import refine_sequence, refine_videos
+
+    renderer = _get_renderer()
+    if kind == "sequence":
+        return refine_sequence(read_sequence(input_dir), model, renderer=renderer)
+    videos = {p.stem: p for p in sorted(input_dir.iterdir()) if p.suffix.lower() in VIDEO_EXTENSIONS}
+    n = int(options.get("n_frames") or 0)
+    warmup = options.get("warmup") or max(1, min(100, n // 4 if n else 30))
+    return refine_videos(videos, model, renderer=renderer, warmup=warmup, fps=fps)
+
+
+def feedback_views(raw: dict[str, list[np.ndarray | None]], priors: dict[str, list[np.ndarray | None]],
+                   refined: Sequence) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]]:
+    """Per camera and frame, raw silhouette, prior and refined silhouette cut to one box.
+
+    The box is the union of the three, so the crops line up side by side (Rerun).
+    """
+    out: dict[str, list] = {}
+    for cam, frames in raw.items():
+        out[cam] = []
+        for k, r in enumerate(frames):
+            p = priors.get(cam, [None] * len(frames))[k]
+            f = refined.silhouettes[cam][k] if k < len(refined.silhouettes[cam]) else None
+            layers = [x for x in (r, p, f) if x is not None and x.shape == r.shape] if r is not None else []
+            if r is None or not any(x.any() for x in layers):
+                out[cam].append(None)
+                continue
+            ys, xs = np.nonzero(np.logical_or.reduce([x > 0 for x in layers]))
+            sl = np.s_[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
+            blank = np.zeros_like(r)
+            out[cam].append(tuple((x if x is not None and x.shape == r.shape else blank)[sl]
+                                  for x in (r, p, f)))
+    return out
 
 
 def _pad_tracks(tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:

@@ -183,6 +183,44 @@ def test_agent_streams_a_video_and_takes_priors(endpoint, video):
     assert before < 0.3 and after > 0.6, (before, after)  # measured 0.05 -> 0.77
 
 
+def test_agent_ignores_stale_priors_and_priors_for_another_run(endpoint, video):
+    """Priors issued longer ago than ``prior_max_age_ms``, or for frame indices of another
+    agent run (epoch), are not used; fresh ones for this run are."""
+    path, truth = video
+    settings = agent.AgentSettings(rig="lab", camera="c0", source=f"{path}?loop=1", fps=60,
+                                   max_frames=30 + 90,
+                                   segment=SegmentSettings(warmup_frames=30, prior_max_age_ms=500))
+    kinds = {"stale": 0, "other run": 0, "fresh": 0}
+    with zenoh.open(build_config(listen=[endpoint])) as session, \
+            SilhouetteReceiver(session, "lab", "c0") as receiver:
+        with agent_thread(endpoint, settings) as result:
+            got = collect(receiver, 1, timeout=10)  # the agent's epoch comes with its first frame
+            assert got, "no silhouette from the agent"
+            epoch = got[0].message.epoch_ns
+            for k in range(1, 90):
+                item = receiver.get(timeout=1.0)
+                if item is None:
+                    break
+                ahead = item.message.frame_index + 2
+                mask = truth[ahead % 60]
+                if not mask.any():
+                    continue
+                kind = ("stale", "other run", "fresh")[k % 3]
+                x, y, w, h = cv2.boundingRect(mask)
+                session.put(feedback_key("lab", "c0"), encode(FeedbackMessage(
+                    rig="lab", camera="c0", frame_index=ahead, box=Box(x, y, w, h),
+                    image_size=(160, 120), mask=mask[y:y + h, x:x + w],
+                    issued_ns=time.time_ns() - (2 * 10**9 if kind == "stale" else 0),
+                    epoch_ns=epoch + 1 if kind == "other run" else epoch)))
+                kinds[kind] += 1
+        stats = result["stats"]
+    assert min(kinds.values()) >= 10, kinds
+    assert stats.priors_other_epoch == kinds["other run"]
+    assert stats.prior_use.stale == kinds["stale"]
+    assert kinds["fresh"] - 2 <= stats.priors <= kinds["fresh"]  # the last may come too late
+    assert stats.prior_use.used > 0
+
+
 def _spawn_agent(endpoint: str, video: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "service.cli", "capture", "--rig", "lab", "--camera", "c0",
            "--source", f"{video}?loop=1", "--fps", "60", "--warmup", "20",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import cv2
@@ -233,3 +234,47 @@ def test_a_smaller_camera_segments_like_the_reference_one():
     # measured 0.989 / 0.987; with 640x480's pixel sizes at 320x240: 0.970
     assert min(scores.values()) > 0.975, scores
     assert abs(scores["640x480"] - scores["320x240"]) < 0.01, scores
+
+
+def _rotated(prior: FeedbackMessage, angle: float = 90.0) -> FeedbackMessage:
+    full = prior.full_mask()
+    m = cv2.moments(full)
+    c = (m["m10"] / m["m00"], m["m01"] / m["m00"])
+    turned = cv2.warpAffine(full, cv2.getRotationMatrix2D(c, angle, 1.0), prior.image_size)
+    x, y, w, h = cv2.boundingRect(turned)
+    return FeedbackMessage(rig="r", camera="c", frame_index=prior.frame_index, box=Box(x, y, w, h),
+                           image_size=prior.image_size, mask=turned[y:y + h, x:x + w])
+
+
+def test_a_prior_that_does_not_explain_the_evidence_is_not_used():
+    """The agent-side check of the §7.1 loop: a wrong (turned) prior is rejected, a right one used."""
+    spec = SceneSpec(width=320, height=240, frames=120, empty=100)
+    turned, right = Segmenter(), Segmenter()
+    ious = {"turned": [], "right": []}
+    for frame in scene_frames(spec):
+        if frame.index >= 100:
+            good = _prior_from(frame.mask, frame.index)
+            turned.set_prior(_rotated(good))
+            right.set_prior(good)
+        for name, seg in (("turned", turned), ("right", right)):
+            out = seg.apply(frame.image, frame.index)
+            if out is not None:
+                ious[name].append(iou(out.full_mask(), frame.mask))
+    assert turned.prior_stats.rejected == 20 and turned.prior_stats.used == 0
+    assert right.prior_stats.used == 20 and right.prior_stats.rejected == 0
+    assert np.mean(ious["turned"]) > 0.98, ious  # the clean walker, untouched
+
+
+def test_stale_priors_are_ignored():
+    segmenter = Segmenter(SegmentSettings(warmup_frames=5, prior_max_age_ms=200))
+    frames = list(scene_frames(SceneSpec(width=160, height=120, frames=20, empty=10)))
+    for f in frames[:5]:
+        segmenter.apply(f.image, f.index)
+    old = _prior_from(frames[12].mask, 12)
+    issued_long_ago = dataclasses.replace(old, issued_ns=time.time_ns() - 10**9)
+    assert not segmenter.set_prior(issued_long_ago)  # issued 1 s ago: stale on arrival
+    assert segmenter.set_prior(_prior_from(frames[13].mask, 13))  # fresh, but then it waits
+    time.sleep(0.25)
+    used = [segmenter.apply(f.image, f.index).used_prior for f in frames[5:]]
+    assert not any(used)  # received 250 ms before its frame: aged out
+    assert segmenter.prior_stats.stale == 2 and segmenter.prior_stats.used == 0

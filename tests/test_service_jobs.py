@@ -93,15 +93,62 @@ def _videos(tmp: Path, frames: int = 36) -> list:
 
 
 def _check_video_job(srv: ServerThread, tmp_path: Path) -> None:
-    r = srv.client.post("/v1/jobs", files=_videos(tmp_path), data={"warmup": "10"})
+    r = srv.client.post("/v1/jobs", files=_videos(tmp_path), data={"warmup": "10", "refine": "true"})
     assert r.status_code == 202, r.text
     assert r.json()["kind"] == "videos" and r.json()["cameras"] == ["c0", "c1"]
-    done = _done(srv, r.json()["id"])
+    done = _done(srv, r.json()["id"], timeout=60)
     assert done["state"] == "done", done
     result = srv.client.get(f"/v1/jobs/{done['id']}/result").json()
     assert len(result["frames"]) == 36 and set(result["cameras"]) == {"c0", "c1"}
     walking = [f for f in result["frames"][12:] if set(f["joints2d"]) == {"c0", "c1"}]
     assert len(walking) >= 20  # the walker was segmented in both videos
+    for cam, az in zip(("c0", "c1"), TRUTH):  # 320x240 MJPG segments like 640x480
+        assert abs((result["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 25, result["cameras"]
+    # Silhouettes refined with model feedback (§7.1): background-subtracted again with priors.
+    assert result["refined"]["silhouettes"] == f"/v1/jobs/{done['id']}/silhouettes"
+    assert result["refined"]["priors"] > 0
+    refined = _read_zip_sequence(srv.client.get(result["refined"]["silhouettes"]), tmp_path / "refined")
+    assert refined.cameras == ["c0", "c1"] and refined.n_frames == 36
+    assert sum(s is not None for s in refined.silhouettes["c0"]) >= 20
+
+
+def _read_zip_sequence(response, folder: Path):
+    from estimator.sequence import read_sequence
+
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/zip"
+    zipfile.ZipFile(io.BytesIO(response.content)).extractall(folder)
+    return read_sequence(folder)
+
+
+def test_refined_silhouettes_of_a_sequence_job(tmp_path, seq_dir, good_zip):
+    with ServerThread(make_settings(tmp_path)) as srv:
+        plain = _submit(srv, good_zip).json()
+        refined = srv.client.post("/v1/jobs", files={"files": ("walk.zip", good_zip, "application/zip")},
+                                  data={"refine": "true"}).json()
+        for job in (plain, refined):
+            assert _done(srv, job["id"])["state"] == "done"
+        assert srv.client.get(f"/v1/jobs/{plain['id']}/silhouettes").status_code == 404
+        assert "refined" not in srv.client.get(f"/v1/jobs/{plain['id']}/result").json()
+        result = srv.client.get(f"/v1/jobs/{refined['id']}/result").json()
+        seq = _read_zip_sequence(srv.client.get(f"/v1/jobs/{refined['id']}/silhouettes"), tmp_path / "out")
+    from estimator.sequence import read_sequence
+
+    original = read_sequence(seq_dir)
+    assert seq.cameras == original.cameras and seq.n_frames == original.n_frames
+    assert result["refined"]["priors"] == 2 * original.n_frames
+    changed = sum(int(((a > 0) != (b > 0)).sum()) for c in seq.cameras
+                  for a, b in zip(seq.silhouettes[c], original.silhouettes[c]) if a is not None)
+    assert changed == result["refined"]["changed_pixels"]
+
+
+def test_silhouettes_of_an_unfinished_job_are_409(tmp_path, good_zip):
+    with ServerThread(make_settings(tmp_path, job_workers=0)) as srv:  # jobs stay queued
+        job = srv.client.post("/v1/jobs", files={"files": ("walk.zip", good_zip, "application/zip")},
+                              data={"refine": "true"}).json()
+        r = srv.client.get(f"/v1/jobs/{job['id']}/silhouettes")
+        assert r.status_code == 409 and "queued" in r.json()["detail"]
+        assert srv.client.get("/v1/jobs/nope/silhouettes").status_code == 404
 
 
 def test_restart_runs_queued_and_requeues_interrupted_jobs(tmp_path, good_zip):

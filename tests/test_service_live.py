@@ -132,6 +132,7 @@ RIG = "lab"
 # smallest there, so the check below tests the service, not that ambiguity.
 TRUTH = {"c0": (75.0, 10.0), "c1": (255.0, 10.0)}
 EMPTY, WALK, WARMUP = 30, 44, 28
+FPS = 15.0  # the reference rig
 
 
 class _Replay(FrameSource):
@@ -159,20 +160,28 @@ def rendered():
     return out
 
 
-def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered):
-    settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10)
+@pytest.mark.parametrize("feedback", [True, False])
+def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered, feedback):
+    """With feedback (§7.1) the service's priors reach the agents and are used; without,
+    the agents work as before."""
+    settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
+                             feedback=feedback)
     endpoint = settings.zenoh_listen[0]
     with ServerThread(settings) as srv, zenoh.open(build_config(connect=[endpoint])) as session:
         published = []
         sub = session.declare_subscriber(estimate_key(RIG), lambda s: published.append(json.loads(s.payload.to_bytes())))
         # A malformed message on the key space is rejected and counted; nothing else is disturbed.
         session.put(f"posecal/{RIG}/c0/silhouette", b"not a posecal message")
-        stop = threading.Event()
-        agents = [threading.Thread(target=agent_main, args=(
-            build_config(connect=[endpoint]),
-            AgentSettings(rig=RIG, camera=cam, source="synthetic:", fps=30.0, stats_interval_s=60,
-                          segment=SegmentSettings(warmup_frames=WARMUP))),
-            kwargs={"source": _Replay(frames, 30.0), "stop": stop}) for cam, frames in rendered.items()]
+        stop, stats = threading.Event(), {}
+
+        def run(cam: str, frames) -> None:
+            stats[cam] = agent_main(
+                build_config(connect=[endpoint]),
+                AgentSettings(rig=RIG, camera=cam, source="synthetic:", fps=FPS, stats_interval_s=60,
+                              segment=SegmentSettings(warmup_frames=WARMUP)),
+                source=_Replay(frames, FPS), stop=stop)
+
+        agents = [threading.Thread(target=run, args=item) for item in rendered.items()]
         time.sleep(0.5)  # let the agents' sessions find the service
         for a in agents:
             a.start()
@@ -210,6 +219,14 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
         wait_for(lambda: len(published) >= len(est), timeout=5, what="published estimates")
         assert {p["window"]["seq"] for p in published} >= set(seqs)
 
+        if feedback:  # priors flowed back, ahead of their frames, and the agents used them
+            assert rig["feedback"]["priors_sent"] > 0
+            for cam, st in stats.items():
+                assert st.priors > 0 and st.prior_use.used > 0, (cam, st.prior_use, rig["feedback"])
+                assert st.priors_ahead > 0, (cam, st)
+        else:
+            assert rig["feedback"]["priors_sent"] == 0
+            assert all(st.priors == 0 and st.prior_use.used == 0 for st in stats.values())
         assert srv.client.get("/v1/rigs").json()["rigs"][0]["rig"] == RIG
         assert srv.client.get("/v1/rigs/nope").status_code == 404
         assert srv.client.get("/v1/rigs/nope/estimate").status_code == 404

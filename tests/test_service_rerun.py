@@ -46,7 +46,8 @@ def test_rrd_holds_every_stage_of_live_windows_and_jobs(tmp_path: Path):
     rrd = tmp_path / "run.rrd"
     settings = make_settings(tmp_path, live=True, rerun=f"save:{rrd}", window_length=20, window_hop=10)
     with ServerThread(settings) as srv:
-        job = srv.client.post("/v1/jobs", files={"files": ("walk.zip", sequence_zip(tmp_path / "walk"))}).json()
+        job = srv.client.post("/v1/jobs", files={"files": ("walk.zip", sequence_zip(tmp_path / "walk"))},
+                              data={"refine": "true"}).json()
         with zenoh.open(build_config(connect=settings.zenoh_listen)) as session:
             time.sleep(0.3)
             _publish_sequence(session, seq)
@@ -70,4 +71,8 @@ def test_rrd_holds_every_stage_of_live_windows_and_jobs(tmp_path: Path):
                 path = f"{prefix}/{template.format(cam=cam)}"
                 assert path in paths, f"{path} missing from the recording"
     assert f"rigs/{RIG}/viewpoints/c0/smoothed" in paths
+    for cam in seq.cameras:  # §7.1: live priors; the job's raw, prior and refined side by side
+        assert f"rigs/{RIG}/feedback/{cam}/prior" in paths
+        for layer in ("raw", "prior", "refined"):
+            assert f"jobs/{job['id']}/feedback/{cam}/{layer}" in paths
     assert any(p == "" or p == "/" for p in {c.entity_path for c in chunks if c.is_static})  # the AnnotationContext

@@ -79,61 +79,33 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _refine_pngs(args: argparse.Namespace, model) -> int:
-    import numpy as np
-
-    from estimator.pipeline import estimate_walk, tracks_from_sequence
-    from estimator.prior import PriorConfig, priors_for_window, refine_silhouette
+    from capture.refine import refine_sequence
+    from estimator.prior import PriorConfig
     from estimator.render import Renderer
-    from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
+    from estimator.sequence import SequenceError, read_sequence
 
     try:
         seq = read_sequence(args.sequence)
     except SequenceError as exc:
         raise CliError(str(exc)) from None
-    tracks = tracks_from_sequence(seq)
+    config = PriorConfig()
     try:
-        estimate = estimate_walk(tracks, model)
+        with Renderer(config.body) as renderer:
+            refined = refine_sequence(seq, model, renderer=renderer, config=config)
     except ValueError as exc:
         raise CliError(f"{args.sequence}: {exc}") from None
-    config = PriorConfig()
-    with Renderer(config.body) as renderer:
-        priors = priors_for_window(estimate, tracks, tuple(seq.image_size), renderer=renderer, config=config)
-    out: dict[str, list] = {}
-    changed = 0
-    for cam in seq.cameras:
-        by_frame = {p.frame_index: p for p in priors[cam]}
-        out[cam] = []
-        for k, sil in enumerate(seq.silhouettes[cam]):
-            p = by_frame.get(k)
-            if sil is None or p is None:
-                out[cam].append(sil)
-                continue
-            full = (sil.shape[1], sil.shape[0]) == tuple(seq.image_size)
-            if full:
-                frame = sil
-            else:  # a crop: its own extent was the box (no position), pasted at the origin
-                frame = np.zeros(tuple(seq.image_size)[::-1], np.uint8)
-                frame[: sil.shape[0], : sil.shape[1]] = sil
-            refined = refine_silhouette(frame, p.full_mask())
-            if not full:
-                refined = refined[: sil.shape[0], : sil.shape[1]]
-            changed += int(np.count_nonzero((refined > 0) != (sil > 0)))
-            out[cam].append(refined)
-    write_sequence(args.out, Sequence(fps=seq.fps, cameras=seq.cameras, image_size=seq.image_size,
-                                      silhouettes=out, truth=seq.truth, extra=seq.extra))
-    _write_summary(args.out, estimate, "silhouettes", sum(len(v) for v in priors.values()))
-    print(f"wrote {args.out}: {seq.n_frames} frames, {len(seq.cameras)} cameras, {changed} pixels changed")
+    _write(args.out, refined, "silhouettes")
+    print(f"wrote {args.out}: {seq.n_frames} frames, {len(seq.cameras)} cameras, "
+          f"{refined.changed_pixels} pixels changed")
     return 0
 
 
 def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> int:
     import cv2
 
-    from capture.refine import refine_cameras
-    from capture.segment import SegmentSettings
+    from capture.refine import refine_videos
     from estimator.prior import PriorConfig
     from estimator.render import Renderer
-    from estimator.sequence import Sequence, write_sequence
 
     counts, fps = {}, 0.0
     for cam, path in videos.items():
@@ -145,39 +117,28 @@ def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> i
         cap.release()
     n = min(counts.values())
     warmup = args.warmup if args.warmup is not None else max(1, min(100, n // 4 if n else 30))
-
-    def reader(path: str):
-        def frames():
-            cap = cv2.VideoCapture(path)
-            try:
-                while True:
-                    ok, image = cap.read()
-                    if not ok:
-                        return
-                    yield image
-            finally:
-                cap.release()
-        return frames
-
-    config = PriorConfig()
-    try:
-        with Renderer(config.body) as renderer:
-            result = refine_cameras({c: reader(p) for c, p in videos.items()}, model, renderer=renderer,
-                                    settings=SegmentSettings(warmup_frames=warmup), config=config)
-    except ValueError as exc:
-        raise CliError(f"{args.sequence}: {exc}") from None
-    sils = {c: [None if s is None or s.box.empty else s.full_mask() for s in segs] for c, segs in result.refined.items()}
-    size = next(iter(result.image_sizes.values()))
-    rig_fps = fps or 15.0
     truth = None
     truth_path = os.path.join(args.sequence, "truth.json")
     if os.path.exists(truth_path):
         with open(truth_path) as fh:
             truth = json.load(fh)
-    write_sequence(args.out, Sequence(fps=rig_fps, cameras=list(videos), image_size=size, silhouettes=sils, truth=truth))
-    _write_summary(args.out, result.estimate, "video", sum(len(v) for v in result.priors.values()))
+    config = PriorConfig()
+    try:
+        with Renderer(config.body) as renderer:
+            refined = refine_videos(videos, model, renderer=renderer, warmup=warmup,
+                                    fps=fps or 15.0, config=config, truth=truth)
+    except ValueError as exc:
+        raise CliError(f"{args.sequence}: {exc}") from None
+    _write(args.out, refined, "video")
     print(f"wrote {args.out}: {n} frames (warm-up {warmup}), {len(videos)} cameras")
     return 0
+
+
+def _write(out: str, refined, kind: str) -> None:
+    from estimator.sequence import write_sequence
+
+    write_sequence(out, refined.sequence)
+    _write_summary(out, refined.estimate, kind, refined.n_priors)
 
 
 def _write_summary(out: str, estimate, kind: str, n_priors: int) -> None:

@@ -31,6 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--hop", type=int, metavar="N", help="frames between windows (default: 10)")
     p.add_argument("--job-workers", type=int, metavar="N", help="job processes (default: 1)")
     p.add_argument("--no-live", action="store_true", help="REST jobs only: no Zenoh subscription")
+    p.add_argument("--no-feedback", action="store_true",
+                   help="do not send silhouette priors back to the capture agents (section 7.1)")
     add_zenoh_arguments(p)
     p.set_defaults(func=run_serve)
 
@@ -48,6 +50,8 @@ def settings_from_args(args: argparse.Namespace, **extra):
         ("zenoh_config", args.zenoh_config)) if value is not None}
     if args.no_live:
         given["live"] = False
+    if args.no_feedback:
+        given["feedback"] = False
     if args.mode != "peer":
         given["zenoh_mode"] = args.mode
     if args.multicast:

@@ -1,12 +1,14 @@
-"""Batch jobs: submit (202), status, result, list, cancel, delete."""
+"""Batch jobs: submit (202), status, result, refined silhouettes, list, cancel, delete."""
 
 from __future__ import annotations
 
 import shutil
 import uuid
+from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, HTTPException, Query, Response, UploadFile, status
+from fastapi.responses import FileResponse
 
 from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep
 from ..jobs import STATES
@@ -30,6 +32,9 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
                                                        "or one video per camera (<camera>.mp4)")],
                warmup: Annotated[int | None, Form(ge=1, description="videos: background frames "
                                                   "at the start (default: a quarter, at most 100)")] = None,
+               refine: Annotated[bool, Form(description="also refine the silhouettes with model "
+                                            "feedback (§7.1); download them from "
+                                            "/v1/jobs/{id}/silhouettes")] = False,
                ) -> JobOut:
     """Validate and stage the upload, queue the job; 4xx with the reason if the upload is bad."""
     job_id = uuid.uuid4().hex
@@ -47,6 +52,8 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
     options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames}
     if warmup is not None:
         options["warmup"] = warmup
+    if refine:
+        options.update(refine=True, refined_dir=str(job_dir))
     row = store.create(kind=staged.kind, input_dir=str(staged.path), options=options, job_id=job_id)
     metrics.jobs_submitted.inc()
     runner.wake()
@@ -80,6 +87,23 @@ def get_result(job_id: str, store: StoreDep) -> dict[str, Any]:
     if result is None:
         raise HTTPException(409, f"job {job_id} has no result")
     return result
+
+
+@router.get("/{job_id}/silhouettes", response_class=FileResponse,
+            responses={200: {"content": {"application/zip": {}}}})
+def get_silhouettes(job_id: str, store: StoreDep) -> FileResponse:
+    """The refined silhouettes of a job submitted with ``refine=true``, as a zipped
+    sequence folder; 404 if it was not asked for, 409 while the job is not done."""
+    row = _job_or_404(store, job_id)
+    refined_dir = (row.options or {}).get("refined_dir")
+    if not refined_dir:
+        raise HTTPException(404, f"job {job_id} was not submitted with refine=true")
+    if row.state != "done":
+        raise HTTPException(409, f"job {job_id} is {row.state}" + (f": {row.error}" if row.error else ""))
+    path = Path(refined_dir) / "silhouettes.zip"
+    if not path.is_file():
+        raise HTTPException(409, f"job {job_id} has no refined silhouettes")
+    return FileResponse(path, media_type="application/zip", filename=f"{job_id}-silhouettes.zip")
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut)
