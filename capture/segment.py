@@ -67,6 +67,9 @@ class SegmentSettings(BaseModel):
     refine_threshold: float = Field(16.0, gt=0, description="near the mask, foreground = squared "
                                     "colour distance to the full-resolution background above "
                                     "this many times the local noise variance (MOG2's test)")
+    gain_compensation: bool = Field(True, description="divide the frame's global brightness "
+                                    "change (median ratio to the background) out before "
+                                    "classifying")
     history: int = Field(500, ge=1, description="MOG2 history length in frames (warm-up rate)")
     var_threshold: float = Field(16.0, gt=0, description="MOG2 squared Mahalanobis threshold")
     detect_shadows: bool = Field(False, description="mark shadows and drop them; off because dark "
@@ -214,6 +217,8 @@ class Segmenter:
         # Full-resolution running mean of the background (float32 BGR), kept only
         # when the model runs downscaled: the refinement compares against it.
         self._full_bg: np.ndarray | None = None
+        # Brightness of the model's background on a 2x2 grid (for the gain estimate).
+        self._bg_level: np.ndarray | None = None
         # frame_index -> prior; the service sends priors ahead of time.
         self._priors: dict[int, _StoredPrior] = {}
         self._lock = threading.Lock()
@@ -342,7 +347,12 @@ class Segmenter:
                 else:
                     cv2.accumulateWeighted(image, self._full_bg, 1.0 / (self._learned + 1))
             self._learned += 1
+            if not self.warming_up:
+                self._bg_level = self._level(self._mog.getBackgroundImage())
             return None
+        gain = self._gain(small)
+        if gain != 1.0:  # divide the global lighting change out before classifying
+            small = cv2.convertScaleAbs(small, alpha=1.0 / gain)
         raw = self._mog.apply(small, learningRate=0)  # classify only; learning is selective
         fg = cv2.compare(raw, 200, cv2.CMP_GT)  # 255 = foreground, 127 = shadow -> background
         stored = self._prior_for(index, size)
@@ -355,7 +365,7 @@ class Segmenter:
             # Guard MOG2's own foreground only: guarding the prior's additions too
             # would keep a wrong prior's region out of the model for good. Copies:
             # the source may reuse its buffers before learn() runs.
-            self._pending = (small.copy(), fg, image.copy() if g.refine_px else None, background)
+            self._pending = (small.copy(), fg, image.copy() if g.refine_px else None, background, gain)
             self._since_update = 0
         if prior is not None:
             fg = self._fuse(fg, small, background, prior[0])
@@ -364,8 +374,30 @@ class Segmenter:
         if g.downscaled:  # back to full resolution, smoothing the steps
             fg = cv2.compare(cv2.resize(fg, size, interpolation=cv2.INTER_LINEAR), 127, cv2.CMP_GT)
             if g.refine_px:
-                fg = self._refine(fg, image, None if prior is None else prior[1], g)
+                fg = self._refine(fg, image, None if prior is None else prior[1], g, gain)
         return self._largest(fg, g, used_prior=prior is not None)
+
+    @staticmethod
+    def _level(image: np.ndarray) -> np.ndarray:
+        """Brightness (channel sum + 1, float32) on a grid of about 80 columns."""
+        step = max(1, image.shape[1] // 80)
+        return image[::step, ::step].sum(axis=2, dtype=np.float32) + 1.0
+
+    def _gain(self, small: np.ndarray) -> float:
+        """The frame's global brightness relative to the background model (median ratio).
+
+        Lighting that drifts faster than the selective update follows (clouds,
+        auto-exposure) scales the whole frame; dividing it out keeps MOG2's test
+        about the walker. The walker covers a minority of pixels, so the median
+        ignores it. 1.0 when off, unknown, or within 1 %.
+        """
+        if not self.settings.gain_compensation or self._bg_level is None:
+            return 1.0
+        level = self._level(small)
+        if level.shape != self._bg_level.shape:
+            return 1.0
+        gain = float(np.median(level / self._bg_level))
+        return gain if abs(gain - 1.0) > 0.01 and gain > 0 else 1.0
 
     def learn(self) -> None:
         """Run the pending selective background update, if any (cheap no-op otherwise).
@@ -376,7 +408,7 @@ class Segmenter:
         """
         if self._pending is None:
             return
-        small, fg, image, background = self._pending
+        small, fg, image, background, gain = self._pending
         self._pending = None
         if background is None:
             background = self._mog.getBackgroundImage()
@@ -384,13 +416,17 @@ class Segmenter:
         composite = small.copy()
         cv2.copyTo(background, guard, composite)
         self._mog.apply(composite, learningRate=self.settings.learning_rate)
+        if self.settings.gain_compensation:
+            self._bg_level = self._level(self._mog.getBackgroundImage())
         if image is not None and self._full_bg is not None:
             keep = cv2.compare(cv2.resize(guard, (image.shape[1], image.shape[0]),
                                           interpolation=cv2.INTER_NEAREST), 0, cv2.CMP_EQ)
+            if gain != 1.0:
+                image = cv2.convertScaleAbs(image, alpha=1.0 / gain)
             cv2.accumulateWeighted(image, self._full_bg, self.settings.learning_rate, mask=keep)
 
     def _refine(self, fg: np.ndarray, image: np.ndarray, prior: np.ndarray | None,
-                g: _Geometry) -> np.ndarray:
+                g: _Geometry, gain: float = 1.0) -> np.ndarray:
         """Re-test at full resolution every pixel within ``refine_px`` model pixels of the mask.
 
         A pixel is foreground if its squared colour distance to the
@@ -410,7 +446,8 @@ class Segmenter:
         x1, y1 = min(fg.shape[1], rx + rw + pad), min(fg.shape[0], ry + rh + pad)
         coarse = fg[y0:y1, x0:x1]
         near = cv2.dilate(coarse, g.near)  # the pixels re-tested
-        d = cv2.subtract(image[y0:y1, x0:x1], self._full_bg[y0:y1, x0:x1], dtype=cv2.CV_32F)
+        d = cv2.addWeighted(image[y0:y1, x0:x1], 1.0 / gain, self._full_bg[y0:y1, x0:x1], -1.0,
+                            0.0, dtype=cv2.CV_32F)  # with the global gain divided out
         # Lighting moves between updates: remove the local offset measured on the sure
         # background (outside the dilated mask), whose spread is then the noise.
         offset, spread = cv2.meanStdDev(d, mask=cv2.bitwise_not(near))
