@@ -71,6 +71,9 @@ CONDITIONS = (
     Condition("drift 0.3, contrast 0.5", 0.5, 3.0, 0.3),
     Condition("occluder, contrast 0.6", 0.6, 3.0, 0.08, occluder=True),
     Condition("all: occluder, noise 8, drift 0.2, contrast 0.35", 0.35, 8.0, 0.2, occluder=True, seed=5),
+    # Harder than the above since the segmenter divides out lighting drift:
+    Condition("contrast 0.17", 0.17, 3.0, 0.08),
+    Condition("contrast 0.16", 0.16, 3.0, 0.08),
 )
 
 
@@ -91,9 +94,9 @@ def _frames(cond: Condition, az: float, el: float, n: int):
     for k in range(n):
         f = src.render(k)
         image, mask = f.image, f.mask
-        if occ is not None:
+        if occ is not None:  # lit by the scene's drifting light like everything else
             image = image.copy()
-            image[occ > 0] = (70, 90, 110)
+            image[occ > 0] = np.clip(np.array((70, 90, 110)) * src.gain(k), 0, 255).astype(np.uint8)
             mask = np.where(occ > 0, 0, mask).astype(np.uint8)
         truth = src.truth(k)
         images.append(image)
@@ -174,11 +177,12 @@ def _verdict(results: list[dict]) -> list[str]:
             if raw >= 0.9:
                 high.append((r["cond"].name, c, ref - raw))
             wrong.append((r["cond"].name, c, wr - raw))
-    ok_low = all(g >= 0.05 for *_, g in low)
+    ok_low = bool(low) and all(g >= 0.05 for *_, g in low)
     ok_high = all(g >= -0.01 for *_, g in high)
     ok_wrong = all(g >= -0.02 for *_, g in wrong)
     lines.append(f"- raw IoU < 0.8 ({len(low)} camera-conditions): gain >= +0.05 in "
-                 f"{sum(g >= 0.05 for *_, g in low)}/{len(low)}: {'MET' if ok_low else 'NOT MET'}"
+                 f"{sum(g >= 0.05 for *_, g in low)}/{len(low)}: "
+                 f"{'MET' if ok_low else 'NOT MET' if low else 'NOT TESTED (no condition that hard)'}"
                  + ("" if ok_low else " (" + ", ".join(f"{n} {c} {g:+.3f}" for n, c, g in low if g < 0.05) + ")"))
     lines.append(f"- raw IoU >= 0.9 ({len(high)}): loss <= 0.01 in {sum(g >= -0.01 for *_, g in high)}/{len(high)}: "
                  f"{'MET' if ok_high else 'NOT MET'}")
@@ -346,9 +350,12 @@ this machine (2 cores). Synthetic camera, walker seed per condition, two views
    below 0.5). A prior that does not explain the evidence is not used.
 5. **With feedback**: the segmenter from scratch, each frame's checked prior
    installed with `set_prior` before the frame (what a live agent receiving
-   predictions does). Its fusion (unchanged, `capture/segment.py`): a pixel whose prior is
+   predictions does). The segmenter checks each prior against its own evidence
+   too (docs/CAPTURE.md, "Prior fusion"), then fuses it: a model-resolution pixel whose prior is
    at least `prior_level` ({settings.prior_level}) becomes foreground when its colour distance to
-   the background model exceeds max({settings.prior_diff}, {settings.prior_noise_k} x the frame's mean distance).
+   the background model exceeds max({settings.prior_diff}, {settings.prior_noise_k} x the frame's mean distance),
+   and a full-resolution pixel there when its squared distance exceeds {settings.prior_threshold} x the
+   noise variance (instead of {settings.refine_threshold}).
    Then **trim** (`capture.refine.trim`, offline only): foreground farther than
    {TRIM} x height from the prior's support is cut (drift blobs attached to the walker).
 6. **Wrong prior**: every prior turned 90 degrees about its centroid, then the
@@ -389,36 +396,50 @@ phases); "within 0.075" the fraction of frames within 1.5 phases.
 
 ## Why the targets are (not) met
 
-- **Low raw IoU, small gains.** Where raw IoU is very low (contrast 0.25,
-  drift 0.3) the *estimate* built from those silhouettes is wrong (azimuth
-  errors of 50-115 degrees in the downstream table), so the prior is a wrong
-  prior: the check drops most of it and what remains cannot add much. Feedback
-  cannot bootstrap from silhouettes too poor to estimate from; a second
-  camera's better view, or a prior from the previous window, would be needed.
-- **Drift**: the raw errors are mostly *false* foreground (drifted background
-  attached to the walker); `set_prior` only ever adds foreground, so only the
-  offline trim removes some of it.
-- **Occluder + noise + drift**: a post splits the walker; the segmenter keeps
-  one part, the prior is registered onto that part (wrong centroid and scale),
-  and its region over the post and the noise there (sigma 8) give false
-  foreground. The registration of a prior onto a partial silhouette is the
-  weak point; fitting the prior's box to the *previous* frames' full boxes
-  (the walker's height changes slowly) would fix the scale.
+- **Most hard conditions are no longer hard.** Since the segmenter divides out
+  the global lighting gain (docs/CAPTURE.md, "Lighting drift"), lighting drift
+  of 20-30 % and clothing contrast down to 0.25 give raw IoU 0.87-0.99 (before:
+  0.13-0.78 for contrast 0.25, drift 0.2 and drift 0.3, the six
+  camera-conditions under 0.8 in the previous version of this report, where
+  feedback gained +0.005 to +0.057). Two conditions were added to keep the
+  < 0.8 target tested: clothing contrast 0.17 and 0.16.
+- **Low raw IoU, small gains.** There the walker is nearly invisible (raw IoU
+  0.26-0.41), and the *estimate* built from those silhouettes is wrong
+  (azimuth errors of 40-50 degrees in the downstream table; prior IoU 0.2-0.33),
+  so the prior is a wrong prior: the checks drop most of it and what remains
+  adds little. Feedback cannot bootstrap from silhouettes too poor to estimate
+  from; a camera with a better view, or priors from earlier windows with a
+  good estimate (the live loop's case), would be needed. Where the estimate
+  is right and the silhouette only partly found, feedback does what the target
+  asks: pooled per frame, frames with raw IoU in [0.6, 0.8) gain +0.05 and
+  frames in [0.8, 0.9) +0.05 (table above).
+- **Occluder**: a post splits the walker; the segmenter keeps one part, the
+  prior is registered onto that part (wrong centroid and scale). The
+  registration of a prior onto a partial silhouette is the weak point; fitting
+  the prior's box to the *previous* frames' full boxes (the walker's height
+  changes slowly) would fix the scale.
 - **High raw IoU**: the gate keeps the prior inside the observation when the
   observation is as large as the model body, so complete silhouettes are
   nearly untouched.
+
+The live loop (priors predicted ahead of the frames and sent to the agents)
+is described in docs/SERVICE.md ("Live windows", step 6); its timing in
+docs/BENCHMARKS.md (`bench/bench_feedback_live.py`).
 
 ## Notes and limits
 
 - One feedback round. A second round (estimate on refined silhouettes, new
   priors) is possible with the same functions.
-- The fusion rule itself (`prior_level`, `prior_diff`, `prior_noise_k`) was
-  left as capture ships it.
+- The fusion rule (`prior_level`, `prior_diff`, `prior_noise_k`,
+  `prior_threshold`) and the agent-side check are capture's defaults.
+- The occluder is lit by the scene's drifting light like the rest of the scene
+  (it was painted with a constant colour before, which no real post has; with
+  gain compensation that unlit post became foreground).
 - Frames of each condition are rendered in a fresh (spawned) process, so a
   condition's frames never depend on what was rendered before it (checked:
   identical hashes across runs). Raw IoU depends on `capture/segment.py`'s
-  settings (half-resolution model + full-resolution refinement since this
-  report's segmenter version); rerun the script after changing it.
+  settings (quarter-resolution model, full-resolution refinement, gain
+  compensation); rerun the script after changing it.
 """
     (ROOT / "docs" / "FEEDBACK.md").write_text(text)
     print("wrote docs/FEEDBACK.md and docs/img/feedback_*.png")

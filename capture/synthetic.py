@@ -139,6 +139,10 @@ class SyntheticSource(FrameSource):
         world = walk(phase, self.shape, self.style, self._gait, time_s=t)[0]
         return {"phase": float(phase[0]), "joints": world, "pass": p}
 
+    def gain(self, index: int) -> float:
+        """The scene's lighting at frame ``index`` (brightness factor; a 20 s cycle of ``drift``)."""
+        return 1.0 + self.spec.drift * float(np.sin(2 * np.pi * index / (self.spec.fps * 20.0)))
+
     def render(self, index: int) -> Frame:
         """Frame ``index`` (deterministic: the same index gives the same image)."""
         spec = self.spec
@@ -148,8 +152,7 @@ class SyntheticSource(FrameSource):
             if self._renderer is None:
                 self._renderer = Renderer(self.shape, image_size=self.size)
             mask, _ = self._renderer.render(truth["joints"], self.camera)
-        gain = np.float32(1.0 + spec.drift * np.sin(2 * np.pi * index / (spec.fps * 20.0)))
-        image = self._background * gain
+        image = self._background * np.float32(self.gain(index))
         inside = mask > 0
         image[inside] = (1 - spec.contrast) * image[inside] + np.float32(spec.contrast) * self._clothing
         image += self._noise[(index * 7 + int(spec.azimuth)) % _NOISE_BANK]
