@@ -33,6 +33,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .receiver import ValidatingSubscriber
+from .scene import iou
 from .segment import PriorStats, Segmenter, SegmentSettings
 from .sources import Frame, FrameSource, make_source, paced
 from .wire import FeedbackMessage, SilhouetteMessage, encode, feedback_key, silhouette_key
@@ -79,7 +80,11 @@ class AgentStats:
     priors_other_epoch: int = 0  # ... meant for another run of this camera (ignored)
     priors_ahead: int = 0  # frames whose own prior had arrived before their capture time
     priors_behind: int = 0  # frames, once priors flow, whose prior had not (late or missing)
+    priors_late: int = 0  # priors that arrived after their frame had been segmented
+    segmented_index: int = -1  # the last frame index segmented
     prior_use: PriorStats = field(default_factory=PriorStats)  # the segmenter's
+    iou_sum: float = 0.0  # against the source's ground truth, when it has one (synthetic)
+    iou_frames: int = 0
     streaming_s: float = 0.0  # wall time from the end of warm-up to the end of the run
     cpu_s: float = 0.0  # process CPU time over the same span (all threads)
     latency_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))
@@ -97,6 +102,11 @@ class AgentStats:
     @property
     def dropped(self) -> int:
         return self.dropped_gap + self.dropped_stale + self.errors
+
+    @property
+    def mean_iou(self) -> float:
+        """Mean silhouette IoU against the source's ground truth (nan without one)."""
+        return self.iou_sum / self.iou_frames if self.iou_frames else float("nan")
 
     @property
     def prior_ahead_fraction(self) -> float:
@@ -149,6 +159,31 @@ class _Matching:
             log.warning("no subscriber on %s; frames are discarded until one returns", self._key)
 
 
+class _PriorClock:
+    """When each frame's prior arrived, to tell whether it came before the frame (§7.1)."""
+
+    def __init__(self) -> None:
+        self._arrivals: dict[int, int] = {}  # frame index -> wall-clock ns of its first prior
+        self._lock = threading.Lock()  # priors arrive on Zenoh's thread
+
+    def arrived(self, index: int, now_ns: int) -> None:
+        with self._lock:
+            self._arrivals.setdefault(index, now_ns)
+
+    def check(self, frame: Frame, stats: AgentStats) -> None:
+        """Count ``frame`` as ahead (its prior came before its capture time) or behind."""
+        with self._lock:
+            arrived = self._arrivals.pop(frame.index, None)
+            for old in [k for k in self._arrivals if k < frame.index]:
+                del self._arrivals[old]
+        if arrived is not None and arrived <= frame.timestamp_ns:
+            stats.priors_ahead += 1
+            return
+        stats.priors_behind += 1
+        log.debug("frame %d: its prior %s", frame.index, "not yet here" if arrived is None
+                  else f"came {(arrived - frame.timestamp_ns) / 1e6:.0f} ms late")
+
+
 def _warm_up(frames: Iterator[Frame], segmenter: Segmenter, stats: AgentStats,
              stop: threading.Event) -> None:
     """Learn the background from the first frames (paper §7: 100 empty frames)."""
@@ -169,11 +204,14 @@ def _log_stats(stats: AgentStats, sent_before: int, seconds: float, what: str) -
     p50, p99 = stats.latency_percentiles()
     log.info("%s: %.1f fps, published %d (unheard %d), dropped %d (gap %d, stale %d, errors %d), "
              "capture-to-publish p50 %.2f ms p99 %.2f ms, priors %d (used %d, rejected %d, "
-             "stale %d, in time for %d/%d frames)", what,
+             "stale %d, late %d, in time for %d/%d frames)%s", what,
              (stats.sent - sent_before) / max(seconds, 1e-9), stats.published,
              stats.unheard, stats.dropped, stats.dropped_gap, stats.dropped_stale, stats.errors,
              p50, p99, stats.priors, stats.prior_use.used, stats.prior_use.rejected,
-             stats.prior_use.stale, stats.priors_ahead, stats.priors_ahead + stats.priors_behind)
+             stats.prior_use.stale, stats.priors_late, stats.priors_ahead,
+             stats.priors_ahead + stats.priors_behind,
+             f", IoU vs ground truth {stats.mean_iou:.3f} over {stats.iou_frames} frames"
+             if stats.iou_frames else "")
 
 
 def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | None = None,
@@ -197,8 +235,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
     key = silhouette_key(settings.rig, settings.camera)
     sync = "index" if source.hardware_sync else "time"
 
-    arrivals: dict[int, int] = {}  # frame index -> wall-clock ns its prior arrived
-    arrivals_lock = threading.Lock()
+    clock = _PriorClock()
     stats.prior_use = segmenter.prior_stats
 
     def on_prior(prior: FeedbackMessage) -> None:
@@ -206,10 +243,11 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
             stats.priors_other_epoch += 1
             return
         now = time.time_ns()
+        if prior.frame_index <= stats.segmented_index:
+            stats.priors_late += 1
         if segmenter.set_prior(prior, now_ns=now):
             stats.priors += 1
-            with arrivals_lock:
-                arrivals.setdefault(prior.frame_index, now)
+            clock.arrived(prior.frame_index, now)
 
     with _StopOnSignals(stop), source, zenoh.open(conf) as session:
         publisher = session.declare_publisher(
@@ -239,15 +277,9 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 stats.dropped_stale += 1
                 continue
             if stats.priors:  # the feedback loop runs: was this frame's prior in time?
-                with arrivals_lock:
-                    arrived = arrivals.pop(frame.index, None)
-                    for old in [k for k in arrivals if k < frame.index]:
-                        del arrivals[old]
-                if arrived is not None and arrived <= frame.timestamp_ns:
-                    stats.priors_ahead += 1
-                else:
-                    stats.priors_behind += 1
+                clock.check(frame, stats)
             seg = segmenter.apply(frame.image, frame.index)
+            stats.segmented_index = frame.index
             msg = SilhouetteMessage(
                 rig=settings.rig, camera=settings.camera, frame_index=frame.index,
                 capture_ns=frame.timestamp_ns, box=seg.box, image_size=seg.image_size,
@@ -266,6 +298,9 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 stats.unheard += 1
             stats.latency_ms.append((time.time_ns() - frame.timestamp_ns) / 1e6)
             segmenter.learn()  # the deferred background update, off the latency path
+            if frame.mask is not None and frame.mask.any():  # a source with ground truth (synthetic)
+                stats.iou_sum += iou(seg.full_mask(), frame.mask)
+                stats.iou_frames += 1
             now = time.monotonic()
             if now - last_log >= settings.stats_interval_s:
                 _log_stats(stats, sent_at_log, now - last_log, "last interval")
