@@ -10,8 +10,11 @@ two cameras; uniform noise U(-a, a) with ``a`` = 0..9 % of the body height in
 the image is added to u and v of every joint. Per noise level and trial:
 E3D (mean 3D joint error / body height), Es = |s_hat - s| and the error of
 each XYZ Euler angle of the relative rotation, plus the SO(3) geodesic error,
-for our closed form (§4.2), the closed form + bundle adjustment (§4.3), and
-the two baselines (Liebowitz–Carlsson, Tresadern–Reid).
+for our closed form (§4.2, as in the paper; on Wiener-smoothed tracks; on
+smoothed tracks with the noise-consistent beta), the closed form + bundle
+adjustment (§4.3; maximum likelihood as in the paper, and MAP with the
+temporal prior, the default of ``refine=True``), and the two baselines
+(Liebowitz–Carlsson, Tresadern–Reid).
 
 Experiments:
 
@@ -22,6 +25,8 @@ C. Random camera pairs (uniform rotations, viewing directions 25-155 degrees
    apart) and random relative scale s in [0.5, 2].
 D. Three cameras (A plus a third at azimuth 200, elevation 15): the joint
    least-squares solution against the two-camera closed form.
+E. Camera scales changing over the window: the fixed-scale closed form and
+   the §4.3 path with and without the temporal prior.
 
 Prints the tables, writes PNG plots to ``docs/img/`` and the report
 ``docs/SELFCAL.md``.
@@ -68,6 +73,10 @@ def wrap(deg: np.ndarray) -> np.ndarray:
 
 METHODS = {
     "ours": lambda y: self_calibrate(y),
+    "ours, smoothed": lambda y: self_calibrate(y, temporal_prior=True),
+    "ours, denoised": lambda y: self_calibrate(y, temporal_prior=True, noise_model=True),
+    "ours+BA, no temporal prior": lambda y: self_calibrate(y, refine=True, temporal_prior=False,
+                                                           noise_model=False),
     "ours+BA": lambda y: self_calibrate(y, refine=True),
     "LC": lambda y: liebowitz_carlsson(y, on_indefinite="clip"),
     "TR": lambda y: tresadern_reid(y),
@@ -114,7 +123,8 @@ def run_trials(x_all, rng, *, trials, methods, pair, cams=2):
 
 def run_varying(x_all, rng, *, trials):
     """Experiment E: camera scales change linearly over the window (walker moving in depth)."""
-    names = ("closed form (fixed-scale model)", "sec. 4.3 (per-frame U + BA)")
+    names = ("closed form (fixed-scale model)", "sec. 4.3, no temporal prior",
+             "sec. 4.3 (per-frame U + BA)")
     out = {m: {k: np.full((len(LEVELS), trials), np.nan) for k in ("geo", "es")} for m in names}
     rel = Rotation.from_euler("xyz", TEST2_EULER, degrees=True).as_matrix()
     ra = world_to_camera_rotation(45, 10)
@@ -129,7 +139,8 @@ def run_varying(x_all, rng, *, trials):
             y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, :, None, None]
             y = y + rng.uniform(-1, 1, y.shape) * (level * height * scales)[:, :, None, None]
             s_true = scales[1] / scales[0]
-            for m, kw in zip(names, ({}, {"scales": "varying"})):
+            for m, kw in zip(names, ({}, {"scales": "varying", "temporal_prior": False},
+                                     {"scales": "varying"})):
                 res = self_calibrate(y, **kw)
                 if not res:
                     continue
@@ -228,8 +239,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     x_all = read_motion(args.mocap).person_frame()[20:, :N_JOINTS]
-    base = ["ours", "LC", "TR"]
-    with_ba = base[:1] + ([] if args.no_ba else ["ours+BA"]) + base[1:]
+    base = ["ours", "ours, denoised", "LC", "TR"]
+    with_ba = (["ours", "ours, smoothed", "ours, denoised"]
+               + ([] if args.no_ba else ["ours+BA, no temporal prior", "ours+BA"]) + ["LC", "TR"])
     t0 = time.time()
     sections = {}
     figs = [("e3d", "E3D / height"), ("es", "Es = |s - s_true|"), ("ex", "E_rx (deg)"),
@@ -296,19 +308,22 @@ def main(argv: list[str] | None = None) -> int:
 def check_targets(res, npd) -> str:
     i0, i5 = 0, 5
     ok = []
-    geo0 = np.nanmax(res["ours"]["geo"][i0])
-    s0 = np.nanmax(res["ours"]["es"][i0])
-    ok.append(("noise 0: rotation error < 0.01 deg (max over trials)", f"{geo0:.2e} deg", geo0 < 0.01))
-    ok.append(("noise 0: abs(s - 1) < 1e-4 (max over trials)", f"{s0:.2e}", s0 < 1e-4))
+    ours = [m for m in res if m.startswith("ours")]
+    geo0 = max(np.nanmax(res[m]["geo"][i0]) for m in ours)
+    s0 = max(np.nanmax(res[m]["es"][i0]) for m in ours)
+    ok.append(("noise 0: rotation error < 0.01 deg (max over trials and our methods)",
+               f"{geo0:.2e} deg", geo0 < 0.01))
+    ok.append(("noise 0: abs(s - 1) < 1e-4 (max over trials and our methods)", f"{s0:.2e}", s0 < 1e-4))
     med = {m: np.nanmedian(res[m]["geo"][i5]) for m in res}
-    ok.append(("noise 5%: median rotation error <= 3 deg (ours, closed form)",
+    best = min(ours, key=lambda m: med[m])
+    ok.append(("noise 5%: median rotation error <= 3 deg (paper's closed form)",
                f"{med['ours']:.2f} deg", med["ours"] <= 3))
-    if "ours+BA" in med:
-        ok.append(("noise 5%: median rotation error <= 3 deg (ours + BA)",
-                   f"{med['ours+BA']:.2f} deg", med["ours+BA"] <= 3))
+    ok.append((f"noise 5%: median rotation error <= 3 deg (best of ours: {best})",
+               f"{med[best]:.2f} deg", med[best] <= 3))
     ok.append(("noise 5%: ours no worse than LC and TR (median geodesic)",
-               f"ours {med['ours']:.2f}, LC {med['LC']:.2f}, TR {med['TR']:.2f}",
-               med["ours"] <= min(med["LC"], med["TR"])))
+               f"paper's closed form {med['ours']:.2f}, {best} {med[best]:.2f}, "
+               f"LC {med['LC']:.2f}, TR {med['TR']:.2f}",
+               max(med["ours"], med[best]) <= min(med["LC"], med["TR"])))
     lines = ["| target | measured | met |", "|---|---|---|"]
     lines += [f"| {a} | {b} | {'yes' if c else '**no**'} |" for a, b, c in ok]
     return "\n".join(lines) + "\n"

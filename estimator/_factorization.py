@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Factorization", "factorize"]
+__all__ = ["Factorization", "factorize", "noise_sigma"]
 
 
 @dataclass(frozen=True)
@@ -136,3 +136,25 @@ def factorize(
         m, p, s = _rank3(split(w - centroids))
     cen = (centroids[:, :, 0] * norm).reshape(c, 2, t).transpose(0, 2, 1)
     return Factorization(m, p, s, norm, cen, observed, iterations)
+
+
+def noise_sigma(fact: Factorization) -> float:
+    """Per-coordinate 2D noise std estimated from the rank-3 residual, normalised units.
+
+    Fixed cameras make the centred ``2C x TJ`` measurement matrix exactly rank 3
+    (one ``2C x J`` matrix per frame for ``per_frame=True``), so whatever the
+    rank-3 fit leaves is noise. For i.i.d. noise of variance ``sigma^2`` the
+    best rank-r fit of an ``m x n`` matrix leaves ``sigma^2 (m - r)(n - r)``
+    (the residual's degrees of freedom, to first order); centring each frame
+    removes one column per frame (``n = T (J - 1)``), and imputed entries are
+    fitted exactly (the count is scaled by the observed fraction). Zero on
+    noise-free tracks.
+    """
+    sv = fact.singular_values
+    g, rows = sv.shape[0], fact.motion.shape[1]
+    _, t, j = fact.observed.shape
+    cols = (j - 1) if g == t and g > 1 else t * (j - 1)
+    dof = g * max(rows - 3, 0) * max(cols - 3, 0) * float(fact.observed.mean())
+    if dof <= 0:
+        return 0.0
+    return float(np.sqrt(np.sum(sv[:, 3:] ** 2) / dof))

@@ -25,6 +25,13 @@ change over time (``scales="varying"``, §4.3) each frame pair gets its own
 adjustment over the relative rotations, the per-frame scales and the 3D joints
 with constant bone lengths finishes the job.
 
+Beyond the paper, for noisy tracks (on by default with ``refine``): the
+noise level is read off the rank-3 residual, the tracks are Wiener-smoothed
+in time before the closed form and the bundle adjustment is MAP with the
+matching temporal prior (``temporal_prior``); and beta is re-chosen with a
+cost whose expectation the noise does not bias (``noise_model``). Both
+vanish on noise-free tracks, which stay exact.
+
 References
 ----------
 R. Wang and W. K. Leow, "Human posture sequence estimation using two
@@ -38,11 +45,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.fft
 import scipy.sparse
 from scipy.optimize import least_squares, minimize_scalar
 from scipy.spatial.transform import Rotation
 
-from ._factorization import Factorization, factorize
+from ._factorization import Factorization, factorize, noise_sigma
 from ._selfcal_core import (
     DEPTH_FLIP,
     adj3,
@@ -272,9 +280,45 @@ class _Beta:
     f6: np.ndarray | None = None
     via: str = "sextic"
     reason: str = ""
+    beta0: float = np.nan
 
 
-def _solve_beta(a: np.ndarray, b: np.ndarray, g: np.ndarray) -> _Beta:
+def _link_noise_poly(a: np.ndarray, b: np.ndarray, motion: np.ndarray, structure: np.ndarray,
+                     valid: np.ndarray, links: Sequence[Link], sigma: float) -> np.ndarray:
+    """Expected noise part ``v4`` of ``f4`` as a quartic in beta (up to a positive factor).
+
+    Why: noise adds ``v4(beta)`` to the expectation of ``f4(beta)``, and ``v4``
+    depends on beta, so the minimum of the paper's ``f4 / f3^2`` moves away
+    from the truth as the noise grows (Test 2 geometry, walk 07_05: -15
+    degrees of bias at 5 %, docs/SELFCAL.md).
+    ``E[f4] = S + v4`` with ``S >= 0`` and ``S = 0`` at the true beta, so
+    ``f4 / v4`` has its expected minimum (1) at the truth: the same idea as
+    Sampson's error / Kanatani's renormalisation for algebraic fits.
+
+    With i.i.d. image noise of variance ``sigma^2`` the affine joints are
+    ``P_hat = M_hat^+ W`` with covariance ``sigma^2 S0``, ``S0 = (M_hat^T M_hat)^-1``,
+    and a link vector ``d = P_a - P_b`` of one frame has ``2 sigma^2 S0`` (per-frame
+    centring cancels in the difference). For a rigid-link row ``q_t - mean(q)``,
+    ``q_t = d_t^T K d_t`` with ``K = adj(Omega^-1(beta))``, the noise adds on average
+    ``Var(q_t) = 4 d^T K S K d - 2 tr((K S)^2)`` (unbiased in the observed ``d``,
+    ``S = 2 sigma^2 S0``) to the squared residual. Returns the quartic
+    ``sum_t Var(q_t) / (2 sigma^2)``, highest coefficient first; finite at
+    ``sigma = 0``.
+    """
+    ln = np.asarray(links, dtype=int).reshape(-1, 2)
+    ok = valid[:, ln[:, 0]] & valid[:, ln[:, 1]]
+    ok &= (ok.sum(axis=0) >= 2)[None, :]
+    d = (structure[:, ln[:, 0]] - structure[:, ln[:, 1]])[ok]  # (N, 3)
+    s0 = np.linalg.inv(motion.T @ motion)
+    nodes = np.array([-2.0, -1.0, 0.0, 1.0, 2.0])
+    k = adj3(a + nodes[:, None, None] * b)  # (5, 3, 3), quadratic in beta
+    quad = np.einsum("ni,sij,nj->s", d, k @ s0 @ k, d)
+    ks = k @ s0
+    tr2 = np.einsum("sij,sji->s", ks, ks)
+    return poly_interp(4.0 * quad - 4.0 * sigma**2 * d.shape[0] * tr2, nodes)
+
+
+def _solve_beta(a: np.ndarray, b: np.ndarray, g: np.ndarray, v4: np.ndarray | None = None) -> _Beta:
     """Global minimum of ``F(beta) = f4 / f3^2`` on the valid range (eqs. 12–14).
 
     Parameters
@@ -283,6 +327,9 @@ def _solve_beta(a: np.ndarray, b: np.ndarray, g: np.ndarray) -> _Beta:
         ``Omega^-1(beta) = a + beta b``.
     g : ndarray of shape (M, 6)
         Rigid-link rows, ``g @ vec(Omega) = 0``.
+    v4 : ndarray of shape (5,), optional
+        The expected noise part of ``f4`` (:func:`_link_noise_poly`). When
+        given, the cost is ``f4 / v4`` instead of ``f4 / f3^2``.
     """
     lo, hi, f3 = _pd_interval(a, b)
     if np.isnan(lo):
@@ -303,19 +350,40 @@ def _solve_beta(a: np.ndarray, b: np.ndarray, g: np.ndarray) -> _Beta:
     def cost(x: np.ndarray | float) -> np.ndarray:
         return np.polyval(f4, x) / np.polyval(f3, x) ** 2
 
-    roots = _real_roots(f6)
-    df6 = np.polyder(_trim(f6))
-    for _ in range(2):  # Newton polish
-        d = np.polyval(df6, roots)
-        roots = roots - np.where(d != 0, np.polyval(f6, roots) / np.where(d != 0, d, 1.0), 0.0)
-    inside = roots[(roots > lo) & (roots < hi)]
+    inside = _stationary(f6, lo, hi)
     if inside.size:
         beta, via = float(inside[np.argmin(cost(inside))]), "sextic"
     else:  # numerically possible only when F is flat; fall back to a bounded search
         width = hi - lo
         res = minimize_scalar(cost, bounds=(lo + 1e-9 * width, hi - 1e-9 * width), method="bounded")
         beta, via = float(res.x), "bounded-search"
-    return _Beta(beta, lo, hi, f3, f4, f6, via)
+    beta0 = beta
+    if v4 is not None:
+        # d/dbeta (f4 / v4) = f6n / v4^2. Take the minimum of the noise-consistent cost in
+        # the basin that holds the paper's minimum (between the neighbouring maxima); a
+        # basin that runs out to an end of the range (Omega^-1 singular) keeps the paper's beta.
+        f6n = np.polysub(np.polymul(np.polyder(f4), v4), np.polymul(f4, np.polyder(v4)))
+        cand = _stationary(f6n, lo, hi)
+        curv = np.polyval(np.polyder(_trim(f6n)), cand)
+        maxima = cand[curv < 0]
+        left = maxima[maxima < beta].max(initial=lo)
+        right = maxima[maxima > beta].min(initial=hi)
+        minima = cand[(curv > 0) & (cand > left) & (cand < right) & (np.polyval(v4, cand) > 0)]
+        if minima.size:
+            beta = float(minima[np.argmin(np.abs(minima - beta))])
+            via += "+noise-consistent"
+        f6 = f6n
+    return _Beta(beta, lo, hi, f3, f4, f6, via, beta0=beta0)
+
+
+def _stationary(f6: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Real roots of ``f6`` strictly inside (lo, hi), polished by two Newton steps."""
+    roots = _real_roots(f6)
+    df6 = np.polyder(_trim(f6))
+    for _ in range(2):  # Newton polish
+        d = np.polyval(df6, roots)
+        roots = roots - np.where(d != 0, np.polyval(f6, roots) / np.where(d != 0, d, 1.0), 0.0)
+    return roots[(roots > lo) & (roots < hi)]
 
 
 # ------------------------------------------------------------------ reconstruction
@@ -383,6 +451,8 @@ def self_calibrate(
     refine: bool | None = None,
     rank_tol: float = 1e-6,
     max_nfev: int = 200,
+    temporal_prior: bool | float | None = None,
+    noise_model: bool | None = None,
 ) -> SelfCalibration:
     """Self-calibrate scaled orthographic cameras from 2D joint tracks.
 
@@ -410,6 +480,23 @@ def self_calibrate(
         (planar motion or coincident views).
     max_nfev : int
         Function evaluations of the bundle adjustment.
+    temporal_prior : bool or float, optional
+        Use that the tracks are a smooth motion sampled at a fixed rate (the
+        frames must be consecutive and equally spaced) while the noise is
+        independent per frame (:func:`_temporal_prior`): the closed form runs
+        on Wiener-smoothed tracks, and the bundle adjustment is MAP with a
+        prior on the spectrum of every predicted image track instead of
+        maximum likelihood. Its strength is set from the data (noise from the
+        rank-3 residual, signal spectrum from the tracks); noise-free tracks
+        are left unchanged. Default: on when ``refine`` is (and for
+        ``"varying"``), off for the bare closed form. ``False`` gives the
+        paper's method; a float scales the estimated noise (``True`` = 1).
+    noise_model : bool, optional
+        Two cameras, ``"fixed"``, no ``length_ratios``: choose beta with the
+        noise-consistent cost ``f4 / v4`` (``v4`` = the part of ``f4`` that image noise adds on
+        average, :func:`_link_noise_poly`) in the basin of the paper's minimum
+        of ``f4 / f3^2``, which noise biases (docs/SELFCAL.md). Default: on
+        when ``refine`` is, off for the bare closed form.
 
     Returns
     -------
@@ -436,8 +523,13 @@ def self_calibrate(
     links_, ratios = _check_links(links, length_ratios)
     if refine is None:
         refine = scales == "varying"
+    strength = float(refine if temporal_prior is None else temporal_prior)
+    noise_model = bool(refine if noise_model is None else noise_model)
+    if not (np.isfinite(strength) and strength >= 0):
+        raise ValueError(f"temporal_prior must be a bool or a float >= 0, got {temporal_prior!r}")
     if scales == "varying":
-        return _varying(y, links_, ratios, rank_tol=rank_tol, max_nfev=max_nfev)
+        return _varying(y, links_, ratios, rank_tol=rank_tol, max_nfev=max_nfev,
+                        strength=strength)
 
     n_cam = y.shape[0]
     method = "wang-leow" if n_cam == 2 else "wang-leow-lsq"
@@ -445,10 +537,18 @@ def self_calibrate(
     reason = _rank_check(fact, rank_tol)
     if reason:
         return SelfCalibration.failed(reason, method)
-    motion, structure = fact.motion[0], fact.structure[0]
     t, j = y.shape[1], y.shape[2]
     diag: dict[str, Any] = {"imputation_iterations": fact.iterations,
                             "singular_values": fact.singular_values[0, :4].tolist()}
+    prior_op, fcf = None, fact
+    if strength > 0:  # closed form on the Wiener-smoothed tracks, MAP bundle adjustment
+        prior_op, smoother, prior_diag = _temporal_prior(y / fact.norm, fact, strength)
+        diag["temporal_prior"] = dict(prior_diag, strength=strength)
+        if smoother is not None:
+            fcf = factorize(_smooth_tracks(y, smoother, fact))
+            if _rank_check(fcf, rank_tol):
+                fcf = fact
+    motion, structure = fcf.motion[0], fcf.structure[0]
     if n_cam == 2:
         a, b, _ = _omega_family(motion)
         valid = fact.observed.all(axis=0)
@@ -457,13 +557,17 @@ def self_calibrate(
             return SelfCalibration.failed(
                 "no rigid-link constraint: need a link seen whole by every camera in two frames",
                 method)
-        sol = _solve_beta(a, b, g)
+        v4 = None
+        if noise_model and links_ and not ratios:  # v4 models the constant-length rows only
+            v4 = _link_noise_poly(a, b, motion, structure.T.reshape(t, j, 3), valid, links_,
+                                  noise_sigma(fcf))
+        sol = _solve_beta(a, b, g, v4)
         if sol.reason:
             return SelfCalibration.failed(sol.reason, method, beta_range=(sol.lo, sol.hi))
         omega_inv = a + sol.beta * b
-        diag.update(beta=sol.beta, beta_range=(sol.lo, sol.hi), beta_via=sol.via,
+        diag.update(beta=sol.beta, beta_paper=sol.beta0, beta_range=(sol.lo, sol.hi), beta_via=sol.via,
                     f3=sol.f3, f4=sol.f4, f6=sol.f6, n_link_rows=int(g.shape[0]),
-                    omega0_inv=a, omega1_inv=b)
+                    omega0_inv=a, omega1_inv=b, v4=v4)
     else:
         a_rows, b_rhs = camera_constraint_rows(motion)
         vec, *_ = np.linalg.lstsq(a_rows, b_rhs, rcond=None)
@@ -473,14 +577,14 @@ def self_calibrate(
     if isinstance(out, str):
         return SelfCalibration.failed(out + " (camera constraints in least squares)", method)
     rots, sc, pts = out
-    joints = pts.reshape(t, j, 3) * fact.norm
+    joints = pts.reshape(t, j, 3) * fcf.norm
     rots, joints, conf, flip = _apply_reflection(rots, joints)
     diag["reflected"] = flip
     frame_scales = None
     if refine:
         ba = _bundle_adjust(y / fact.norm, fact.observed, rots, np.repeat(sc[:, None], t, axis=1),
                             joints / fact.norm, fact.centroids / fact.norm, links_,
-                            per_frame_scales=False, max_nfev=max_nfev)
+                            per_frame_scales=False, max_nfev=max_nfev, prior_op=prior_op)
         rots, sc_t, joints_n, info = ba
         sc = sc_t[:, 0] / sc_t[0, 0]
         joints = joints_n * fact.norm * sc_t[0, 0]
@@ -494,16 +598,22 @@ def self_calibrate(
 # ------------------------------------------------------------------ §4.3 varying scales
 
 
-def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_nfev: int
-             ) -> SelfCalibration:
+def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_nfev: int,
+             strength: float = 1.0) -> SelfCalibration:
     method = "wang-leow-varying"
     n_cam, t, j, _ = y.shape
     if not ratios and n_cam == 2:
         raise ValueError("scales='varying' with two cameras needs length_ratios "
                          "(constant length over time cannot be used per frame, §4.3)")
     fact = factorize(y, per_frame=True)
-    motion, structure = fact.motion, fact.structure  # (T, 2C, 3), (T, 3, J)
-    sv = fact.singular_values
+    prior_op, fcf, prior_diag = None, fact, {}
+    if strength > 0:  # per-frame closed forms on the Wiener-smoothed tracks, MAP bundle adjustment
+        prior_op, smoother, prior_diag = _temporal_prior(y / fact.norm, fact, strength)
+        prior_diag["strength"] = strength
+        if smoother is not None:
+            fcf = factorize(_smooth_tracks(y, smoother, fact), per_frame=True)
+    motion, structure = fcf.motion, fcf.structure  # (T, 2C, 3), (T, 3, J)
+    sv = fcf.singular_values
     good = sv[:, 2] / np.maximum(sv[:, 0], 1e-300) >= rank_tol
     valid = fact.observed.all(axis=0)
     rots_f = np.full((t, n_cam, 3, 3), np.nan)
@@ -562,17 +672,88 @@ def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_n
         kappa = np.ones(t)
     kappa = np.where(ok & np.isfinite(kappa) & (kappa > 0), kappa, np.nanmedian(kappa[ok]))
     sc_init = np.where(ok[:, None], sc_f, np.nanmedian(sc_f[ok], axis=0)).T * kappa[None, :]
-    x_init = joints / kappa[:, None, None] / fact.norm
+    x_init = joints / kappa[:, None, None] * (fcf.norm / fact.norm)  # _metric: normalised units
     x_init[~ok] = np.nanmedian(x_init[ok], axis=0)
     rots, sc_t, x, info = _bundle_adjust(y / fact.norm, fact.observed, rots, sc_init, x_init,
                                          fact.centroids / fact.norm, links, per_frame_scales=True,
-                                         max_nfev=max_nfev)
+                                         max_nfev=max_nfev, prior_op=prior_op)
     joints = x * fact.norm * sc_t[0, 0]
     _, conf = kinematic_reflection(joints)
     frame_scales = (sc_t / sc_t[0:1]).T
-    diag = {"frames_solved": int(ok.sum()), "bundle": info, "reflected": flip}
+    diag = {"frames_solved": int(ok.sum()), "bundle": info, "reflected": flip,
+            "temporal_prior": prior_diag}
     return SelfCalibration(rots, np.median(frame_scales, axis=0), _mask_unseen(joints, fact.observed),
                            frame_scales, conf, method, "", diag)
+
+
+def _temporal_prior(y: np.ndarray, fact: Factorization, strength: float = 1.0
+                    ) -> tuple[np.ndarray | None, np.ndarray | None, dict]:
+    """Temporal prior of the tracks, set from the data: MAP weights and a Wiener smoother.
+
+    The tracks are a smooth motion sampled at a fixed rate, the noise is
+    independent per frame. In the orthonormal DCT-II basis over time, the
+    per-frame centred image tracks have a power spectrum ``P_k`` (mean of the
+    squared coefficient ``k`` over cameras, joints and u, v) that is signal
+    ``S_k`` plus the flat noise floor ``sigma_c^2 = sigma^2 (1 - 1/J)``;
+    ``sigma`` comes from the rank-3 residual (:func:`noise_sigma`, 0 on
+    noise-free tracks) and ``S_k = P_k - sigma_c^2``, floored at the standard
+    error of ``P_k``. A zero-mean Gaussian prior with these variances on the
+    DCT coefficients of every predicted image track (a stationary prior whose
+    spectrum is measured, not assumed) gives
+
+    * the MAP residuals ``(sigma / sqrt(S_k)) DCT_k(track)``, ``k >= 1``, of
+      :func:`_bundle_adjust` (the mean pose, ``k = 0``, is free), and
+    * the Wiener smoother ``H_k = S_k / (S_k + sigma_c^2)`` (the posterior mean
+      of the tracks), applied before the factorization: a linear filter over
+      time, so fixed cameras' tracks stay exactly rank 3.
+
+    Both are absent when ``sigma <= 1e-9`` (normalised units: rounding
+    error), so noise-free input stays exact. ``strength`` scales the
+    estimated noise (1 = as estimated).
+
+    Parameters
+    ----------
+    y : ndarray of shape (C, T, J, 2)
+        Tracks in the units of ``fact`` (pixels / ``fact.norm``), NaN = missing.
+    fact : Factorization
+
+    Returns
+    -------
+    prior_op (T - 1, T) or None, smoother (T, T) or None (both in time, acting
+    on frames), diagnostics dict (``noise_sigma`` in those units, ``gain`` =
+    ``H_k``).
+    """
+    c, t, j, _ = y.shape
+    sigma = noise_sigma(fact) * strength
+    if not sigma > 1e-9 or t < 3:  # below 1e-9 of the tracks' RMS: rounding, not noise
+        return None, None, {"noise_sigma": sigma}
+    centred = _filled_centred(y, fact)
+    dct_m = scipy.fft.dct(np.eye(t), type=2, norm="ortho", axis=0)  # (k, t)
+    power = np.mean(np.einsum("kt,ctjd->ckjd", dct_m, centred) ** 2, axis=(0, 2, 3))  # (T,)
+    noise = sigma**2 * (1.0 - 1.0 / j)
+    signal = np.maximum(power - noise, power * np.sqrt(2.0 / (c * j * 2)))
+    gain = signal / (signal + noise)
+    gain[0] = 1.0
+    prior_op = (sigma / np.sqrt(signal[1:]))[:, None] * dct_m[1:]
+    smoother = dct_m.T @ (gain[:, None] * dct_m)
+    return prior_op, smoother, {"noise_sigma": sigma, "gain": gain.tolist()}
+
+
+def _filled_centred(y: np.ndarray, fact: Factorization) -> np.ndarray:
+    """Per-frame centred tracks (units of ``y``, normalised), missing entries from the rank-3 fit."""
+    c, t, j, _ = y.shape
+    fit = np.einsum("gri,gin->grn", fact.motion, fact.structure)
+    fit = fit.reshape(2 * c, t, j) if fit.shape[0] == 1 else fit.transpose(1, 0, 2)
+    fit = np.moveaxis(fit.reshape(c, 2, t, j), 1, 3)
+    centred = y - (fact.centroids / fact.norm)[:, :, None, :]
+    return np.where(np.isfinite(centred), centred, fit)
+
+
+def _smooth_tracks(y: np.ndarray, smoother: np.ndarray, fact: Factorization) -> np.ndarray:
+    """Apply the temporal smoother to the per-frame centred tracks (pixels); NaN stays NaN."""
+    centred = _filled_centred(y / fact.norm, fact)
+    out = np.einsum("ts,csjd->ctjd", smoother, centred) * fact.norm + fact.centroids[:, :, None, :]
+    return np.where(np.isfinite(y), out, np.nan)
 
 
 def _bundle_adjust(
@@ -587,6 +768,7 @@ def _bundle_adjust(
     per_frame_scales: bool,
     max_nfev: int,
     bone_weight: float = 1.0,
+    prior_op: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Bundle adjustment over rotations, scales and 3D joints with constant bone lengths.
 
@@ -607,6 +789,10 @@ def _bundle_adjust(
         Links whose length is a free parameter shared over frames.
     per_frame_scales : bool
         One scale per camera and frame (§4.3) or one per camera.
+    prior_op : ndarray of shape (K, T), optional
+        Temporal prior: residuals ``prior_op @ (predicted image track)`` for
+        every camera, joint and image axis (None = maximum likelihood, the
+        paper's bundle adjustment); see :func:`_temporal_prior`.
 
     Returns
     -------
@@ -615,8 +801,10 @@ def _bundle_adjust(
     Notes
     -----
     Residuals: reprojection ``s_ct (R_c X_tj)_{uv} + t_ct - y_ctj`` for every
-    observed joint; ``|X_ta - X_tb| - L_k`` per link and frame; and each
-    frame's joint centroid (the gauge of the per-frame translations).
+    observed joint; ``|X_ta - X_tb| - L_k`` per link and frame; each
+    frame's joint centroid (the gauge of the per-frame translations); and with
+    ``prior_op`` the MAP term ``prior_op @ (s_ct (R_c X_tj)_{uv})_t`` for every
+    camera, joint and image axis (the predicted track, centred per frame).
     """
     n_cam, t, j, _ = y.shape
     ln = np.asarray(links, dtype=int).reshape(-1, 2)
@@ -640,6 +828,11 @@ def _bundle_adjust(
         centroids.ravel(), joints.ravel(), l0])
     obs_c, obs_t, obs_j = np.nonzero(observed)
     y_obs = y[obs_c, obs_t, obs_j]
+    smooth = prior_op is not None and prior_op.size > 0 and t >= 2
+    if smooth:
+        prior_op = np.asarray(prior_op, dtype=float)
+        n_k = prior_op.shape[0]
+        n_sm = n_cam * n_k * j * 2
 
     def unpack(p: np.ndarray):
         rv, ls, tr, x, lk = (p[offs[i]:offs[i + 1]] for i in range(5))
@@ -658,6 +851,9 @@ def _bundle_adjust(
             bl = np.linalg.norm(x[:, ln[:, 0]] - x[:, ln[:, 1]], axis=-1) - lk
             res.append(bone_weight * bl[bone_ok])
         res.append(x.mean(axis=1).ravel())
+        if smooth:  # prior on each camera's predicted (centred) image track: (C, K, J, 2)
+            track = s[:, :, None, None] * np.einsum("cij,tkj->ctki", r[:, :2], x)
+            res.append(np.einsum("kt,ctjd->ckjd", prior_op, track).ravel())
         return np.concatenate(res)
 
     # Analytic sparse Jacobian (finite differences only for the rotation vectors).
@@ -687,6 +883,25 @@ def _bundle_adjust(
     ct, cd, cj = np.meshgrid(np.arange(t), np.arange(3), np.arange(j), indexing="ij")
     rows.append((base + ct * 3 + cd).ravel()); cols.append(offs[3] + ((ct * j + cj) * 3 + cd).ravel())
     base += 3 * t
+    if smooth:  # rows (C, K, J, 2); columns: T frames x 3 coordinates, scales, rotation
+        pc, pk, pj, pd = (v.ravel() for v in np.meshgrid(
+            np.arange(n_cam), np.arange(n_k), np.arange(j), np.arange(2), indexing="ij"))
+        rs = base + np.arange(pc.size)
+        frames = np.arange(t)
+        rows.append(np.repeat(rs, 3 * t))
+        cols.append((offs[3] + ((frames[None, :, None] * j + pj[:, None, None]) * 3
+                                + np.arange(3)[None, None, :])).ravel())
+        if per_frame_scales:
+            s_col = (pc[:, None] * t + frames[None, :] - 1).ravel()
+            s_row = np.repeat(rs, t)
+        else:
+            s_col, s_row = pc - 1, rs
+        s_has = s_col >= 0
+        rows.append(s_row[s_has]); cols.append(offs[1] + s_col[s_has])
+        sm_b = pc > 0
+        for q in range(3):
+            rows.append(rs[sm_b]); cols.append(offs[0] + 3 * (pc[sm_b] - 1) + q)
+        base += pc.size
     rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
     shape = (base, offs[-1])
     centroid_vals = np.full(ct.size, 1.0 / j)
@@ -696,12 +911,15 @@ def _bundle_adjust(
         rx = np.einsum("cij,tkj->ctki", r, x)[obs_c, obs_t, obs_j]  # (n_obs, 3)
         sc = s[obs_c, obs_t]
         # Rotation columns: central differences, all cameras' q-th component at once.
-        drot = []
+        drot, drot_sm = [], []
         h = 1e-6
         for q in range(3):
             dp = np.zeros_like(p)
             dp[offs[0] + q:offs[1]:3] = h
-            drot.append((fun(p + dp) - fun(p - dp))[:2 * n_obs].reshape(n_obs, 2) / (2 * h))
+            diff = (fun(p + dp) - fun(p - dp)) / (2 * h)
+            drot.append(diff[:2 * n_obs].reshape(n_obs, 2))
+            if smooth:
+                drot_sm.append(diff[-n_sm:])
         vals = []
         for d in range(2):
             for q in range(3):
@@ -719,6 +937,13 @@ def _bundle_adjust(
                     vals.append(sign * bone_weight * unit[:, q])
             vals.append(np.full(bt.size, -bone_weight))
         vals.append(centroid_vals)
+        if smooth:
+            coef = prior_op[pk][:, :, None] * s[pc][:, :, None] * r[pc, pd][:, None, :]  # (n, T, 3)
+            vals.append(coef.ravel())
+            ds = prior_op[pk] * s[pc] * np.einsum("nq,tnq->nt", r[pc, pd], x[:, pj])  # (n, T)
+            vals.append((ds.ravel() if per_frame_scales else ds.sum(axis=1))[s_has])
+            for q in range(3):
+                vals.append(drot_sm[q][sm_b])
         return scipy.sparse.csr_matrix((np.concatenate(vals), (rows_a, cols_a)), shape=shape)
 
     start_cost = 0.5 * float(np.sum(fun(p0) ** 2))
