@@ -462,7 +462,7 @@ class Segmenter:
             # (§7.1), and the refinement must not undo the model's fused evidence.
             trusted = prior[y0:y1, x0:x1]
             weak = cv2.compare(d2, self.settings.prior_threshold * var, cv2.CMP_GT)
-            refined |= cv2.bitwise_and(cv2.bitwise_or(weak, coarse), cv2.bitwise_and(trusted, near))
+            refined |= cv2.bitwise_and(weak, cv2.bitwise_and(trusted, near))
         fg[y0:y1, x0:x1] = refined
         return fg
 
