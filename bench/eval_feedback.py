@@ -411,8 +411,8 @@ phases); "within 0.075" the fraction of frames within 1.5 phases.
   from; a camera with a better view, or priors from earlier windows with a
   good estimate (the live loop's case), would be needed. Where the estimate
   is right and the silhouette only partly found, feedback does what the target
-  asks: pooled per frame, frames with raw IoU in [0.6, 0.8) gain +0.05 and
-  frames in [0.8, 0.9) +0.05 (table above).
+  asks: pooled per frame, frames with raw IoU in [0.6, 0.8) gain +0.06 and
+  frames in [0.8, 0.9) +0.06 (table above).
 - **Occluder**: a post splits the walker; the segmenter keeps one part, the
   prior is registered onto that part (wrong centroid and scale). The
   registration of a prior onto a partial silhouette is the weak point; fitting
