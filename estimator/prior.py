@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import scipy.special
 
 from .camera import Camera
 from .gait import GaitModel, load_gait
@@ -185,7 +186,7 @@ def soften(mask: np.ndarray, *, band_px: float, inset_px: float = 0.0) -> np.nda
     inside = cv2.distanceTransform(m, cv2.DIST_L2, 5)
     outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, 5)
     sd = np.where(m > 0, inside - 0.5, 0.5 - outside) - inset_px
-    return (255.0 / (1.0 + np.exp(-sd / max(band_px, 1e-3)))).astype(np.float32)
+    return (255.0 * scipy.special.expit(sd / max(band_px, 1e-3))).astype(np.float32)
 
 
 def _inverse(m: np.ndarray) -> np.ndarray:

@@ -328,9 +328,11 @@ class LiveService:
     """Subscribe, assemble, window, estimate, publish; thread-safe queries for the API."""
 
     def __init__(self, session: zenoh.Session, pool: concurrent.futures.Executor, settings: Settings,
-                 metrics: Metrics, rerun=None) -> None:
+                 metrics: Metrics, rerun=None,
+                 feedback_pool: concurrent.futures.Executor | None = None) -> None:
         self.session, self.pool, self.settings = session, pool, settings
         self.metrics, self.rerun = metrics, rerun
+        self.feedback_pool = feedback_pool if settings.feedback else None
         self._lock = threading.Lock()
         self._rigs: dict[str, RigState] = {}
         self._queue: queue.Queue[Window] = queue.Queue(maxsize=settings.queue_limit)
@@ -341,6 +343,12 @@ class LiveService:
         self._rerun_queue: queue.Queue[tuple[str, StageBundle, int, dict]] = queue.Queue(maxsize=4)
         if rerun is not None:
             self._threads.append(threading.Thread(target=self._draw, name="live-rerun", daemon=True))
+        # Newest window per rig whose priors are still to be made (an older one is superseded).
+        self._feedback_todo: dict[str, tuple] = {}
+        self._feedback_ready = threading.Condition(self._lock)
+        if self.feedback_pool is not None:
+            self._threads.append(threading.Thread(target=self._feedback_loop, name="live-feedback",
+                                                  daemon=True))
         for t in self._threads:
             t.start()
         self.receiver = SilhouetteReceiver(session, on_message=self._on_message)
@@ -484,7 +492,7 @@ class LiveService:
             with self._lock:
                 last = self._rigs[w.rig].last_logged_index
             bundle_from = sum(1 for i in w.indices if i <= last)
-        feedback = self.settings.feedback
+        feedback = self.feedback_pool is not None
         future = self.pool.submit(estimate_window, tracks, w.indices, sizes, bundle_from=bundle_from,
                                   keep_estimate=feedback)
         try:
@@ -532,7 +540,26 @@ class LiveService:
             except queue.Full:  # drawing fell behind: skip this window's drawing, not its estimate
                 self.metrics.rerun_skipped.labels(w.rig).inc()
         if feedback and est is not None:
-            self._feedback(w, est, tracks, sizes)
+            with self._lock:
+                if w.rig in self._feedback_todo:
+                    self.metrics.feedback_superseded.labels(w.rig).inc()
+                self._feedback_todo[w.rig] = (w, est, tracks, sizes)
+                self._feedback_ready.notify()
+
+    def _feedback_loop(self) -> None:
+        """Make and publish priors, newest window of each rig first; never blocks estimation."""
+        while True:
+            with self._lock:
+                while not self._feedback_todo and not self._stop.is_set():
+                    self._feedback_ready.wait(timeout=0.1)
+                if self._stop.is_set():
+                    return
+                rig = next(iter(self._feedback_todo))
+                job = self._feedback_todo.pop(rig)
+            try:
+                self._feedback(*job)
+            except Exception:  # keep the loop alive; this window's priors are lost
+                log.exception("feedback priors for %s failed", rig)
 
     def _feedback(self, w: Window, est, tracks: dict[str, CameraTrack],
                   sizes: dict[str, tuple[int, int]]) -> None:
@@ -548,8 +575,8 @@ class LiveService:
         # Frames captured before these priors can arrive need none: skip them.
         period_s = _frame_period_s(w.frames)
         skip = 0 if period_s is None else int(lag_s / period_s)
-        future = self.pool.submit(predict_feedback, est, tracks, w.indices, sizes,
-                                  self.settings.feedback_ahead, skip)
+        future = self.feedback_pool.submit(predict_feedback, est, tracks, w.indices, sizes,
+                                           self.settings.feedback_ahead, skip)
         priors = future.result(timeout=60)
         with self._lock:
             rig = self._rigs[w.rig]
@@ -613,7 +640,7 @@ class LiveService:
                                 "image_size": list(s.image_size)} for c, s in sorted(rig.cameras.items())},
                 "windows": {"seq": rig.window_seq, "estimated": rig.estimated, "skipped": rig.skipped,
                             "failed": rig.failed, "dropped": rig.dropped},
-                "feedback": {"enabled": self.settings.feedback, "priors_sent": rig.priors_sent},
+                "feedback": {"enabled": self.feedback_pool is not None, "priors_sent": rig.priors_sent},
                 "frames": {"late": a.late, "duplicate": a.duplicate, "missing": a.missing,
                            "restarts": rig.restarts, "gaps": rig.buffer.resets},
                 "viewpoints": {c: t.state() for c, t in sorted(rig.tracks.items())},

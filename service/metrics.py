@@ -50,6 +50,9 @@ class Metrics:
                                          "of one window in a worker", buckets=_LATENCY_BUCKETS, registry=r)
         self.feedback_priors = Counter("posecal_feedback_priors", "priors published to the "
                                        "segmenters (§7.1)", ["rig"], registry=r)
+        self.feedback_superseded = Counter("posecal_feedback_superseded", "windows whose priors "
+                                           "were not made because a newer window came first",
+                                           ["rig"], registry=r)
         self.feedback_seconds = Histogram("posecal_feedback_seconds", "rendering and publishing "
                                           "one window's priors", registry=r)
         self.rerun_skipped = Counter("posecal_rerun_windows_skipped", "live windows not drawn in "

@@ -73,6 +73,7 @@ class Runtime:
     job_pool: concurrent.futures.ProcessPoolExecutor | None
     live_pool: concurrent.futures.ProcessPoolExecutor | None
     runner: JobRunner
+    feedback_pool: concurrent.futures.ProcessPoolExecutor | None = None
     session: object | None = None
     live: object | None = None
     rerun: object | None = None
@@ -94,13 +95,17 @@ class Runtime:
             rerun = RerunLog(settings.rerun_sink)
             if rerun.uri:
                 log.info("Rerun: connect a viewer with `rerun %s`", rerun.uri)
-        job_pool, live_pool = await asyncio.gather(
+        # Feedback priors render in a process of their own, so that they never
+        # hold up the next window's estimate.
+        job_pool, live_pool, feedback_pool = await asyncio.gather(
             asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
-            asyncio.to_thread(make_pool, settings.live_workers, model_path, renderer=settings.feedback)
-            if settings.live else _none())
+            asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none(),
+            asyncio.to_thread(make_pool, 1, model_path, renderer=True)
+            if settings.live and settings.feedback else _none())
         runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
                            rerun=rerun if settings.rerun_jobs else None)
-        rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner, rerun=rerun)
+        rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner,
+                 feedback_pool=feedback_pool, rerun=rerun)
         if settings.live:
             import zenoh
 
@@ -112,7 +117,8 @@ class Runtime:
                                 listen=settings.zenoh_listen, config_file=settings.zenoh_config,
                                 multicast=settings.zenoh_multicast)
             rt.session = await asyncio.to_thread(zenoh.open, conf)
-            rt.live = LiveService(rt.session, live_pool, settings, metrics, rerun=rerun)
+            rt.live = LiveService(rt.session, live_pool, settings, metrics, rerun=rerun,
+                                  feedback_pool=feedback_pool)
         return rt
 
     async def stop(self) -> None:
@@ -123,6 +129,7 @@ class Runtime:
             await asyncio.to_thread(self.session.close)
         await asyncio.to_thread(shutdown_pool, self.job_pool)
         await asyncio.to_thread(shutdown_pool, self.live_pool)
+        await asyncio.to_thread(shutdown_pool, self.feedback_pool)
         if self.rerun is not None:
             await asyncio.to_thread(self.rerun.close)
         self.store.close()
