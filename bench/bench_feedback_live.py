@@ -49,7 +49,8 @@ def _spawn(k: int, endpoint: str, args: argparse.Namespace) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "service.cli", "capture", "--rig", "bench", "--camera", f"c{k}",
            "--source", spec, "--fps", f"{args.fps:g}", "--max-frames", str(frames),
            "--warmup", str(WARMUP), "--connect", endpoint, "--stats-interval", "15"]
-    env = {**os.environ, "POSECAL_CAPTURE_OPENCV_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "POSECAL_CAPTURE_OPENCV_THREADS": "1", "POSECAL_CAPTURE_SCORE_TRUTH": "1",
+           "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             cwd=Path(__file__).parents[1], env=env)
 

@@ -137,11 +137,15 @@ def run_condition(cond: Condition, model, n: int, settings: SegmentSettings, con
     est_raw = estimate_walk(tracks, model)
     with Renderer(config.body) as renderer:
         priors = priors_for_window(est_raw, tracks, size, renderer=renderer, config=config)
-    checked = {c: check_priors(priors[c], raw[c]) for c in data}
-    refined = {c: trim(segment(data[c][0], settings, checked[c]), checked[c], reach=TRIM) for c in data}
-    bad = {c: check_priors([rotate_prior(p) for p in priors[c]], raw[c]) for c in data}
-    wrong = {c: trim(segment(data[c][0], settings, bad[c]), bad[c], reach=TRIM) for c in data}
-    unchecked = {c: segment(data[c][0], settings, [rotate_prior(p) for p in priors[c]]) for c in data}
+    turned = {c: [rotate_prior(p) for p in priors[c]] for c in data}
+    # Segmenter with the priors (it checks each against its own evidence), then the
+    # trim with the priors checked against the first pass: as capture.refine does.
+    refined = {c: trim(segment(data[c][0], settings, priors[c]), check_priors(priors[c], raw[c]),
+                       reach=TRIM) for c in data}
+    wrong = {c: trim(segment(data[c][0], settings, turned[c]), check_priors(turned[c], raw[c]),
+                     reach=TRIM) for c in data}
+    trusting = settings.model_copy(update={"prior_check": False})
+    unchecked = {c: segment(data[c][0], trusting, turned[c]) for c in data}
     est_ref = estimate_walk({c: track_from_segmentations(s) for c, s in refined.items()}, model)
     prior_iou = {c: np.array([iou(p.full_mask() >= 128, data[c][1][p.frame_index]) for p in priors[c]
                               if data[c][1][p.frame_index].any()]) for c in data}
@@ -344,23 +348,25 @@ this machine (2 cores). Synthetic camera, walker seed per condition, two views
    its area or less. Without the gate the model body's misfit (another body
    shape, another gait style: the prior IoU column) added 200-400 false pixels
    per frame on clean input, an IoU loss of ~0.02.
-4. **Check** (`capture.refine.check_priors`): each prior is kept, weakened or
-   replaced by an empty prior according to the fraction of the raw silhouette
-   it covers (`estimator.prior.explained` / `weigh`: kept at >= 0.8, dropped
-   below 0.5). A prior that does not explain the evidence is not used.
-5. **With feedback**: the segmenter from scratch, each frame's checked prior
+4. **With feedback**: the segmenter from scratch, each frame's prior
    installed with `set_prior` before the frame (what a live agent receiving
-   predictions does). The segmenter checks each prior against its own evidence
-   too (docs/CAPTURE.md, "Prior fusion"), then fuses it: a model-resolution pixel whose prior is
-   at least `prior_level` ({settings.prior_level}) becomes foreground when its colour distance to
-   the background model exceeds max({settings.prior_diff}, {settings.prior_noise_k} x the frame's mean distance),
-   and a full-resolution pixel there when its squared distance exceeds {settings.prior_threshold} x the
-   noise variance (instead of {settings.refine_threshold}).
-   Then **trim** (`capture.refine.trim`, offline only): foreground farther than
-   {TRIM} x height from the prior's support is cut (drift blobs attached to the walker).
+   predictions does). The segmenter **checks** each prior against its own
+   evidence (MOG2's foreground near the prior, before fusion; docs/CAPTURE.md,
+   "Prior fusion": trusted as is at >= {settings.prior_full_coverage:.0%} coverage,
+   not used below {settings.prior_min_coverage:.0%}, weakened in between), then fuses it: a
+   model-resolution pixel whose prior is at least `prior_level` ({settings.prior_level}) becomes
+   foreground when its colour distance to the background model exceeds
+   max({settings.prior_diff}, {settings.prior_noise_k} x the frame's mean distance), and a full-resolution
+   pixel there when its squared distance exceeds {settings.prior_threshold} x the noise variance
+   (instead of {settings.refine_threshold}).
+5. **Trim** (`capture.refine.trim`, offline only): foreground farther than
+   {TRIM} x height from the prior's support is cut (drift blobs attached to
+   the walker), with each prior first checked against the raw silhouette
+   (`capture.refine.check_priors`: `estimator.prior.explained` / `weigh`, the
+   same rule), so that a wrong prior cannot cut the walker.
 6. **Wrong prior**: every prior turned 90 degrees about its centroid, then the
-   same check and trim; the "unchecked" column installs the turned priors
-   without the check.
+   same segmenter and trim; the "unchecked" column installs the turned priors
+   in a segmenter whose check is off (`prior_check=False`) and does not trim.
 7. Downstream: the walk re-estimated from the refined silhouettes.
 
 Ground truth is the *visible* mask (true mask minus the occluder); the post

@@ -61,6 +61,9 @@ class AgentSettings(BaseSettings):
     png_compression: int = Field(1, ge=0, le=9)
     opencv_threads: int | None = Field(None, ge=1, description="cap OpenCV's threads (1 when "
                                        "several agents share a host); default: OpenCV's choice")
+    score_truth: bool = Field(False, description="score each silhouette against the source's "
+                              "ground truth when it has one (synthetic; benchmarks), after "
+                              "publishing")
     segment: SegmentSettings = SegmentSettings()
 
 
@@ -298,7 +301,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 stats.unheard += 1
             stats.latency_ms.append((time.time_ns() - frame.timestamp_ns) / 1e6)
             segmenter.learn()  # the deferred background update, off the latency path
-            if frame.mask is not None and frame.mask.any():  # a source with ground truth (synthetic)
+            if settings.score_truth and frame.mask is not None and frame.mask.any():
                 stats.iou_sum += iou(seg.full_mask(), frame.mask)
                 stats.iou_frames += 1
             now = time.monotonic()

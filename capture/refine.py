@@ -13,7 +13,6 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from estimator.appearance import AppearanceModel
@@ -30,6 +29,7 @@ from estimator.prior import (
 from estimator.sequence import Sequence
 
 from .segment import Segmentation, Segmenter, SegmentSettings
+from .sources import VideoFileSource
 from .wire import Box, FeedbackMessage
 
 __all__ = ["RefineResult", "RefinedSequence", "check_priors", "feedback_from_prior", "refine_cameras",
@@ -151,7 +151,8 @@ def refine_cameras(
     renderer : estimator.render.Renderer
     prior_transform : callable, optional
         Applied to each prior before the second pass (the evaluation's
-        deliberately wrong prior); then every prior is checked against the
+        deliberately wrong prior); the segmenter then checks every prior
+        against its own evidence, and the trim uses them checked against the
         first pass (:func:`check_priors`).
     trim_reach : float or None
         After the second pass, cut foreground farther than this many body
@@ -176,9 +177,11 @@ def refine_cameras(
         priors = {name: [prior_transform(p) for p in ps] for name, ps in priors.items()}
     refined = {}
     for name, make in frames.items():
-        checked = check_priors(priors[name], raw[name])
-        segs = segment(make(), settings, checked)
-        refined[name] = trim(segs, checked, reach=trim_reach) if trim_reach is not None else segs
+        # The segmenter checks each prior against its own evidence as it goes (the
+        # agent-side check); the trim uses the priors checked against the first pass.
+        segs = segment(make(), settings, priors[name])
+        refined[name] = (trim(segs, check_priors(priors[name], raw[name]), reach=trim_reach)
+                         if trim_reach is not None else segs)
     return RefineResult(raw, refined, estimate, priors, sizes)
 
 
@@ -189,24 +192,39 @@ def refine_cameras(
 class RefinedSequence:
     """A recording's silhouettes refined with model feedback, and what it took.
 
-    ``raw`` and ``priors`` are per camera and frame, full-frame (uint8, or None),
-    kept for display (Rerun shows raw, prior and refined side by side).
+    ``raw`` (the input silhouettes: arrays as a sequence folder holds them, or
+    the first pass's segmentations of a video) and ``priors`` are kept as they
+    came, crops included; :meth:`raw_frame` and :meth:`prior_frame` give one
+    full frame at a time (Rerun shows raw, prior and refined side by side).
     """
 
     sequence: Sequence
     estimate: WalkEstimate
     n_priors: int
     changed_pixels: int
-    raw: dict[str, list[np.ndarray | None]]
-    priors: dict[str, list[np.ndarray | None]]
+    raw: dict[str, list[np.ndarray | Segmentation | None]]
+    priors: dict[str, list[Prior]]
+
+    def raw_frame(self, camera: str, k: int) -> np.ndarray | None:
+        """Frame ``k``'s input silhouette of ``camera``, full frame (a crop at the origin)."""
+        s = self.raw[camera][k]
+        if s is None or isinstance(s, Segmentation):
+            return None if s is None or s.box.empty else s.full_mask()
+        return _at_origin(s, tuple(self.sequence.image_size))
+
+    def prior_frame(self, camera: str, k: int) -> np.ndarray | None:
+        """Frame ``k``'s prior of ``camera``, full frame, or None."""
+        p = next((p for p in self.priors.get(camera, ()) if p.frame_index == k), None)
+        return None if p is None else p.full_mask()
 
 
-def _prior_frames(priors: list[Prior], n: int) -> list[np.ndarray | None]:
-    out: list[np.ndarray | None] = [None] * n
-    for p in priors:
-        if 0 <= p.frame_index < n:
-            out[p.frame_index] = p.full_mask()
-    return out
+def _at_origin(sil: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A full-frame silhouette as is; a crop (no position known) pasted at the origin."""
+    if (sil.shape[1], sil.shape[0]) == size:
+        return sil
+    frame = np.zeros(size[::-1], np.uint8)
+    frame[: sil.shape[0], : sil.shape[1]] = sil
+    return frame
 
 
 def _changed(a: list[np.ndarray | None], b: list[np.ndarray | None]) -> int:
@@ -230,47 +248,33 @@ def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
     estimate = estimate_walk(tracks, model)
     size = tuple(seq.image_size)
     priors = priors_for_window(estimate, tracks, size, renderer=renderer, config=config)
-    out, raw_full, prior_full = {}, {}, {}
+    out = {}
     for cam in seq.cameras:
-        n = len(seq.silhouettes[cam])
-        prior_full[cam] = _prior_frames(priors[cam], n)
-        out[cam], raw_full[cam] = [], []
-        for sil, p in zip(seq.silhouettes[cam], prior_full[cam]):
-            if sil is None:
-                out[cam].append(None)
-                raw_full[cam].append(None)
-                continue
-            full = (sil.shape[1], sil.shape[0]) == size
-            frame = sil if full else np.zeros(size[::-1], np.uint8)
-            if not full:  # a crop: its own extent was the box (no position), pasted at the origin
-                frame[: sil.shape[0], : sil.shape[1]] = sil
-            raw_full[cam].append(frame)
-            if p is None:
+        by_frame = {p.frame_index: p for p in priors[cam]}
+        out[cam] = []
+        for k, sil in enumerate(seq.silhouettes[cam]):
+            p = by_frame.get(k)
+            if sil is None or p is None:
                 out[cam].append(sil)
                 continue
-            refined = refine_silhouette(frame, p)
-            out[cam].append(refined if full else refined[: sil.shape[0], : sil.shape[1]])
+            refined = refine_silhouette(_at_origin(sil, size), p.full_mask())
+            out[cam].append(refined[: sil.shape[0], : sil.shape[1]])
     changed = sum(_changed(seq.silhouettes[c], out[c]) for c in seq.cameras)
     refined_seq = Sequence(fps=seq.fps, cameras=list(seq.cameras), image_size=seq.image_size,
                            silhouettes=out, truth=seq.truth, extra=seq.extra)
     return RefinedSequence(refined_seq, estimate, sum(len(v) for v in priors.values()), changed,
-                           raw_full, prior_full)
+                           dict(seq.silhouettes), priors)
 
 
 def video_frames(path: str | os.PathLike) -> Callable[[], Iterator[np.ndarray]]:
-    """A function that reopens the video and yields its BGR frames (one pass each call)."""
+    """A function that reopens the video and yields its BGR frames (one pass each call).
+
+    Raises ValueError (:class:`~capture.sources.SourceError`) if it cannot be opened.
+    """
     def frames() -> Iterator[np.ndarray]:
-        cap = cv2.VideoCapture(str(path))
-        if not cap.isOpened():
-            raise ValueError(f"video {os.fspath(path)} cannot be opened")
-        try:
-            while True:
-                ok, image = cap.read()
-                if not ok:
-                    return
-                yield image
-        finally:
-            cap.release()
+        with VideoFileSource(path) as source:
+            for frame in source:
+                yield frame.image
     return frames
 
 
@@ -289,9 +293,8 @@ def refine_videos(videos: dict[str, str | os.PathLike], model: AppearanceModel, 
         return [None if s is None or s.box.empty else s.full_mask() for s in segs]
 
     sils = {c: full(segs) for c, segs in result.refined.items()}
-    raw = {c: full(segs) for c, segs in result.raw.items()}
+    changed = sum(_changed(full(result.raw[c]), sils[c]) for c in sils)
     size = next(iter(result.image_sizes.values()))
     seq = Sequence(fps=fps, cameras=list(videos), image_size=size, silhouettes=sils, truth=truth)
     return RefinedSequence(seq, result.estimate, sum(len(v) for v in result.priors.values()),
-                           sum(_changed(raw[c], sils[c]) for c in sils), raw,
-                           {c: _prior_frames(ps, len(raw[c])) for c, ps in result.priors.items()})
+                           changed, result.raw, result.priors)

@@ -42,9 +42,12 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from estimator.prior import trust_factor
+
 from .wire import Box, FeedbackMessage
 
-__all__ = ["MAX_PRIORS", "PriorStats", "SegmentSettings", "Segmentation", "Segmenter", "describe"]
+__all__ = ["MAX_PRIORS", "PriorStats", "SegmentSettings", "Segmentation", "Segmenter", "default_warmup",
+           "describe"]
 
 MAX_PRIORS = 64  # priors kept per segmenter, newest frame indices first
 
@@ -101,6 +104,8 @@ class SegmentSettings(BaseModel):
                                "stays valid")
     prior_max_age_ms: float = Field(2000.0, gt=0, description="a prior issued or received "
                                     "longer ago than this is stale and ignored")
+    prior_check: bool = Field(True, description="check each prior against MOG2's own "
+                              "foreground before using it (off: trust it as it is)")
     prior_check_level: int = Field(64, ge=1, le=255, description="prior value counted as "
                                    "covering the evidence in the agent-side check")
     prior_check_reach: float = Field(0.04, ge=0, description="... dilated by this fraction of "
@@ -146,6 +151,7 @@ class _Geometry:
     refine_px: int  # full-frame pixels re-tested around the upsampled mask (0 = none)
     close_px: int
     min_area: int
+    scale: float  # model / full resolution
     guard: np.ndarray | None  # update guard kernel, model resolution
     near: np.ndarray | None  # refinement band kernel, full resolution
     close: np.ndarray | None  # closing kernel, full resolution
@@ -165,7 +171,7 @@ class _Geometry:
         refine = 0 if scale == 1.0 else int(np.ceil(settings.refine_px / scale))
         close = _kernel(settings.close_px * k)
         return cls(size, model_size, refine, 0 if close is None else close.shape[0],
-                   max(1, round(settings.min_area * k * k)),
+                   max(1, round(settings.min_area * k * k)), scale,
                    _kernel(max(1.0, settings.update_guard_px * k * scale)),
                    _kernel(2 * refine + 1) if refine else None,
                    close)
@@ -177,6 +183,9 @@ class _StoredPrior:
     small: np.ndarray  # soft prior (uint8) at model resolution
     full: np.ndarray | None  # and at full resolution, when refining
     received: float  # time.monotonic()
+    near_box: tuple[int, int, int, int]  # model resolution: where the check looks
+    covering: np.ndarray  # in near_box: the pixels that cover evidence
+    trusted: tuple[np.ndarray, np.ndarray | None]  # >= prior_level, model and full resolution
 
 
 @dataclass(slots=True)
@@ -188,6 +197,12 @@ class PriorStats:
     used: int = 0  # frames segmented with a prior
     weakened: int = 0  # ... of which with a raised trust level (partial coverage)
     rejected: int = 0  # frames whose prior did not explain the evidence
+
+
+def default_warmup(n_frames: int) -> int:
+    """Background frames to learn from a recording of ``n_frames`` (0 = unknown) when
+    nobody said: a quarter of it, at most the paper's 100."""
+    return max(1, min(100, n_frames // 4 if n_frames else 30))
 
 
 def describe(settings: SegmentSettings, size: tuple[int, int]) -> str:
@@ -217,7 +232,7 @@ class Segmenter:
         # Full-resolution running mean of the background (float32 BGR), kept only
         # when the model runs downscaled: the refinement compares against it.
         self._full_bg: np.ndarray | None = None
-        # Brightness of the model's background on a 2x2 grid (for the gain estimate).
+        # Brightness of the model's background on a coarse grid (for the gain estimate).
         self._bg_level: np.ndarray | None = None
         # frame_index -> prior; the service sends priors ahead of time.
         self._priors: dict[int, _StoredPrior] = {}
@@ -255,8 +270,23 @@ class Segmenter:
         full = prior.full_mask()
         g = _Geometry.of(s, prior.image_size)  # not cached: another thread
         small = cv2.resize(full, g.model_size, interpolation=cv2.INTER_AREA) if g.downscaled else full
-        stored = _StoredPrior(prior.image_size, small, full if g.refine_px else None,
-                              time.monotonic())
+        full = full if g.refine_px else None
+        # For the check at use (see _trust): the prior's box grown by half, and
+        # what in it counts as covering the evidence (dilated: a prediction a few
+        # pixels off, e.g. in phase, still explains it).
+        x, y, w, h = cv2.boundingRect(cv2.compare(small, 0, cv2.CMP_GT))
+        x0, y0 = max(0, x - w // 2), max(0, y - h // 2)
+        x1, y1 = min(small.shape[1], x + w + w // 2), min(small.shape[0], y + h + h // 2)
+        covering = np.zeros((y1 - y0, x1 - x0), np.uint8)  # empty for an empty prior
+        if covering.size:
+            covering = cv2.compare(small[y0:y1, x0:x1], s.prior_check_level, cv2.CMP_GE)
+            reach = round(s.prior_check_reach * h)
+            if reach > 0:
+                covering = cv2.dilate(covering, _kernel(2 * reach + 1))
+        trusted = (cv2.compare(small, s.prior_level, cv2.CMP_GE),
+                   None if full is None else cv2.compare(full, s.prior_level, cv2.CMP_GE))
+        stored = _StoredPrior(prior.image_size, small, full, time.monotonic(),
+                              (x0, y0, x1 - x0, y1 - y0), covering, trusted)
         with self._lock:
             self._priors[prior.frame_index] = stored
             while len(self._priors) > MAX_PRIORS:
@@ -281,41 +311,32 @@ class Segmenter:
                g: _Geometry) -> tuple[np.ndarray, np.ndarray | None] | None:
         """The prior's trusted pixels, or None if it does not explain the evidence.
 
-        The agent-side check of §7.1's loop (:func:`estimator.prior.explained`
-        and :func:`~estimator.prior.weigh`, on MOG2's own foreground near the
-        prior, before fusion): a prior covering at least ``prior_full_coverage``
-        of that foreground is trusted from ``prior_level`` on; below
-        ``prior_min_coverage`` it is not used; in between the level rises (fewer
-        pixels trusted). Without enough foreground to judge, it is trusted.
-        A wrong estimate therefore cannot impose its silhouette against the
-        camera's own evidence, and the loop cannot run away.
+        The agent-side check of §7.1's loop (the twin of
+        :func:`estimator.prior.explained` and :func:`~estimator.prior.weigh`, on
+        MOG2's own foreground near the prior, before fusion): the prior's value
+        is scaled by :func:`~estimator.prior.trust_factor` of its coverage, and
+        the pixels still at ``prior_level`` are trusted (none left: not used).
+        Without enough foreground to judge, it is trusted. A wrong estimate
+        therefore cannot impose its silhouette against the camera's own
+        evidence, and the loop cannot run away.
         """
         s = self.settings
-        level = float(s.prior_level)
-        x, y, w, h = cv2.boundingRect(cv2.compare(stored.small, 0, cv2.CMP_GT))
-        x0, y0 = max(0, x - w // 2), max(0, y - h // 2)  # the prior's box grown by half
-        near = fg[y0:y + h + h // 2, x0:x + w + w // 2]
-        n = cv2.countNonZero(near)
-        scale = g.model_size[0] / g.size[0]
-        if n >= g.min_area * scale * scale:
-            inside = cv2.compare(stored.small[y0:y + h + h // 2, x0:x + w + w // 2],
-                                 s.prior_check_level, cv2.CMP_GE)
-            reach = round(s.prior_check_reach * h)  # a prediction a few pixels off still explains
-            if reach > 0:
-                inside = cv2.dilate(inside, _kernel(2 * reach + 1))
-            coverage = cv2.countNonZero(cv2.bitwise_and(near, inside)) / n
-            if coverage < s.prior_min_coverage:
+        f = 1.0
+        if s.prior_check:
+            x, y, w, h = stored.near_box
+            near = fg[y:y + h, x:x + w]
+            n = cv2.countNonZero(near) if near.size else 0
+            if n >= g.min_area * g.scale * g.scale:
+                coverage = cv2.countNonZero(cv2.bitwise_and(near, stored.covering)) / n
+                f = trust_factor(coverage, low=s.prior_min_coverage, high=s.prior_full_coverage)
+            if f is None or s.prior_level / max(f, 1e-6) > 255:
                 self.prior_stats.rejected += 1
                 return None
-            if coverage < s.prior_full_coverage:
-                self.prior_stats.weakened += 1
-                f = (coverage - s.prior_min_coverage) / (s.prior_full_coverage - s.prior_min_coverage)
-                level = level / max(f, 1e-6)
-                if level > 255:
-                    self.prior_stats.rejected += 1
-                    return None
         self.prior_stats.used += 1
-        level = int(np.ceil(level))
+        if f == 1.0:
+            return stored.trusted
+        self.prior_stats.weakened += 1
+        level = int(np.ceil(s.prior_level / f))
         return (cv2.compare(stored.small, level, cv2.CMP_GE),
                 None if stored.full is None else cv2.compare(stored.full, level, cv2.CMP_GE))
 

@@ -510,12 +510,25 @@ def weigh(prior: Prior, coverage: float, *, low: float = 0.5, high: float = 0.8)
     reach a segmenter's trust level), below ``low`` it is dropped. NaN (no
     observation to check against) keeps it.
     """
-    if not np.isfinite(coverage) or coverage >= high:
+    f = trust_factor(coverage, low=low, high=high)
+    if f is None:
+        return None
+    if f == 1.0:
         return prior
+    return Prior(prior.frame_index, prior.box, prior.image_size, (prior.mask * f + 0.5).astype(np.uint8))
+
+
+def trust_factor(coverage: float, *, low: float = 0.5, high: float = 0.8) -> float | None:
+    """How far to trust a prior that covers ``coverage`` of the evidence (:func:`weigh`).
+
+    1 at or above ``high`` (or NaN: nothing to check against), None (do not use)
+    below ``low``, linear in between.
+    """
+    if not np.isfinite(coverage) or coverage >= high:
+        return 1.0
     if coverage < low:
         return None
-    f = (coverage - low) / (high - low)
-    return Prior(prior.frame_index, prior.box, prior.image_size, (prior.mask * f + 0.5).astype(np.uint8))
+    return (coverage - low) / (high - low)
 
 
 def trim_silhouette(silhouette: np.ndarray, prior: np.ndarray, *, reach: float = 0.1, level: int = 64) -> np.ndarray:

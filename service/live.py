@@ -577,10 +577,21 @@ class LiveService:
         skip = 0 if period_s is None else int(lag_s / period_s)
         future = self.feedback_pool.submit(predict_feedback, est, tracks, w.indices, sizes,
                                            self.settings.feedback_ahead, skip)
-        priors = future.result(timeout=60)
+        deadline = time.monotonic() + 60
+        while True:  # in slices, so that close() need not wait for it
+            try:
+                priors = future.result(timeout=0.1)
+                break
+            except concurrent.futures.TimeoutError:
+                if self._stop.is_set() or time.monotonic() > deadline:
+                    future.cancel()
+                    return
+        # The run whose frame indices the window holds (not a run that started since).
+        epochs = {cam: m.epoch_ns for fs in w.frames for cam, m in fs.parts.items()}
         with self._lock:
+            if self._stop.is_set():
+                return
             rig = self._rigs[w.rig]
-            epochs = {cam: c.epoch_ns for cam, c in rig.cameras.items()}
             publishers = {}
             for cam in priors:
                 pub = rig.feedback.get(cam)

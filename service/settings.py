@@ -76,12 +76,13 @@ class Settings(BaseSettings):
                                         "smoothed viewpoint is an outlier ...")
     change_windows: int = Field(3, ge=1, description="... and this many consecutive agreeing "
                                 "outliers mean the camera moved")
-    # zenoh
+    # feedback (§7.1)
     feedback: bool = Field(True, description="publish silhouette priors to the segmenters "
-                           "(§7.1) after each live window")
-    feedback_ahead: int = Field(20, ge=1, description="frames predicted past each window: at "
-                                "least window_hop plus the frames captured while a window is "
-                                "estimated, so every frame's prior arrives before it")
+                           "after each live window (in a process of its own)")
+    feedback_ahead: int = Field(20, ge=1, description="frames predicted per window, after "
+                                "those captured while the priors are made: window_hop plus "
+                                "room for late priors")
+    # zenoh
     zenoh_mode: str = Field("peer", pattern="^(peer|client|router)$")
     zenoh_connect: list[str] = Field(default_factory=list)
     zenoh_listen: list[str] = Field(default_factory=lambda: [DEFAULT_ZENOH_LISTEN])

@@ -33,8 +33,8 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from estimator.appearance import AppearanceModel, load_model
-from estimator.pipeline import CameraTrack, WalkEstimate, estimate_walk, tracks_from_sequence
-from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
+from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.sequence import SequenceError, read_sequence, write_sequence
 
 from .jobs import JobGone, JobStore
 
@@ -377,12 +377,11 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
     """
     from estimator.prior import predict_priors
 
+    # Predictions count frames on from the window's last one (a window may hold an
+    # index gap, see WindowBuffer; the extrapolation is per frame of the window).
     priors = predict_priors(est, tracks, image_size, n_ahead, renderer=_get_renderer(),
-                            first_index=indices[0], skip=skip)
-    # Window positions -> frame indices: the window's frames are consecutive but
-    # the last index tells where the prediction starts.
-    shift = indices[-1] + 1 - (indices[0] + len(indices))
-    return {cam: [(p.frame_index + shift, tuple(int(v) for v in p.box), p.mask) for p in ps]
+                            first_index=indices[-1] + 1 - len(indices), skip=skip)
+    return {cam: [(p.frame_index, tuple(int(v) for v in p.box), p.mask) for p in ps]
             for cam, ps in priors.items()}
 
 
@@ -433,6 +432,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
             shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
+            shutil.rmtree(out / "silhouettes")  # the zip is what is served
             result["refined"] = {"silhouettes": f"/v1/jobs/{job_id}/silhouettes",
                                  "priors": refined.n_priors,
                                  "changed_pixels": refined.changed_pixels}
@@ -441,8 +441,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             n = len(next(iter(tracks.values())).silhouettes)
             bundle = make_bundle(tracks, est, model, list(range(n)), image_size)
             if refined is not None:
-                bundle.extra["feedback"] = feedback_views(refined.raw, refined.priors,
-                                                          refined.sequence)
+                bundle.extra["feedback"] = feedback_views(refined)
         if not store.finish(job_id, result):
             return None  # cancelled or deleted meanwhile
         return bundle
@@ -460,37 +459,39 @@ def _refine(kind: str, input_dir: Path, options: dict[str, Any], model: Appearan
             fps: float):
     """The job's silhouettes refined with model feedback (``capture.refine``)."""
     from capture.refine import refine_sequence, refine_videos
+    from capture.segment import default_warmup
 
     renderer = _get_renderer()
     if kind == "sequence":
         return refine_sequence(read_sequence(input_dir), model, renderer=renderer)
     videos = {p.stem: p for p in sorted(input_dir.iterdir()) if p.suffix.lower() in VIDEO_EXTENSIONS}
     n = int(options.get("n_frames") or 0)
-    warmup = options.get("warmup") or max(1, min(100, n // 4 if n else 30))
+    warmup = options.get("warmup") or default_warmup(n)
     return refine_videos(videos, model, renderer=renderer, warmup=warmup, fps=fps)
 
 
-def feedback_views(raw: dict[str, list[np.ndarray | None]], priors: dict[str, list[np.ndarray | None]],
-                   refined: Sequence) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]]:
-    """Per camera and frame, raw silhouette, prior and refined silhouette cut to one box.
-
-    The box is the union of the three, so the crops line up side by side (Rerun).
-    """
+def feedback_views(refined) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]]:
+    """Per camera and frame of a :class:`capture.refine.RefinedSequence`: raw silhouette,
+    prior and refined silhouette cut to the union of their boxes, so that they line up
+    side by side (Rerun)."""
+    seq = refined.sequence
     out: dict[str, list] = {}
-    for cam, frames in raw.items():
+    for cam in seq.cameras:
         out[cam] = []
-        for k, r in enumerate(frames):
-            p = priors.get(cam, [None] * len(frames))[k]
-            f = refined.silhouettes[cam][k] if k < len(refined.silhouettes[cam]) else None
-            layers = [x for x in (r, p, f) if x is not None and x.shape == r.shape] if r is not None else []
-            if r is None or not any(x.any() for x in layers):
+        for k, done in enumerate(seq.silhouettes[cam]):
+            raw = refined.raw_frame(cam, k)
+            if raw is None:
                 out[cam].append(None)
                 continue
-            ys, xs = np.nonzero(np.logical_or.reduce([x > 0 for x in layers]))
-            sl = np.s_[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
-            blank = np.zeros_like(r)
-            out[cam].append(tuple((x if x is not None and x.shape == r.shape else blank)[sl]
-                                  for x in (r, p, f)))
+            layers = [raw, refined.prior_frame(cam, k), done if done is not None and done.shape == raw.shape
+                      else None]
+            layers = [np.zeros_like(raw) if x is None else x for x in layers]
+            box = crop_to_box(np.maximum.reduce(layers))
+            if box is None:
+                out[cam].append(None)
+                continue
+            x, y, w, h = (int(v) for v in box[1])
+            out[cam].append(tuple(layer[y:y + h, x:x + w] for layer in layers))
     return out
 
 
@@ -510,7 +511,7 @@ def _tracks_from_videos(folder: Path, *, warmup: int | None, report) -> tuple[di
     import cv2
 
     from capture.refine import track_from_segmentations
-    from capture.segment import Segmenter, SegmentSettings
+    from capture.segment import Segmenter, SegmentSettings, default_warmup
 
     videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
     tracks, sizes, fps = {}, {}, 0.0
@@ -520,7 +521,7 @@ def _tracks_from_videos(folder: Path, *, warmup: int | None, report) -> tuple[di
             raise ValueError(f"video {path.name} cannot be opened")
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 0
         fps = fps or float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        w = warmup if warmup is not None else max(1, min(100, n // 4 if n else 30))
+        w = warmup if warmup is not None else default_warmup(n)
         seg = Segmenter(SegmentSettings(warmup_frames=w))
         segs = []
         while True:

@@ -189,7 +189,7 @@ def test_agent_ignores_stale_priors_and_priors_for_another_run(endpoint, video):
     path, truth = video
     settings = agent.AgentSettings(rig="lab", camera="c0", source=f"{path}?loop=1", fps=60,
                                    max_frames=30 + 90,
-                                   segment=SegmentSettings(warmup_frames=30, prior_max_age_ms=500))
+                                   segment=SegmentSettings(warmup_frames=30, prior_max_age_ms=1000))
     kinds = {"stale": 0, "other run": 0, "fresh": 0}
     with zenoh.open(build_config(listen=[endpoint])) as session, \
             SilhouetteReceiver(session, "lab", "c0") as receiver:

@@ -139,7 +139,7 @@ def test_refined_silhouettes_of_a_sequence_job(tmp_path, seq_dir, good_zip):
     assert result["refined"]["priors"] == 2 * original.n_frames
     changed = sum(int(((a > 0) != (b > 0)).sum()) for c in seq.cameras
                   for a, b in zip(seq.silhouettes[c], original.silhouettes[c]) if a is not None)
-    assert changed == result["refined"]["changed_pixels"]
+    assert changed == result["refined"]["changed_pixels"] > 0  # measured: a few dozen pixels
 
 
 def test_silhouettes_of_an_unfinished_job_are_409(tmp_path, good_zip):

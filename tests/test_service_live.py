@@ -223,7 +223,9 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
             assert rig["feedback"]["priors_sent"] > 0
             for cam, st in stats.items():
                 assert st.priors > 0 and st.prior_use.used > 0, (cam, st.prior_use, rig["feedback"])
-                assert st.priors_ahead > 0, (cam, st)
+                # Most frames after the first prior had theirs in time (the 95 % target
+                # is the benchmark's, on a longer run), none came for another run.
+                assert st.prior_ahead_fraction > 0.5 and st.priors_other_epoch == 0, (cam, st)
         else:
             assert rig["feedback"]["priors_sent"] == 0
             assert all(st.priors == 0 and st.prior_use.used == 0 for st in stats.values())

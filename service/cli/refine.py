@@ -104,6 +104,7 @@ def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> i
     import cv2
 
     from capture.refine import refine_videos
+    from capture.segment import default_warmup
     from estimator.prior import PriorConfig
     from estimator.render import Renderer
 
@@ -116,7 +117,7 @@ def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> i
         fps = fps or float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         cap.release()
     n = min(counts.values())
-    warmup = args.warmup if args.warmup is not None else max(1, min(100, n // 4 if n else 30))
+    warmup = args.warmup if args.warmup is not None else default_warmup(n)
     truth = None
     truth_path = os.path.join(args.sequence, "truth.json")
     if os.path.exists(truth_path):
