@@ -13,7 +13,8 @@ each XYZ Euler angle of the relative rotation, plus the SO(3) geodesic error,
 for our closed form (§4.2, as in the paper; on Wiener-smoothed tracks; on
 smoothed tracks with the noise-consistent beta), the closed form + bundle
 adjustment (§4.3; maximum likelihood as in the paper, and MAP with the
-temporal prior, the default of ``refine=True``), and the two baselines
+temporal prior, the default of ``refine=True``; MAP with the prior that the
+walker is upright, ``upright=True``), and the two baselines
 (Liebowitz–Carlsson, Tresadern–Reid).
 
 Experiments:
@@ -78,6 +79,7 @@ METHODS = {
     "ours+BA, no temporal prior": lambda y: self_calibrate(y, refine=True, temporal_prior=False,
                                                            noise_model=False),
     "ours+BA": lambda y: self_calibrate(y, refine=True),
+    "ours+BA, upright": lambda y: self_calibrate(y, refine=True, upright=True),
     "LC": lambda y: liebowitz_carlsson(y, on_indefinite="clip"),
     "TR": lambda y: tresadern_reid(y),
 }
@@ -194,7 +196,7 @@ def table(title, res, methods, metric, unit, fmt="{:.2f}", non_pd=None, failed=N
 
 
 def medians(res, methods, metric) -> str:
-    lines = [f"| noise | " + " | ".join(methods) + " |", "|" + "---|" * (len(methods) + 1)]
+    lines = ["| noise | " + " | ".join(methods) + " |", "|" + "---|" * (len(methods) + 1)]
     for li, level in enumerate(LEVELS):
         lines.append(f"| {level:.0%} | " + " | ".join(
             f"{np.nanmedian(res[m][metric][li]):.4g}" for m in methods) + " |")
@@ -241,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     x_all = read_motion(args.mocap).person_frame()[20:, :N_JOINTS]
     base = ["ours", "ours, denoised", "LC", "TR"]
     with_ba = (["ours", "ours, smoothed", "ours, denoised"]
-               + ([] if args.no_ba else ["ours+BA, no temporal prior", "ours+BA"]) + ["LC", "TR"])
+               + ([] if args.no_ba else ["ours+BA, no temporal prior", "ours+BA", "ours+BA, upright"])
+               + ["LC", "TR"])
     t0 = time.time()
     sections = {}
     figs = [("e3d", "E3D / height"), ("es", "Es = |s - s_true|"), ("ex", "E_rx (deg)"),

@@ -64,7 +64,7 @@ from ._selfcal_core import (
 )
 from .joints import JOINT_INDEX, N_JOINTS
 
-__all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "SelfCalibration", "self_calibrate"]
+__all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "UPRIGHT_PRIORS", "SelfCalibration", "self_calibrate"]
 
 Link = tuple[int, int]
 Ratio = tuple[Link, Link, float]
@@ -99,6 +99,9 @@ SYMMETRIC_RATIOS: tuple[Ratio, ...] = (
     (_link("left_knee", "left_ankle"), _link("right_knee", "right_ankle"), 1.0),
 )
 """Left and right limbs of equal length: the default length ratios for §4.3."""
+
+LengthPrior = tuple[tuple[Link, ...], tuple[Link, ...], float, float]
+"""``(links_a, links_b, ratio, tolerance)``: ``sum |a| / sum |b| = ratio``, log std ``tolerance``."""
 
 
 @dataclass(frozen=True)
@@ -208,6 +211,19 @@ def _check_links(links: Sequence[Link] | None, ratios: Sequence[Ratio]) -> tuple
                 raise ValueError(f"bad link {ln} in length ratio {r}")
         out.append((tuple(map(int, r[0])), tuple(map(int, r[1])), float(r[2])))
     return [tuple(map(int, ln)) for ln in links], out
+
+
+def _check_proportions(priors: Sequence[LengthPrior]) -> list:
+    out = []
+    for pr in priors or ():
+        if len(pr) != 4 or not float(pr[2]) > 0 or not float(pr[3]) > 0 or not pr[0] or not pr[1]:
+            raise ValueError(f"a body proportion must be (links_a, links_b, ratio > 0, tolerance > 0), got {pr}")
+        for ln in (*pr[0], *pr[1]):
+            if len(ln) != 2 or not all(0 <= int(i) < N_JOINTS for i in ln):
+                raise ValueError(f"bad link {ln} in body proportion {pr}")
+        out.append((tuple(tuple(map(int, ln)) for ln in pr[0]),
+                    tuple(tuple(map(int, ln)) for ln in pr[1]), float(pr[2]), float(pr[3])))
+    return out
 
 
 # ------------------------------------------------------------------ the beta family
@@ -453,6 +469,8 @@ def self_calibrate(
     max_nfev: int = 200,
     temporal_prior: bool | float | None = None,
     noise_model: bool | None = None,
+    body_proportions: Sequence[LengthPrior] = (),
+    upright: bool | float = False,
 ) -> SelfCalibration:
     """Self-calibrate scaled orthographic cameras from 2D joint tracks.
 
@@ -497,6 +515,22 @@ def self_calibrate(
         average, :func:`_link_noise_poly`) in the basin of the paper's minimum
         of ``f4 / f3^2``, which noise biases (docs/SELFCAL.md). Default: on
         when ``refine`` is, off for the bare closed form.
+    body_proportions : sequence of (links_a, links_b, ratio, tolerance)
+        Known proportions of *this* walker, for the bundle adjustment
+        (``scales="fixed"`` with ``refine``): ``sum |a| / sum |b|`` over the links (all in ``links``)
+        is ``ratio``, with ``tolerance`` the standard deviation of its log.
+        MAP residuals weighted by ``noise sigma / tolerance``
+        (:func:`_length_prior`), absent on noise-free tracks. Population
+        proportions are not accurate enough (docs/SELFCAL.md). Default none.
+    upright : bool or float
+        Prior that the walker is upright with the arms swinging along the
+        walk, for the bundle adjustment (``scales="fixed"`` with ``refine``):
+        the mean trunk axis is perpendicular to the mean hip and shoulder
+        lines, the mean upper-arm direction to the shoulder line
+        (:data:`UPRIGHT_PRIORS`; angles within the body, so no camera or
+        ground orientation is needed). MAP residuals weighted by
+        ``noise sigma / tolerance``, absent on noise-free tracks. A float
+        scales the weight (``True`` = 1). Default off.
 
     Returns
     -------
@@ -525,6 +559,10 @@ def self_calibrate(
         refine = scales == "varying"
     strength = float(refine if temporal_prior is None else temporal_prior)
     noise_model = bool(refine if noise_model is None else noise_model)
+    upright_w = float(upright)
+    if not (np.isfinite(upright_w) and upright_w >= 0):
+        raise ValueError(f"upright must be a bool or a float >= 0, got {upright!r}")
+    body_proportions = _check_proportions(body_proportions)
     if not (np.isfinite(strength) and strength >= 0):
         raise ValueError(f"temporal_prior must be a bool or a float >= 0, got {temporal_prior!r}")
     if scales == "varying":
@@ -582,9 +620,12 @@ def self_calibrate(
     diag["reflected"] = flip
     frame_scales = None
     if refine:
+        sigma = noise_sigma(fact)
         ba = _bundle_adjust(y / fact.norm, fact.observed, rots, np.repeat(sc[:, None], t, axis=1),
                             joints / fact.norm, fact.centroids / fact.norm, links_,
-                            per_frame_scales=False, max_nfev=max_nfev, prior_op=prior_op)
+                            per_frame_scales=False, max_nfev=max_nfev, prior_op=prior_op,
+                            length_prior=_length_prior(body_proportions, links_, sigma),
+                            angle_prior=_angle_prior(UPRIGHT_PRIORS, sigma, upright_w))
         rots, sc_t, joints_n, info = ba
         sc = sc_t[:, 0] / sc_t[0, 0]
         joints = joints_n * fact.norm * sc_t[0, 0]
@@ -756,6 +797,87 @@ def _smooth_tracks(y: np.ndarray, smoother: np.ndarray, fact: Factorization) -> 
     return np.where(np.isfinite(y), out, np.nan)
 
 
+def _length_prior(priors: Sequence[LengthPrior], links: Sequence[Link], sigma: float,
+                  strength: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Soft length ratios as MAP residuals for :func:`_bundle_adjust`.
+
+    Each prior ``(links_a, links_b, ratio, tol)`` says ``log(sum |a| / sum |b|)``
+    is ``log(ratio)`` with standard deviation ``tol``; against image noise of
+    standard deviation ``sigma`` (normalised units, the reprojection residuals'
+    scale) its residual weight is ``strength * sigma / tol``. Priors that name a
+    link outside ``links`` are skipped. None without noise (``sigma <= 1e-9``):
+    noise-free tracks stay exact.
+    """
+    if not sigma > 1e-9 or not priors:
+        return None
+    index = {tuple(sorted(ln)): i for i, ln in enumerate(links)}
+    a_rows, b_rows, log_r, w = [], [], [], []
+    for la, lb, ratio, tol in priors:
+        keys = [tuple(sorted(map(int, ln))) for ln in (*la, *lb)]
+        if not all(key in index for key in keys):
+            continue
+        a = np.zeros(len(links)); b = np.zeros(len(links))
+        for key in keys[:len(la)]:
+            a[index[key]] += 1.0
+        for key in keys[len(la):]:
+            b[index[key]] += 1.0
+        a_rows.append(a); b_rows.append(b); log_r.append(np.log(ratio))
+        w.append(strength * sigma / tol)
+    if not w:
+        return None
+    return np.array(a_rows), np.array(b_rows), np.array(log_r), np.array(w)
+
+
+_TRUNK = {"left_shoulder": 0.5, "right_shoulder": 0.5, "left_hip": -0.5, "right_hip": -0.5}
+_UPPER_ARMS = {"left_shoulder": 0.5, "right_shoulder": 0.5, "left_elbow": -0.5, "right_elbow": -0.5}
+_HIP_LINE = {"left_hip": 1.0, "right_hip": -1.0}
+_SHOULDER_LINE = {"left_shoulder": 1.0, "right_shoulder": -1.0}
+
+UPRIGHT_PRIORS: tuple[tuple[dict[str, float], dict[str, float], float], ...] = (
+    (_TRUNK, _HIP_LINE, 0.67),
+    (_TRUNK, _SHOULDER_LINE, 0.67),
+    (_UPPER_ARMS, _SHOULDER_LINE, 1.0),
+)
+"""Upright walker, arms swinging along the walk: ``(vector a, vector b, tolerance in degrees)``,
+each vector a combination of joints averaged over the frames, ``a`` perpendicular to ``b``.
+
+The mean trunk axis (hip centre to shoulder centre) is perpendicular to the
+mean hip line and to the mean shoulder line, and so is the mean upper-arm
+direction (elbow centre to shoulder centre) to the shoulder line. Angles
+inside the body: no camera, ground or heading is needed. On the CMU walks
+(30-frame windows, mean +- std) they are 91.1 +- 1.2 / 88.0 +- 0.4 /
+88.6 +- 0.7 deg (07_05) and 90.3 +- 0.6 / 88.2 +- 0.5 / 90.9 +- 0.4 deg
+(16_15). The set and the tolerances were chosen on 07_05 (docs/SELFCAL.md).
+Not for a walker who carries something or holds the arms away from the body.
+"""
+
+
+def _cosines(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cosine between the frame means ``va = mean_t sum_j a_ij x_tj`` and ``vb``, and its gradients."""
+    va = np.einsum("nj,tjd->nd", a, x) / x.shape[0]
+    vb = np.einsum("nj,tjd->nd", b, x) / x.shape[0]
+    na = np.maximum(np.linalg.norm(va, axis=1), 1e-12)
+    nb = np.maximum(np.linalg.norm(vb, axis=1), 1e-12)
+    c = np.sum(va * vb, axis=1) / (na * nb)
+    ga = vb / (na * nb)[:, None] - c[:, None] * va / (na**2)[:, None]
+    gb = va / (na * nb)[:, None] - c[:, None] * vb / (nb**2)[:, None]
+    return c, ga, gb
+
+
+def _angle_prior(priors, sigma: float, strength: float = 1.0):
+    """Perpendicularity priors as MAP residuals ``strength * sigma / tol_rad * cos`` (None without noise)."""
+    if not sigma > 1e-9 or not priors or not strength > 0:
+        return None
+    a = np.zeros((len(priors), N_JOINTS)); b = np.zeros((len(priors), N_JOINTS)); w = []
+    for i, (ca, cb, tol) in enumerate(priors):
+        for name, v in ca.items():
+            a[i, JOINT_INDEX[name]] += v
+        for name, v in cb.items():
+            b[i, JOINT_INDEX[name]] += v
+        w.append(strength * sigma / np.radians(tol))
+    return a, b, np.array(w)
+
+
 def _bundle_adjust(
     y: np.ndarray,
     observed: np.ndarray,
@@ -769,6 +891,8 @@ def _bundle_adjust(
     max_nfev: int,
     bone_weight: float = 1.0,
     prior_op: np.ndarray | None = None,
+    length_prior: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    angle_prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Bundle adjustment over rotations, scales and 3D joints with constant bone lengths.
 
@@ -793,6 +917,13 @@ def _bundle_adjust(
         Temporal prior: residuals ``prior_op @ (predicted image track)`` for
         every camera, joint and image axis (None = maximum likelihood, the
         paper's bundle adjustment); see :func:`_temporal_prior`.
+    length_prior : (A, B, log_r, w), optional
+        Soft length ratios over the link lengths ``L`` (:func:`_length_prior`):
+        residuals ``w (log(A L) - log(B L) - log_r)``, ``A``, ``B`` of shape
+        ``(n, len(links))``.
+    angle_prior : (A, B, w), optional
+        Perpendicularity of frame-mean joint combinations (:func:`_angle_prior`):
+        residuals ``w cos(mean_t A x_t, mean_t B x_t)``, ``A``, ``B`` of shape ``(n, J)``.
 
     Returns
     -------
@@ -829,6 +960,14 @@ def _bundle_adjust(
     obs_c, obs_t, obs_j = np.nonzero(observed)
     y_obs = y[obs_c, obs_t, obs_j]
     smooth = prior_op is not None and prior_op.size > 0 and t >= 2
+    n_ap = 0
+    if angle_prior is not None:
+        ap_a, ap_b, ap_w = (np.asarray(v, dtype=float) for v in angle_prior)
+        n_ap = ap_w.size
+    n_lp = 0
+    if length_prior is not None and k:
+        lp_a, lp_b, lp_r, lp_w = (np.asarray(v, dtype=float) for v in length_prior)
+        n_lp = lp_r.size
     if smooth:
         prior_op = np.asarray(prior_op, dtype=float)
         n_k = prior_op.shape[0]
@@ -854,6 +993,11 @@ def _bundle_adjust(
         if smooth:  # prior on each camera's predicted (centred) image track: (C, K, J, 2)
             track = s[:, :, None, None] * np.einsum("cij,tkj->ctki", r[:, :2], x)
             res.append(np.einsum("kt,ctjd->ckjd", prior_op, track).ravel())
+        if n_lp:
+            lk_pos = np.maximum(lk, 1e-12)
+            res.append(lp_w * (np.log(lp_a @ lk_pos) - np.log(lp_b @ lk_pos) - lp_r))
+        if n_ap:
+            res.append(ap_w * _cosines(x, ap_a, ap_b)[0])
         return np.concatenate(res)
 
     # Analytic sparse Jacobian (finite differences only for the rotation vectors).
@@ -902,6 +1046,14 @@ def _bundle_adjust(
         for q in range(3):
             rows.append(rs[sm_b]); cols.append(offs[0] + 3 * (pc[sm_b] - 1) + q)
         base += pc.size
+    if n_lp:  # dense (n_lp, k) block on the link lengths
+        rl, cl = np.meshgrid(np.arange(n_lp), np.arange(k), indexing="ij")
+        rows.append(base + rl.ravel()); cols.append(offs[4] + cl.ravel())
+        base += n_lp
+    if n_ap:  # dense over all joints and frames (the vectors are means over frames)
+        ra_ = np.repeat(base + np.arange(n_ap), n_x)
+        rows.append(ra_); cols.append(np.tile(offs[3] + np.arange(n_x), n_ap))
+        base += n_ap
     rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
     shape = (base, offs[-1])
     centroid_vals = np.full(ct.size, 1.0 / j)
@@ -919,7 +1071,8 @@ def _bundle_adjust(
             diff = (fun(p + dp) - fun(p - dp)) / (2 * h)
             drot.append(diff[:2 * n_obs].reshape(n_obs, 2))
             if smooth:
-                drot_sm.append(diff[-n_sm:])
+                end = diff.size - n_lp - n_ap
+                drot_sm.append(diff[end - n_sm:end])
         vals = []
         for d in range(2):
             for q in range(3):
@@ -944,6 +1097,14 @@ def _bundle_adjust(
             vals.append((ds.ravel() if per_frame_scales else ds.sum(axis=1))[s_has])
             for q in range(3):
                 vals.append(drot_sm[q][sm_b])
+        if n_lp:
+            lk_pos = np.maximum(lk, 1e-12)
+            vals.append((lp_w[:, None] * (lp_a / (lp_a @ lk_pos)[:, None]
+                                          - lp_b / (lp_b @ lk_pos)[:, None])).ravel())
+        if n_ap:
+            _, ga, gb = _cosines(x, ap_a, ap_b)  # (n, 3) gradients w.r.t. the mean vectors
+            dx = (ap_a[:, :, None] * ga[:, None, :] + ap_b[:, :, None] * gb[:, None, :]) / t  # (n, J, 3)
+            vals.append((ap_w[:, None, None, None] * np.broadcast_to(dx[:, None], (n_ap, t, j, 3))).ravel())
         return scipy.sparse.csr_matrix((np.concatenate(vals), (rows_a, cols_a)), shape=shape)
 
     start_cost = 0.5 * float(np.sum(fun(p0) ** 2))
