@@ -97,6 +97,16 @@ def test_varying_scale_option(tmp_path, tracks):
     assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
 
 
+def test_refine_upright_option(tmp_path, tracks, capsys):
+    doc = write(tmp_path, as_doc(tracks))
+    out = tmp_path / "r.json"
+    assert main(["selfcal", str(doc), "--out", str(out), "--refine", "--upright"]) == 0
+    cam = json.loads(out.read_text())["cameras"]["right"]
+    assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01  # noise-free: still exact
+    assert main(["selfcal", str(doc), "--upright"]) == 2
+    assert "--upright needs --refine" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("mutate", "message"),
     [

@@ -39,6 +39,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "adjustment (section 4.3)")
     p.add_argument("--refine", action="store_true",
                    help="finish the closed form with the bundle adjustment")
+    p.add_argument("--upright", action="store_true",
+                   help="with --refine: the walker is upright with free arms (right angles "
+                        "inside the trunk and shoulders as soft priors)")
     p.set_defaults(func=run)
 
 
@@ -137,8 +140,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"cannot read {args.tracks}: {exc}") from None
     cameras, tracks = load_tracks(doc)
     try:
+        if args.upright and not args.refine:
+            raise CliError("--upright needs --refine")
         result = self_calibrate(tracks, scales="varying" if args.varying_scale else "fixed",
-                                refine=True if args.refine else None)
+                                refine=True if args.refine else None, upright=args.upright)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if not result:
