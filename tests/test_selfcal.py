@@ -247,6 +247,24 @@ def test_link_noise_poly_is_the_expected_noise_part_of_f4(walk):
         assert np.mean(gain) == pytest.approx(2 * sigma**2 * np.mean(v4), rel=0.1)
 
 
+def _check_jacobians(monkeypatch, selfcal_mod, rng) -> list[int]:
+    """Make every least_squares call of ``selfcal_mod`` first compare its analytic
+    Jacobian with central differences near the start; returns the residual sizes seen."""
+    checked: list[int] = []
+    real = selfcal_mod.least_squares
+
+    def check(fun, p0, jac, **kw):
+        p = p0 + rng.normal(size=p0.shape) * 0.05
+        eps = 1e-6
+        num = np.stack([(fun(p + eps * e) - fun(p - eps * e)) / (2 * eps) for e in np.eye(p.size)], 1)
+        np.testing.assert_allclose(jac(p).toarray(), num, atol=1e-6)
+        checked.append(fun(p).size)
+        return real(fun, p0, jac=jac, **kw)
+
+    monkeypatch.setattr(selfcal_mod, "least_squares", check)
+    return checked
+
+
 def test_map_bundle_adjustment_jacobian(walk, monkeypatch):
     """The analytic Jacobian of the temporal prior residuals matches central differences."""
     import estimator.selfcal as selfcal_mod
@@ -256,18 +274,7 @@ def test_map_bundle_adjustment_jacobian(walk, monkeypatch):
     rots = np.stack([np.eye(3), Rotation.random(random_state=1).as_matrix()])
     x = rng.normal(size=(t, j, 3))
     op = rng.normal(size=(t - 1, t))
-    checked = []
-    real = selfcal_mod.least_squares
-
-    def check(fun, p0, jac, **kw):
-        p = p0 + rng.normal(size=p0.shape) * 0.05
-        eps = 1e-6
-        num = np.stack([(fun(p + eps * e) - fun(p - eps * e)) / (2 * eps) for e in np.eye(p.size)], 1)
-        np.testing.assert_allclose(jac(p).toarray(), num, atol=1e-6)
-        checked.append(True)
-        return real(fun, p0, jac=jac, **kw)
-
-    monkeypatch.setattr(selfcal_mod, "least_squares", check)
+    checked = _check_jacobians(monkeypatch, selfcal_mod, rng)
     for per_frame in (False, True):
         scales = np.exp(rng.normal(size=(c, t)) * 0.1) if per_frame else np.repeat([[1.0], [1.3]], t, axis=1)
         y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, :, None, None]
@@ -510,18 +517,7 @@ def test_walker_prior_jacobians(monkeypatch):
     x = rng.normal(size=(t, j, 3))
     scales = np.repeat([[1.0], [1.2]], t, axis=1)
     y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, :, None, None] + rng.normal(size=(c, t, j, 2)) * 0.1
-    checked = []
-    real = selfcal_mod.least_squares
-
-    def check(fun, p0, jac, **kw):
-        p = p0 + rng.normal(size=p0.shape) * 0.05
-        eps = 1e-6
-        num = np.stack([(fun(p + eps * e) - fun(p - eps * e)) / (2 * eps) for e in np.eye(p.size)], 1)
-        np.testing.assert_allclose(jac(p).toarray(), num, atol=1e-6)
-        checked.append(fun(p).size)
-        return real(fun, p0, jac=jac, **kw)
-
-    monkeypatch.setattr(selfcal_mod, "least_squares", check)
+    checked = _check_jacobians(monkeypatch, selfcal_mod, rng)
     lp = selfcal_mod._length_prior([(_THIGHS, _SHINS, 1.1, 0.05), (_THIGHS[:1], _THIGHS[1:], 1.0, 0.02)],
                                    RIGID_LINKS, 0.1)
     ap = selfcal_mod._angle_prior(selfcal_mod.UPRIGHT_PRIORS, 0.1, 3.0)
