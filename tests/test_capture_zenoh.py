@@ -289,6 +289,13 @@ def start_router(endpoint: str) -> tuple[threading.Event, threading.Thread]:
     thread = threading.Thread(target=router.main, daemon=True, kwargs={"stop": stop},
                               args=(build_config(mode="router", listen=[endpoint]),))
     thread.start()
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+
+    def listening() -> bool:  # clients connect once, so wait until the router accepts
+        with socket.socket() as s:
+            return s.connect_ex((host, int(port))) == 0
+
+    assert wait_for(listening, timeout=10), f"router not listening on {endpoint}"
     return stop, thread
 
 
