@@ -396,18 +396,39 @@ def predict_boxes(boxes: np.ndarray, n_ahead: int, *, history: int = 8) -> np.nd
     -------
     ndarray of shape (n_ahead, 4); NaN when fewer than one box is known.
     """
-    boxes = np.asarray(boxes, float)
-    known = np.flatnonzero(np.isfinite(boxes[:, 0]))[-history:]
-    T = len(boxes)
+    return extrapolate(boxes, n_ahead, history=history)
+
+
+def extrapolate(values: np.ndarray, n_ahead: int, *, history: int = 8) -> np.ndarray:
+    """The next ``n_ahead`` rows of a per-frame series, by a straight-line fit (per column)
+    to its last ``history`` known rows (NaN = unknown); NaN when none is known."""
+    values = np.asarray(values, float)
+    known = np.flatnonzero(np.isfinite(values).all(axis=1))[-history:]
+    T, d = values.shape
     if known.size == 0:
-        return np.full((n_ahead, 4), np.nan)
-    future = np.arange(T, T + n_ahead, dtype=float)
+        return np.full((n_ahead, d), np.nan)
     if known.size == 1:
-        return np.repeat(boxes[known], n_ahead, axis=0)
-    out = np.empty((n_ahead, 4))
-    for k in range(4):
-        slope, icpt = np.polyfit(known.astype(float), boxes[known, k], 1)
-        out[:, k] = icpt + slope * future
+        return np.repeat(values[known], n_ahead, axis=0)
+    future = np.arange(T, T + n_ahead, dtype=float)
+    coef = np.polynomial.polynomial.polyfit(known.astype(float), values[known], 1)  # (2, d)
+    return coef[0] + future[:, None] * coef[1]
+
+
+def silhouette_centroids(track: CameraTrack) -> np.ndarray:
+    """Full-frame centroid ``(x, y)`` of each frame's silhouette, NaN where there is none.
+
+    The walker's motion in the image is followed by its centroid rather than its
+    box, whose centre swings with the legs and arms.
+    """
+    out = np.full((len(track.silhouettes), 2), np.nan)
+    for t, sil in enumerate(track.silhouettes):
+        box = track.boxes[t]
+        if sil is None or not np.isfinite(box).all():
+            continue
+        m = cv2.moments((sil > 0).astype(np.uint8), binaryImage=True)
+        if m["m00"] > 0:
+            out[t] = (box[0] + (m["m10"] / m["m00"] + 0.5) * box[2] / sil.shape[1] - 0.5,
+                      box[1] + (m["m01"] / m["m00"] + 0.5) * box[3] / sil.shape[0] - 0.5)
     return out
 
 
@@ -427,8 +448,8 @@ def predict_priors(
     (live feedback, §7.1: the frames captured while the priors are made need none).
 
     The phase continues the HMM path (:func:`predict_phases`); the body is
-    registered onto the camera's last silhouette, then moved by the box motion
-    extrapolated from the window (:func:`predict_boxes`).
+    registered onto the camera's last silhouette, then moved with the motion of
+    the silhouette's centroid extrapolated from the window (:func:`extrapolate`).
     """
     if skip < 0:
         raise ValueError(f"skip must be >= 0, got {skip}")
@@ -447,17 +468,16 @@ def predict_priors(
         if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg) or not known or n_ahead == 0:
             continue
         last = known[-1]
-        future = predict_boxes(track.boxes, skip + n_ahead)[skip:]
+        centroids = silhouette_centroids(track)
+        # Predicted centroid minus the last observed one.
+        shifts = extrapolate(centroids, skip + n_ahead)[skip:] - centroids[last]
         renders = render_body(phases, cam.viewpoint.azimuth_deg, cam.viewpoint.elevation_deg,
                               renderer=renderer, body=config.body, gait=gait,
                               pixels_per_metre=config.pixels_per_metre)
         lb = track.boxes[last]
         for k, r in enumerate(renders):
-            fb = future[k]
-            # Centre of the predicted box minus centre of the last observed one.
-            shift = (fb[0] + fb[2] / 2 - lb[0] - lb[2] / 2, fb[1] + fb[3] / 2 - lb[1] - lb[3] / 2)
             p = prior_from_render(r, track.silhouettes[last], lb, size, frame_index=first_index + T + skip + k,
-                                  config=config, shift=shift)
+                                  config=config, shift=(float(shifts[k, 0]), float(shifts[k, 1])))
             if p is not None:
                 out[name].append(p)
     return out

@@ -13,9 +13,10 @@ from capture.scene import iou
 from estimator.camera import Camera
 from estimator.gait import load_gait
 from estimator.joints import N_JOINTS
-from estimator.pipeline import WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
 from estimator.prior import (
     Prior,
+    extrapolate,
     predict_boxes,
     predict_phases,
     predict_priors,
@@ -24,6 +25,7 @@ from estimator.prior import (
     refine_silhouette,
     render_body,
     rotate_prior,
+    silhouette_centroids,
     soften,
 )
 from estimator.render import Renderer
@@ -71,6 +73,29 @@ def test_predict_boxes_extrapolates_a_straight_walk():
     np.testing.assert_allclose(pred[:, 0], [140, 144], atol=1e-6)
     np.testing.assert_allclose(pred[:, 3], [125, 125.5], atol=1e-6)
     assert np.isnan(predict_boxes(np.full((3, 4), np.nan), 2)).all()
+
+
+def test_silhouette_centroids_follow_the_body_not_its_box():
+    """A walker whose box widens on one side (a swinging leg) while the body stays put."""
+    sils, boxes = [], []
+    for t in range(4):
+        sil = np.zeros((40, 10 + 4 * t), np.uint8)
+        sil[:, :10] = 255  # the body: 10 px wide at x = 100 + 3 t
+        sil[30:, 10:] = 255 if t else 0  # a leg swinging out to the right, 10 rows
+        sils.append(sil)
+        boxes.append([100 + 3 * t, 20, sil.shape[1], 40])
+    sils.append(None)
+    boxes.append([np.nan] * 4)
+    c = silhouette_centroids(CameraTrack(sils, np.array(boxes, float), full_frame=True))
+    assert np.isnan(c[4]).all()
+    np.testing.assert_allclose(c[0], [104.5, 39.5])
+    box_centre = np.array([b[0] + b[2] / 2 - 0.5 for b in boxes[:4]])
+    # The body moves 3 px a frame; the box centre 5 (the leg adds 2), the centroid less.
+    assert np.all(np.diff(box_centre) == 5) and np.all(np.diff(c[:4, 0]) < 4.2), c
+    future = extrapolate(c, 2)  # a straight line through the known rows only
+    assert future.shape == (2, 2) and np.isfinite(future).all()
+    np.testing.assert_allclose(extrapolate(np.array([[0.0, 1.0], [2.0, 1.0], [np.nan, np.nan]]), 2),
+                               [[6.0, 1.0], [8.0, 1.0]])
 
 
 def test_soften_is_confident_inside_and_unsure_at_the_edge():
