@@ -90,12 +90,18 @@ def test_test2_geometry_noise_free(walk):
     assert res.diagnostics["beta_range"][0] < res.diagnostics["beta"] < res.diagnostics["beta_range"][1]
 
 
+def random_case(walk: np.ndarray, rng: np.random.Generator):
+    """Noise-free tracks of ``walk`` in a random camera pair with a random relative scale:
+    ``(R_a, R_b, s, tracks)``."""
+    ra, rb = random_pair(rng)
+    s = rng.uniform(0.5, 2.0)
+    return ra, rb, s, project(walk, np.stack([ra, rb]), [100.0, 100.0 * s], rng.uniform(0, 500, (2, 2)))
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_exact_recovery_random_rotations_and_scales(walk, seed):
     rng = np.random.default_rng(seed)
-    ra, rb = random_pair(rng)
-    s = rng.uniform(0.5, 2.0)
-    y = project(walk, np.stack([ra, rb]), [100.0, 100.0 * s], rng.uniform(0, 500, (2, 2)))
+    ra, rb, s, y = random_case(walk, rng)
     res = self_calibrate(y)
     assert res, res.reason
     assert geodesic_deg(res.rotations[1], rb @ ra.T) < 0.01
@@ -189,9 +195,7 @@ def test_noise_sigma_from_rank3_residual(walk, level):
 @pytest.mark.parametrize("seed", range(3))
 def test_temporal_prior_and_noise_model_keep_noise_free_exact(walk, seed):
     rng = np.random.default_rng(seed)
-    ra, rb = random_pair(rng)
-    s = rng.uniform(0.5, 2.0)
-    y = project(walk, np.stack([ra, rb]), [100.0, 100.0 * s], rng.uniform(0, 500, (2, 2)))
+    ra, rb, s, y = random_case(walk, rng)
     for kw in ({"temporal_prior": True, "noise_model": True}, {"refine": True}):
         res = self_calibrate(y, **kw)
         assert res, res.reason
