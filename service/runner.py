@@ -59,7 +59,9 @@ class JobRunner:
         call = functools.partial(run_job, job_id, self.store.url, kind, input_dir, options,
                                  want_bundle=self.rerun is not None)
         try:
-            bundle = await self._loop.run_in_executor(self.pool, call)
+            # Submitted from a thread: after a worker died, submit starts a new pool.
+            future = await asyncio.to_thread(self.pool.submit, call)
+            bundle = await asyncio.wrap_future(future)
             if bundle is not None and self.rerun is not None:
                 await asyncio.to_thread(self.rerun.log_window, f"jobs/{job_id}", bundle)
         except asyncio.CancelledError:

@@ -9,7 +9,6 @@ previous process are re-queued at start; a job running at stop is interrupted
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,7 @@ from .jobs import JobStore
 from .metrics import Metrics
 from .runner import JobRunner
 from .settings import Settings
-from .worker import make_pool
+from .worker import WorkerPool, make_pool
 
 __all__ = ["Runtime", "resolve_model_path", "shutdown_pool"]
 
@@ -51,17 +50,10 @@ def resolve_model_path(settings: Settings) -> Path:
     return path
 
 
-def shutdown_pool(pool: concurrent.futures.ProcessPoolExecutor | None) -> None:
+def shutdown_pool(pool: WorkerPool | None) -> None:
     """Stop a pool now: queued calls are cancelled, running workers terminated."""
-    if pool is None:
-        return
-    processes = list(getattr(pool, "_processes", {}).values())  # no public API to terminate
-    pool.shutdown(wait=False, cancel_futures=True)
-    for p in processes:
-        if p.is_alive():
-            p.terminate()
-    for p in processes:
-        p.join(timeout=5)
+    if pool is not None:
+        pool.terminate()
 
 
 @dataclass
@@ -70,10 +62,10 @@ class Runtime:
     model_path: Path
     store: JobStore
     metrics: Metrics
-    job_pool: concurrent.futures.ProcessPoolExecutor | None
-    live_pool: concurrent.futures.ProcessPoolExecutor | None
+    job_pool: WorkerPool | None
+    live_pool: WorkerPool | None
     runner: JobRunner
-    feedback_pool: concurrent.futures.ProcessPoolExecutor | None = None
+    feedback_pool: WorkerPool | None = None
     session: object | None = None
     live: object | None = None
     rerun: object | None = None

@@ -21,11 +21,15 @@ unpacks and validates the upload so a bad one is answered with a 4xx at once.
 from __future__ import annotations
 
 import concurrent.futures
+import concurrent.futures.process
+import logging
 import multiprocessing
 import os
 import shutil
+import threading
 import time
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -41,6 +45,7 @@ from .jobs import JobGone, JobStore
 __all__ = [
     "StageBundle",
     "UploadError",
+    "WorkerPool",
     "estimate_window",
     "predict_feedback",
     "init_worker",
@@ -48,6 +53,8 @@ __all__ = [
     "run_job",
     "stage_upload",
 ]
+
+log = logging.getLogger(__name__)
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v")
 _MAX_ZIP_MEMBERS = 200_000
@@ -187,9 +194,9 @@ _stores: dict[str, JobStore] = {}
 _renderer = None  # estimator.render.Renderer, made on first use (feedback priors)
 
 
-def make_pool(n: int, model_path: Path, *, renderer: bool = False) -> concurrent.futures.ProcessPoolExecutor:
+def make_pool(n: int, model_path: Path, *, renderer: bool = False) -> WorkerPool:
     """A process pool whose workers hold the model (and a renderer, for feedback
-    priors, if asked); started (spawn) and warmed up.
+    priors, if asked); started (spawn), warmed up, and replaced if a worker dies.
 
     BLAS is kept to one thread per worker: the eq. 8 product is small, and
     OpenBLAS threads spinning against each other on a shared 2-core host made
@@ -197,12 +204,65 @@ def make_pool(n: int, model_path: Path, *, renderer: bool = False) -> concurrent
     """
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    pool = concurrent.futures.ProcessPoolExecutor(
-        max_workers=n, mp_context=multiprocessing.get_context("spawn"),
-        initializer=init_worker, initargs=(str(model_path), renderer))
-    for f in [pool.submit(_ping) for _ in range(n)]:
-        f.result()
-    return pool
+
+    def start() -> concurrent.futures.ProcessPoolExecutor:
+        pool = concurrent.futures.ProcessPoolExecutor(
+            max_workers=n, mp_context=multiprocessing.get_context("spawn"),
+            initializer=init_worker, initargs=(str(model_path), renderer))
+        for f in [pool.submit(_ping) for _ in range(n)]:
+            f.result()
+        return pool
+
+    return WorkerPool(start)
+
+
+class WorkerPool(concurrent.futures.Executor):
+    """A process pool that starts a new one when a worker process dies.
+
+    A worker killed (out of memory, a crash in native code) breaks a
+    ``ProcessPoolExecutor`` for good: every later call would fail. Here the
+    calls that were running fail (their window or job is counted as failed),
+    and the next call starts a fresh pool (``restarts`` counts them).
+    """
+
+    def __init__(self, start: Callable[[], concurrent.futures.ProcessPoolExecutor]) -> None:
+        self._start = start
+        self._pool = start()
+        self._lock = threading.Lock()
+        self.restarts = 0
+
+    def submit(self, fn, /, *args, **kwargs) -> concurrent.futures.Future:
+        with self._lock:
+            try:
+                return self._pool.submit(fn, *args, **kwargs)
+            except concurrent.futures.process.BrokenProcessPool:
+                log.warning("a worker process died; starting a new pool")
+                _terminate(self._pool)
+                self._pool = self._start()
+                self.restarts += 1
+                return self._pool.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    def terminate(self) -> None:
+        """Stop now: queued calls are cancelled, running workers terminated."""
+        _terminate(self._pool)
+
+    @property
+    def pids(self) -> list[int]:
+        """The current worker processes (for operations and tests)."""
+        return [p.pid for p in getattr(self._pool, "_processes", {}).values()]
+
+
+def _terminate(pool: concurrent.futures.ProcessPoolExecutor) -> None:
+    processes = list(getattr(pool, "_processes", {}).values())  # no public API to terminate
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in processes:
+        if p.is_alive():
+            p.terminate()
+    for p in processes:
+        p.join(timeout=5)
 
 
 def init_worker(model_path: str, renderer: bool = False) -> None:

@@ -236,3 +236,29 @@ def test_bad_uploads_get_clear_4xx_and_disturb_nothing(tmp_path, seq_dir, good_z
         assert [p.name for p in settings.data_dir.iterdir()] == [good]
         metrics = srv.client.get("/metrics").text
         assert 'posecal_uploads_rejected_total{status="422"}' in metrics
+
+
+def test_a_dead_worker_process_is_replaced(tmp_path, good_zip):
+    """A job worker killed (out of memory, a native crash) fails its job; the next job runs
+    in a fresh pool."""
+    import os
+    import signal
+
+    with ServerThread(make_settings(tmp_path)) as srv:
+        pool = srv.runtime.job_pool
+        first = _done(srv, _submit(srv, good_zip).json()["id"])
+        assert first["state"] == "done"
+        for pid in pool.pids:
+            os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: not any(_alive(p) for p in pool.pids), timeout=10, what="workers gone")
+        again = _done(srv, _submit(srv, good_zip).json()["id"], timeout=60)
+        assert again["state"] == "done", again
+        assert pool.restarts == 1
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(")")[-1].split()[0] != "Z"  # a zombie is dead too
+    except FileNotFoundError:
+        return False
