@@ -233,10 +233,11 @@ def _changed(a: list[np.ndarray | None], b: list[np.ndarray | None]) -> int:
 
 
 def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
-                    config: PriorConfig | None = None) -> RefinedSequence:
+                    config: PriorConfig | None = None,
+                    estimate: WalkEstimate | None = None) -> RefinedSequence:
     """Silhouettes fused with the model's priors (no images left to re-segment).
 
-    Estimate the walk, render priors (:func:`estimator.prior.priors_for_window`)
+    Estimate the walk (unless the caller has, ``estimate``), render priors (:func:`estimator.prior.priors_for_window`)
     and fuse each silhouette with its frame's prior
     (:func:`estimator.prior.refine_silhouette`: holes the model explains are
     filled, blobs away from the body dropped). Crops (silhouettes smaller than
@@ -245,7 +246,8 @@ def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
     Raises ValueError if nothing can be estimated.
     """
     tracks = tracks_from_sequence(seq)
-    estimate = estimate_walk(tracks, model)
+    if estimate is None:
+        estimate = estimate_walk(tracks, model)
     size = tuple(seq.image_size)
     priors = priors_for_window(estimate, tracks, size, renderer=renderer, config=config)
     out = {}

@@ -92,7 +92,7 @@ class Runtime:
         job_pool, live_pool, feedback_pool = await asyncio.gather(
             asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
             asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none(),
-            asyncio.to_thread(make_pool, 1, model_path, renderer=True)
+            asyncio.to_thread(make_pool, 1, None, renderer=True)  # rendering needs no model
             if settings.live and settings.feedback else _none())
         runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
                            rerun=rerun if settings.rerun_jobs else None)

@@ -194,9 +194,10 @@ _stores: dict[str, JobStore] = {}
 _renderer = None  # estimator.render.Renderer, made on first use (feedback priors)
 
 
-def make_pool(n: int, model_path: Path, *, renderer: bool = False) -> WorkerPool:
-    """A process pool whose workers hold the model (and a renderer, for feedback
-    priors, if asked); started (spawn), warmed up, and replaced if a worker dies.
+def make_pool(n: int, model_path: Path | None, *, renderer: bool = False) -> WorkerPool:
+    """A process pool whose workers hold the model (unless ``model_path`` is None) and a
+    renderer for feedback priors (if asked); started (spawn), warmed up, and replaced if
+    a worker dies.
 
     BLAS is kept to one thread per worker: the eq. 8 product is small, and
     OpenBLAS threads spinning against each other on a shared 2-core host made
@@ -208,7 +209,7 @@ def make_pool(n: int, model_path: Path, *, renderer: bool = False) -> WorkerPool
     def start() -> concurrent.futures.ProcessPoolExecutor:
         pool = concurrent.futures.ProcessPoolExecutor(
             max_workers=n, mp_context=multiprocessing.get_context("spawn"),
-            initializer=init_worker, initargs=(str(model_path), renderer))
+            initializer=init_worker, initargs=(None if model_path is None else str(model_path), renderer))
         for f in [pool.submit(_ping) for _ in range(n)]:
             f.result()
         return pool
@@ -265,13 +266,14 @@ def _terminate(pool: concurrent.futures.ProcessPoolExecutor) -> None:
         p.join(timeout=5)
 
 
-def init_worker(model_path: str, renderer: bool = False) -> None:
-    """Pool initializer: load the model once per process (and open the renderer)."""
+def init_worker(model_path: str | None, renderer: bool = False) -> None:
+    """Pool initializer: load the model once per process (if given; and open the renderer)."""
     global _model
     import cv2
 
     cv2.setNumThreads(1)
-    _model = load_model(model_path)
+    if model_path is not None:
+        _model = load_model(model_path)
     if renderer:
         _get_renderer()
 
@@ -488,7 +490,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         refined = None
         if options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
-            refined = _refine(kind, Path(input_dir), options, model, fps)
+            refined = _refine(kind, Path(input_dir), options, model, fps, est)
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
             shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
@@ -516,14 +518,15 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
 
 
 def _refine(kind: str, input_dir: Path, options: dict[str, Any], model: AppearanceModel,
-            fps: float):
-    """The job's silhouettes refined with model feedback (``capture.refine``)."""
+            fps: float, estimate: WalkEstimate):
+    """The job's silhouettes refined with model feedback (``capture.refine``); a sequence
+    folder's priors come from the job's ``estimate`` (videos are segmented again)."""
     from capture.refine import refine_sequence, refine_videos
     from capture.segment import default_warmup
 
     renderer = _get_renderer()
     if kind == "sequence":
-        return refine_sequence(read_sequence(input_dir), model, renderer=renderer)
+        return refine_sequence(read_sequence(input_dir), model, renderer=renderer, estimate=estimate)
     videos = {p.stem: p for p in sorted(input_dir.iterdir()) if p.suffix.lower() in VIDEO_EXTENSIONS}
     n = int(options.get("n_frames") or 0)
     warmup = options.get("warmup") or default_warmup(n)
