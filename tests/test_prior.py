@@ -149,12 +149,19 @@ def test_priors_for_window_cover_the_observed_walker(small_model, sequence, rend
     assert abs(dx - step) < max(3.0, abs(step))
 
 
-def test_refine_silhouette_fills_holes_and_drops_far_blobs(sequence, renderer):
-    truth = sequence.silhouettes["c0"][5]
+def _true_prior(sequence, renderer, k: int):
+    """Camera c0's silhouette of frame ``k`` and the prior rendered at its true phase and
+    viewpoint, registered onto it."""
+    truth = sequence.silhouettes["c0"][k]
     crop, box = crop_to_box(truth)
-    phase = np.array([sequence.truth["frames"][5]["phase"]])
+    phase = np.array([sequence.truth["frames"][k]["phase"]])
     az, el = sequence.truth["cameras"]["c0"]["azimuth_deg"], sequence.truth["cameras"]["c0"]["elevation_deg"]
-    prior = prior_from_render(render_body(phase, az, el, renderer=renderer)[0], crop, box, SIZE, frame_index=5)
+    return truth, prior_from_render(render_body(phase, az, el, renderer=renderer)[0], crop, box, SIZE,
+                                    frame_index=k)
+
+
+def test_refine_silhouette_fills_holes_and_drops_far_blobs(sequence, renderer):
+    truth, prior = _true_prior(sequence, renderer, 5)
     damaged = truth.copy()
     ys, xs = np.nonzero(truth)
     cy, cx = int(ys.mean()), int(xs.mean())
@@ -200,11 +207,7 @@ def test_cli_refine_silhouette_sequence(small_model_path, sequence, tmp_path):
 def test_a_prior_that_does_not_explain_the_evidence_is_weakened_or_dropped(sequence, renderer):
     from estimator.prior import explained, weigh
 
-    truth = sequence.silhouettes["c0"][3]
-    crop, box = crop_to_box(truth)
-    phase = np.array([sequence.truth["frames"][3]["phase"]])
-    az, el = sequence.truth["cameras"]["c0"]["azimuth_deg"], sequence.truth["cameras"]["c0"]["elevation_deg"]
-    prior = prior_from_render(render_body(phase, az, el, renderer=renderer)[0], crop, box, SIZE, frame_index=3)
+    truth, prior = _true_prior(sequence, renderer, 3)
     assert explained(prior, truth) > 0.9 and weigh(prior, explained(prior, truth)) is prior
     wrong = rotate_prior(prior)
     assert explained(wrong, truth) < 0.5 and weigh(wrong, explained(wrong, truth)) is None
