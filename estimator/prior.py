@@ -3,8 +3,9 @@
 For each frame and camera of an estimated window the model body is rendered in
 the decoded phase from the camera's estimated viewpoint, brought onto the
 observed silhouette by the inverse of the matching registration (scale,
-centroid, principal axis; §5), optionally nudged by the translation that best
-overlaps the observation, and softened into a per-pixel prior in full-frame
+centroid, principal axis; §5) — or, where the silhouette is torn, placed by the
+walker's extent fitted over the whole window (:func:`body_extent`) —
+optionally nudged by the translation that best overlaps the observation, and softened into a per-pixel prior in full-frame
 coordinates: 255 deep inside the body, 128 on the rendered outline, falling to
 0 a few pixels outside, so a segmenter trusts the interior and stays unsure at
 the edges where the model body and the real one differ. An evidence gate keeps
@@ -30,6 +31,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import scipy.optimize
 import scipy.special
 
 from .camera import Camera
@@ -42,6 +44,7 @@ from .skeleton import BodyShape, forward_kinematics
 __all__ = [
     "Prior",
     "PriorConfig",
+    "body_extent",
     "explained",
     "phase_speed",
     "predict_boxes",
@@ -91,6 +94,14 @@ class PriorConfig:
         complete silhouette needs no help and a misfit model would only add
         false foreground at its edges; a torn one needs the model to bridge
         gaps. ``reach_max = inf`` turns the gate off.
+    torn, envelope : float
+        A silhouette whose box is shorter than the window's extent of the walker
+        (:func:`body_extent`) by more than ``torn`` (a fraction) is torn: the
+        render is placed by that extent rather than registered onto it (a
+        fragment's height and centroid say little about the body's).
+        ``envelope`` is the quantile of the extent's fit (the top is the line
+        below all but this fraction of the observed tops, the bottom likewise);
+        ``torn = inf`` turns this off.
     body : BodyShape
         The model body (the estimator reports its joints).
     """
@@ -104,6 +115,8 @@ class PriorConfig:
     reach_min: float = 0.0
     reach_max: float = 0.2
     complete_ratio: float = 0.7
+    torn: float = 0.1
+    envelope: float = 0.1
     body: BodyShape = field(default_factory=BodyShape)
 
     def __post_init__(self) -> None:
@@ -111,6 +124,8 @@ class PriorConfig:
             raise ValueError(f"pixels_per_metre and band must be positive, got {self.pixels_per_metre}, {self.band}")
         if self.search < 0 or self.pad < 0:
             raise ValueError(f"search and pad must be >= 0, got {self.search}, {self.pad}")
+        if self.torn < 0 or not 0 < self.envelope < 0.5:
+            raise ValueError(f"need torn >= 0 and 0 < envelope < 0.5, got {self.torn}, {self.envelope}")
         if not 0 <= self.reach_min <= self.reach_max:
             raise ValueError(f"need 0 <= reach_min <= reach_max, got {self.reach_min}, {self.reach_max}")
 
@@ -194,6 +209,21 @@ def _inverse(m: np.ndarray) -> np.ndarray:
     return np.linalg.inv(a)[:2]
 
 
+def _extent_map(rendered: np.ndarray, extent: tuple[float, float, float],
+                origin: tuple[float, float]) -> tuple[np.ndarray | None, float]:
+    """Similarity render pixels -> pixels relative to ``origin`` that puts the render's
+    top row at the extent's top, its bottom row at the bottom and its centroid at the centre."""
+    fg = rendered > 127
+    rows = np.flatnonzero(fg.any(axis=1))
+    cx, top, bottom = extent
+    if rows.size == 0 or not bottom > top:
+        return None, 0.0
+    s = (bottom - top) / float(rows[-1] - rows[0] + 1)
+    rc = float(np.nonzero(fg)[1].mean())
+    m = np.array([[s, 0.0, cx - origin[0] - s * rc], [0.0, s, top - origin[1] - s * rows[0]]])
+    return m, float(bottom - top)
+
+
 def _best_shift(observed: np.ndarray, predicted: np.ndarray, r: int) -> tuple[int, int]:
     """Integer shift (dx, dy) of ``predicted`` within +-r that overlaps ``observed`` most."""
     if r <= 0 or not predicted.any() or not observed.any():
@@ -216,6 +246,7 @@ def prior_from_render(
     frame_index: int,
     config: PriorConfig | None = None,
     shift: tuple[float, float] = (0.0, 0.0),
+    extent: tuple[float, float, float] | None = None,
 ) -> Prior | None:
     """Register a rendered silhouette onto an observed crop and soften it.
 
@@ -231,6 +262,12 @@ def prior_from_render(
         Full frame ``(width, height)``.
     shift : (float, float)
         Extra translation in pixels (prediction of the motion to a later frame).
+    extent : (float, float, float), optional
+        The walker's full extent in this frame, ``(centre x, top, bottom)`` in
+        full-frame pixels, from the whole window (:func:`body_extent`). When the
+        observation is shorter than it by more than ``config.torn``, the render
+        is placed by the extent (its height from top to bottom, its centroid at
+        the centre) instead of being registered onto the torn observation.
 
     Returns
     -------
@@ -244,17 +281,26 @@ def prior_from_render(
     (with ``rotate``) equal axes.
     """
     config = config or PriorConfig()
-    _, tf = register([rendered, observed], rotate=config.rotate)
-    if not tf.valid.all():
-        return None
-    a = np.vstack([tf.matrix[0], [0, 0, 1]])
-    m = _inverse(tf.matrix[1]) @ a  # rendered pixels -> observed crop pixels
-    height = float(tf.height[1])
-    W, H = image_size
     x, y, w, h = (float(v) for v in box)
+    if extent is not None and h < (1.0 - config.torn) * (extent[2] - extent[1]):
+        # A torn observation: place the render by the window's extent of the walker.
+        m, height = _extent_map(rendered, extent, (x, y))
+        if m is None:
+            return None
+        wx0, wy0 = min(x, extent[0] - 0.4 * height), min(y, extent[1])  # the window: observation and extent
+        wx1, wy1 = max(x + w, extent[0] + 0.4 * height), max(y + h, extent[2])
+    else:
+        _, tf = register([rendered, observed], rotate=config.rotate)
+        if not tf.valid.all():
+            return None
+        a = np.vstack([tf.matrix[0], [0, 0, 1]])
+        m = _inverse(tf.matrix[1]) @ a  # rendered pixels -> observed crop pixels
+        height = float(tf.height[1])
+        wx0, wy0, wx1, wy1 = x, y, x + w, y + h
+    W, H = image_size
     pad = config.pad * height
-    x0, y0 = int(max(0, np.floor(x - pad + shift[0]))), int(max(0, np.floor(y - pad + shift[1])))
-    x1, y1 = int(min(W, np.ceil(x + w + pad + shift[0]))), int(min(H, np.ceil(y + h + pad + shift[1])))
+    x0, y0 = int(max(0, np.floor(wx0 - pad + shift[0]))), int(max(0, np.floor(wy0 - pad + shift[1])))
+    x1, y1 = int(min(W, np.ceil(wx1 + pad + shift[0]))), int(min(H, np.ceil(wy1 + pad + shift[1])))
     if x1 <= x0 or y1 <= y0:
         return None
     m = m.copy()
@@ -347,12 +393,82 @@ def priors_for_window(
         renders = render_body(estimate.phase[rows], cam.viewpoint.azimuth_deg, cam.viewpoint.elevation_deg,
                               renderer=renderer, body=config.body, gait=gait,
                               pixels_per_metre=config.pixels_per_metre)
+        extent = body_extent(track, quantile=config.envelope) if np.isfinite(config.torn) else None
         for t, r in zip(rows, renders):
-            p = prior_from_render(r, track.silhouettes[t], track.boxes[t], size,
-                                  frame_index=first_index + t, config=config)
+            p = prior_from_render(r, track.silhouettes[t], track.boxes[t], size, frame_index=first_index + t,
+                                  config=config, extent=None if extent is None else tuple(extent[t]))
             if p is not None:
                 out[name].append(p)
     return out
+
+
+def body_extent(track: CameraTrack, *, quantile: float = 0.1, max_gap: int = 3) -> np.ndarray:
+    """The walker's full extent per frame, ``(centre x, top, bottom)``, robust to torn silhouettes.
+
+    A torn silhouette (low contrast, an occluder) is a fragment of the body: its
+    top lies at or below the head, its bottom at or above the feet, its
+    centroid somewhere inside. Over a run of frames (known frames at most
+    ``max_gap`` apart) the walker moves steadily, so each is a straight line in
+    time: the centre is the median regression line of the centroids' x, the
+    top the lower envelope of the observed tops and the bottom the upper
+    envelope of the bottoms (:func:`_envelope_line`: a few frames that see the
+    head or the feet are enough). Complete silhouettes give their own extent
+    back (up to the head's bob).
+
+    Returns
+    -------
+    ndarray of shape (T, 3)
+        NaN for frames outside any run.
+    """
+    if not 0 < quantile < 0.5:
+        raise ValueError(f"quantile must be in (0, 0.5), got {quantile}")
+    boxes = np.asarray(track.boxes, float)
+    centroids = silhouette_centroids(track)
+    known = np.flatnonzero(np.isfinite(boxes).all(axis=1) & np.isfinite(centroids).all(axis=1))
+    out = np.full((len(boxes), 3), np.nan)
+    for run in np.split(known, np.flatnonzero(np.diff(known) > max_gap) + 1) if known.size else ():
+        t, span = run.astype(float), np.arange(run[0], run[-1] + 1)
+        ax, bx = _median_line(t, centroids[run, 0])
+        drift = _median_line(t, centroids[run, 1])[1]
+        out[span, 0] = ax + bx * span
+        at, bt = _envelope_line(t, boxes[run, 1], quantile, drift)
+        ab, bb = _envelope_line(t, -(boxes[run, 1] + boxes[run, 3]), quantile, -drift)
+        out[span, 1] = at + bt * span
+        out[span, 2] = -(ab + bb * span)
+    return out
+
+
+def _envelope_line(t: np.ndarray, y: np.ndarray, q: float, slope: float, *, near: float = 0.3,
+                   iterations: int = 2) -> tuple[float, float]:
+    """Lower envelope ``a + b t`` of noisy points that lie on or above a line.
+
+    From a first slope (the body's drift), the ``near`` fraction of points
+    closest to the envelope — the frames that do see the head (or the feet) —
+    give the slope by median regression, when they span a third of the run;
+    the offset is the ``q`` quantile of the points about it.
+    """
+    b = slope
+    for _ in range(iterations):
+        r = y - b * t
+        close = r <= np.quantile(r, near)
+        if close.sum() >= 3 and np.ptp(t[close]) >= np.ptp(t) / 3:
+            b = _median_line(t[close], y[close])[1]
+    return float(np.quantile(y - b * t, q)), float(b)
+
+
+def _median_line(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Median (least absolute deviations) regression line ``y ~ a + b t``, as a linear program."""
+    n = t.size
+    if n < 3 or np.ptp(t) == 0:
+        return float(np.median(y)), 0.0
+    # min 1'u + 1'v  s.t.  a + b t + u - v = y,  u, v >= 0
+    c = np.concatenate([[0.0, 0.0], np.ones(2 * n)])
+    a_eq = np.hstack([np.ones((n, 1)), t[:, None], np.eye(n), -np.eye(n)])
+    res = scipy.optimize.linprog(c, A_eq=a_eq, b_eq=y, bounds=[(None, None)] * 2 + [(0, None)] * (2 * n),
+                                 method="highs")
+    if not res.success:
+        return float(np.median(y)), 0.0
+    return float(res.x[0]), float(res.x[1])
 
 
 def predict_phases(estimate: WalkEstimate, n_ahead: int, *, n_states: int | None = None) -> np.ndarray:
@@ -448,8 +564,9 @@ def predict_priors(
     (live feedback, §7.1: the frames captured while the priors are made need none).
 
     The phase continues the HMM path (:func:`predict_phases`); the body is
-    registered onto the camera's last silhouette, then moved with the motion of
-    the silhouette's centroid extrapolated from the window (:func:`extrapolate`).
+    registered onto the camera's last silhouette (placed by the window's
+    :func:`body_extent` if that silhouette is torn), then moved with the motion
+    of the silhouette's centroid extrapolated from the window (:func:`extrapolate`).
     """
     if skip < 0:
         raise ValueError(f"skip must be >= 0, got {skip}")
@@ -475,9 +592,10 @@ def predict_priors(
                               renderer=renderer, body=config.body, gait=gait,
                               pixels_per_metre=config.pixels_per_metre)
         lb = track.boxes[last]
+        extent = tuple(body_extent(track, quantile=config.envelope)[last]) if np.isfinite(config.torn) else None
         for k, r in enumerate(renders):
             p = prior_from_render(r, track.silhouettes[last], lb, size, frame_index=first_index + T + skip + k,
-                                  config=config, shift=(float(shifts[k, 0]), float(shifts[k, 1])))
+                                  config=config, shift=(float(shifts[k, 0]), float(shifts[k, 1])), extent=extent)
             if p is not None:
                 out[name].append(p)
     return out
