@@ -139,6 +139,8 @@ def refine_cameras(
     config: PriorConfig | None = None,
     prior_transform: Callable[[Prior], Prior] | None = None,
     trim_reach: float | None = 0.1,
+    raw: dict[str, list[Segmentation | None]] | None = None,
+    estimate: WalkEstimate | None = None,
 ) -> RefineResult:
     """Segment, estimate, render priors, segment again with them.
 
@@ -157,21 +159,26 @@ def refine_cameras(
     trim_reach : float or None
         After the second pass, cut foreground farther than this many body
         heights from the prior (:func:`trim`); None = keep the segmenter's output.
+    raw, estimate : optional
+        The first pass's segmentations (per camera, as :func:`segment` returns
+        them) and the walk estimated from them, when the caller has them already
+        (a job that estimated from the same videos): neither is made again.
 
     Raises
     ------
     ValueError
         No silhouette in any camera (nothing to estimate from).
     """
-    raw, sizes = {}, {}
-    for name, make in frames.items():
-        raw[name] = segment(make(), settings)
+    raw = dict(raw) if raw is not None else {name: segment(make(), settings) for name, make in frames.items()}
+    sizes = {}
+    for name in frames:
         first = next((s for s in raw[name] if s is not None), None)
         if first is None:
             raise ValueError(f"camera {name}: no frames after the warm-up of {settings.warmup_frames}")
         sizes[name] = first.image_size
-    tracks = {name: track_from_segmentations(s) for name, s in raw.items()}
-    estimate = estimate_walk(tracks, model)
+    tracks = {name: track_from_segmentations(raw[name]) for name in frames}
+    if estimate is None:
+        estimate = estimate_walk(tracks, model)
     priors = priors_for_window(estimate, tracks, sizes, renderer=renderer, config=config)
     if prior_transform is not None:
         priors = {name: [prior_transform(p) for p in ps] for name, ps in priors.items()}
@@ -282,14 +289,16 @@ def video_frames(path: str | os.PathLike) -> Callable[[], Iterator[np.ndarray]]:
 
 def refine_videos(videos: dict[str, str | os.PathLike], model: AppearanceModel, *, renderer,
                   warmup: int, fps: float, config: PriorConfig | None = None,
-                  truth: dict | None = None) -> RefinedSequence:
-    """One video per camera, background-subtracted twice (:func:`refine_cameras`).
+                  truth: dict | None = None, raw: dict[str, list[Segmentation | None]] | None = None,
+                  estimate: WalkEstimate | None = None) -> RefinedSequence:
+    """One video per camera, background-subtracted twice (:func:`refine_cameras`; the
+    first pass and the estimate are reused when given).
 
     Raises ValueError if a video cannot be read or nothing can be estimated.
     """
     result = refine_cameras({c: video_frames(p) for c, p in videos.items()}, model,
                             renderer=renderer, settings=SegmentSettings(warmup_frames=warmup),
-                            config=config)
+                            config=config, raw=raw, estimate=estimate)
 
     def full(segs: list[Segmentation | None]) -> list[np.ndarray | None]:
         return [None if s is None or s.box.empty else s.full_mask() for s in segs]

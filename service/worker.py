@@ -468,9 +468,12 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             fps = seq.fps
             truth = seq.truth
         elif kind == "videos":
-            tracks, image_size, fps = _tracks_from_videos(
+            from capture.refine import track_from_segmentations
+
+            segmentations, image_size, fps, warmup = _segment_videos(
                 Path(input_dir), warmup=options.get("warmup"),
                 report=lambda p, s: store.report(job_id, 0.05 + 0.45 * p, s))
+            tracks = {c: track_from_segmentations(s) for c, s in segmentations.items()}
             truth = None
         else:
             raise ValueError(f"unknown job kind {kind!r}")
@@ -490,7 +493,8 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         refined = None
         if options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
-            refined = _refine(kind, Path(input_dir), options, model, fps, est)
+            refined = (_refine_sequence(Path(input_dir), model, est) if kind == "sequence" else
+                       _refine_videos(Path(input_dir), model, fps, est, segmentations, warmup))
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
             shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
@@ -517,20 +521,22 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         raise
 
 
-def _refine(kind: str, input_dir: Path, options: dict[str, Any], model: AppearanceModel,
-            fps: float, estimate: WalkEstimate):
-    """The job's silhouettes refined with model feedback (``capture.refine``); a sequence
-    folder's priors come from the job's ``estimate`` (videos are segmented again)."""
-    from capture.refine import refine_sequence, refine_videos
-    from capture.segment import default_warmup
+def _refine_sequence(folder: Path, model: AppearanceModel, estimate: WalkEstimate):
+    """A sequence folder's silhouettes fused with priors from the job's ``estimate``."""
+    from capture.refine import refine_sequence
 
-    renderer = _get_renderer()
-    if kind == "sequence":
-        return refine_sequence(read_sequence(input_dir), model, renderer=renderer, estimate=estimate)
-    videos = {p.stem: p for p in sorted(input_dir.iterdir()) if p.suffix.lower() in VIDEO_EXTENSIONS}
-    n = int(options.get("n_frames") or 0)
-    warmup = options.get("warmup") or default_warmup(n)
-    return refine_videos(videos, model, renderer=renderer, warmup=warmup, fps=fps)
+    return refine_sequence(read_sequence(folder), model, renderer=_get_renderer(), estimate=estimate)
+
+
+def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: WalkEstimate,
+                   segmentations: dict, warmup: int):
+    """The videos segmented once more, with priors from the job's ``estimate``; the job's
+    own segmentations are the first pass (``capture.refine.refine_videos``)."""
+    from capture.refine import refine_videos
+
+    videos = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_EXTENSIONS}
+    return refine_videos(videos, model, renderer=_get_renderer(), warmup=warmup, fps=fps,
+                         raw=segmentations, estimate=estimate)
 
 
 def feedback_views(refined) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]]:
@@ -569,22 +575,30 @@ def _pad_tracks(tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:
     return out
 
 
-def _tracks_from_videos(folder: Path, *, warmup: int | None, report) -> tuple[dict[str, CameraTrack], dict, float]:
-    """Background subtraction (capture's segmenter) over each ``<camera>.<ext>`` video."""
+def _segment_videos(folder: Path, *, warmup: int | None, report) -> tuple[dict[str, list], dict, float, int]:
+    """Background subtraction (capture's segmenter) over each ``<camera>.<ext>`` video.
+
+    Returns the segmentations per camera, the frame sizes, the frame rate and the
+    warm-up used (``warmup``, or :func:`capture.segment.default_warmup` of the
+    shortest video).
+    """
     import cv2
 
-    from capture.refine import track_from_segmentations
     from capture.segment import Segmenter, SegmentSettings, default_warmup
 
     videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
-    tracks, sizes, fps = {}, {}, 0.0
-    for i, path in enumerate(videos):
+    counts = {}
+    for path in videos:
         cap = cv2.VideoCapture(str(path))
         if not cap.isOpened():
             raise ValueError(f"video {path.name} cannot be opened")
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 0
+        counts[path.stem] = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 0
+        cap.release()
+    w = warmup if warmup is not None else default_warmup(min(counts.values(), default=0))
+    segmentations, sizes, fps = {}, {}, 0.0
+    for i, path in enumerate(videos):
+        cap = cv2.VideoCapture(str(path))
         fps = fps or float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        w = warmup if warmup is not None else default_warmup(n)
         seg = Segmenter(SegmentSettings(warmup_frames=w))
         segs = []
         while True:
@@ -596,6 +610,6 @@ def _tracks_from_videos(folder: Path, *, warmup: int | None, report) -> tuple[di
         cap.release()
         if not segs:
             raise ValueError(f"video {path.name} has no decodable frames")
-        tracks[path.stem] = track_from_segmentations(segs)
+        segmentations[path.stem] = segs
         report((i + 1) / len(videos), f"segmented {path.name}")
-    return tracks, sizes, fps or 15.0
+    return segmentations, sizes, fps or 15.0, w
