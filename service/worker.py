@@ -469,10 +469,12 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             truth = seq.truth
         elif kind == "videos":
             from capture.refine import track_from_segmentations
+            from capture.segment import default_warmup
 
-            segmentations, image_size, fps, warmup = _segment_videos(
-                Path(input_dir), warmup=options.get("warmup"),
-                report=lambda p, s: store.report(job_id, 0.05 + 0.45 * p, s))
+            # One warm-up for all of the job's videos (staging counted their frames).
+            warmup = options.get("warmup") or default_warmup(int(options.get("n_frames") or 0))
+            segmentations, image_size, fps = _segment_videos(
+                Path(input_dir), warmup=warmup, report=lambda p, s: store.report(job_id, 0.05 + 0.45 * p, s))
             tracks = {c: track_from_segmentations(s) for c, s in segmentations.items()}
             truth = None
         else:
@@ -575,41 +577,25 @@ def _pad_tracks(tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:
     return out
 
 
-def _segment_videos(folder: Path, *, warmup: int | None, report) -> tuple[dict[str, list], dict, float, int]:
-    """Background subtraction (capture's segmenter) over each ``<camera>.<ext>`` video.
+def _segment_videos(folder: Path, *, warmup: int, report) -> tuple[dict[str, list], dict, float]:
+    """Background subtraction (:func:`capture.refine.segment`) over each ``<camera>.<ext>`` video.
 
-    Returns the segmentations per camera, the frame sizes, the frame rate and the
-    warm-up used (``warmup``, or :func:`capture.segment.default_warmup` of the
-    shortest video).
+    Returns the segmentations per camera, the frame sizes and the frame rate.
     """
-    import cv2
-
-    from capture.segment import Segmenter, SegmentSettings, default_warmup
+    from capture.refine import segment
+    from capture.segment import SegmentSettings
+    from capture.sources import VideoFileSource
 
     videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
-    counts = {}
-    for path in videos:
-        cap = cv2.VideoCapture(str(path))
-        if not cap.isOpened():
-            raise ValueError(f"video {path.name} cannot be opened")
-        counts[path.stem] = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 0
-        cap.release()
-    w = warmup if warmup is not None else default_warmup(min(counts.values(), default=0))
+    settings = SegmentSettings(warmup_frames=warmup)
     segmentations, sizes, fps = {}, {}, 0.0
     for i, path in enumerate(videos):
-        cap = cv2.VideoCapture(str(path))
-        fps = fps or float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        seg = Segmenter(SegmentSettings(warmup_frames=w))
-        segs = []
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            segs.append(seg.apply(frame, len(segs)))
-            sizes[path.stem] = (frame.shape[1], frame.shape[0])
-        cap.release()
+        with VideoFileSource(path) as source:
+            fps = fps or source.fps or 0.0
+            sizes[path.stem] = source.size
+            segs = segment((frame.image for frame in source), settings)
         if not segs:
             raise ValueError(f"video {path.name} has no decodable frames")
         segmentations[path.stem] = segs
         report((i + 1) / len(videos), f"segmented {path.name}")
-    return segmentations, sizes, fps or 15.0, w
+    return segmentations, sizes, fps or 15.0
