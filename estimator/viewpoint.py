@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "estimate_viewpoint", "motion_cue"]
+__all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "circular_mean_deg", "estimate_viewpoint", "motion_cue"]
 
 
 def azimuth_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
@@ -133,7 +133,9 @@ class Viewpoint:
         }
 
 
-def _circular_mean_deg(a: np.ndarray, w: np.ndarray) -> float:
+def circular_mean_deg(a: np.ndarray, w: np.ndarray | None = None) -> float:
+    """Weighted mean of angles on the circle (degrees, in [0, 360)); equal weights by default."""
+    w = np.ones(np.shape(a)) if w is None else w
     r = np.deg2rad(a)
     return float(np.rad2deg(np.arctan2(np.sum(w * np.sin(r)), np.sum(w * np.cos(r)))) % 360.0)
 
@@ -184,7 +186,7 @@ def estimate_viewpoint(
         folded = np.where(wrong & near_axis, (-folded) % 360.0, folded)
     if flip == "majority" and margin > 0.8:
         flip = "none"
-    centre = _circular_mean_deg(folded, w)
+    centre = circular_mean_deg(folded, w)
     d_az = azimuth_difference_deg(folded, centre)
     mean_el = float(np.sum(w * el))
     X = np.stack([d_az, el - mean_el])

@@ -40,7 +40,9 @@ import zenoh
 
 from capture.receiver import Received, SilhouetteReceiver
 from capture.wire import Box, FeedbackMessage, SilhouetteMessage, encode, estimate_key, feedback_key
-from estimator.pipeline import CameraTrack, crop_to_box
+from capture.refine import track_from_segmentations
+from estimator.pipeline import CameraTrack
+from estimator.viewpoint import azimuth_difference_deg, circular_mean_deg
 
 from .metrics import Metrics
 from .settings import Settings
@@ -220,12 +222,8 @@ class WindowBuffer:
 # ------------------------------------------------------------------- viewpoint smoothing
 
 
-def _circ_diff(a: float, b: float) -> float:
-    return (a - b + 180.0) % 360.0 - 180.0
-
-
 def _view_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
-    return max(abs(_circ_diff(a[0], b[0])), abs(a[1] - b[1]))
+    return max(abs(float(azimuth_difference_deg(a[0], b[0]))), abs(a[1] - b[1]))
 
 
 class ViewpointTrack:
@@ -260,7 +258,7 @@ class ViewpointTrack:
             self.pending.clear()
             self.n = min(self.n + 1, self.memory)
             a = 1.0 / self.n
-            self.value = ((self.value[0] + a * _circ_diff(az, self.value[0])) % 360.0,
+            self.value = ((self.value[0] + a * float(azimuth_difference_deg(az, self.value[0]))) % 360.0,
                           self.value[1] + a * (el - self.value[1]))
             return
         self.outliers += 1
@@ -269,8 +267,7 @@ class ViewpointTrack:
             return
         ref = self.pending[-1][:2]
         if all(_view_distance(p[:2], ref) <= self.threshold for p in self.pending):
-            new = (float(np.rad2deg(np.arctan2(*np.sum([[np.sin(np.deg2rad(p[0])), np.cos(np.deg2rad(p[0]))]
-                                                          for p in self.pending], 0)))) % 360.0,
+            new = (circular_mean_deg(np.array([p[0] for p in self.pending])),
                    float(np.mean([p[1] for p in self.pending])))
             self.changes.append({"frame_index": self.pending[0][2],
                                  "from": [round(v, 2) for v in self.value],
@@ -435,9 +432,14 @@ class LiveService:
                     old = self._queue.get_nowait()
                 except queue.Empty:
                     continue
-                with self._lock:
-                    self._rigs[old.rig].dropped += 1
-                self.metrics.windows.labels(old.rig, "dropped").inc()
+                self._count(old.rig, "dropped")
+
+    def _count(self, rig: str, outcome: str) -> None:
+        """One window of ``rig`` ended as ``outcome`` (skipped, failed, dropped): state and metric."""
+        with self._lock:
+            state = self._rigs[rig]
+            setattr(state, outcome, getattr(state, outcome) + 1)
+        self.metrics.windows.labels(rig, outcome).inc()
 
     # -- estimation (consumer threads) ------------------------------------------------------
     def _consume(self) -> None:
@@ -450,9 +452,7 @@ class LiveService:
                 self._process(w)
             except Exception:  # keep the consumer alive; the window counts as failed
                 log.exception("window %s/%d failed", w.rig, w.seq)
-                with self._lock:
-                    self._rigs[w.rig].failed += 1
-                self.metrics.windows.labels(w.rig, "failed").inc()
+                self._count(w.rig, "failed")
 
     def _tracks(self, w: Window) -> tuple[dict[str, CameraTrack], dict[str, tuple[int, int]]] | None:
         cams = sorted(set().union(*(fs.parts for fs in w.frames)))
@@ -463,28 +463,15 @@ class LiveService:
         if present < max(1, self.settings.min_present * len(w.frames)):
             return None
         for cam in cams:
-            sils, boxes = [], []
-            for fs in w.frames:
-                m = fs.parts.get(cam)
-                tight = None if m is None or m.box.empty else crop_to_box(m.mask)
-                if tight is None:
-                    sils.append(None)
-                    boxes.append([np.nan] * 4)
-                else:
-                    sils.append(tight[0])
-                    b = tight[1]
-                    boxes.append([m.box.x + b[0], m.box.y + b[1], b[2], b[3]])
-                if m is not None:
-                    sizes[cam] = m.image_size
-            tracks[cam] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=True)
+            parts = [fs.parts.get(cam) for fs in w.frames]
+            tracks[cam] = track_from_segmentations(parts)
+            sizes[cam] = next(m.image_size for m in reversed(parts) if m is not None)
         return tracks, sizes
 
     def _process(self, w: Window) -> None:
         built = self._tracks(w)
         if built is None:
-            with self._lock:
-                self._rigs[w.rig].skipped += 1
-            self.metrics.windows.labels(w.rig, "skipped").inc()
+            self._count(w.rig, "skipped")
             return
         tracks, sizes = built
         bundle_from = None
@@ -499,9 +486,7 @@ class LiveService:
             result, bundle, seconds, est = future.result(timeout=60)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
-            with self._lock:
-                self._rigs[w.rig].skipped += 1
-            self.metrics.windows.labels(w.rig, "skipped").inc()
+            self._count(w.rig, "skipped")
             return
         with self._lock:
             rig = self._rigs[w.rig]

@@ -35,6 +35,7 @@ import rerun as rr
 
 from estimator.camera import viewpoint_direction, world_to_camera_rotation
 from estimator.joints import BONES, JOINT_NAMES
+from estimator.viewpoint import azimuth_difference_deg
 
 from .worker import StageBundle
 
@@ -134,7 +135,7 @@ class RerunLog:
                 continue
             cloud = b.clouds.get(cam)
             if cloud is not None and len(cloud):
-                unwrapped = np.stack([az + (cloud[:, 0] - az + 180.0) % 360.0 - 180.0, cloud[:, 1]], -1)
+                unwrapped = np.stack([az + azimuth_difference_deg(cloud[:, 0], az), cloud[:, 1]], -1)
                 s.log(f"{p}/viewpoints/{cam}/cloud", rr.Points2D(unwrapped, radii=0.6))
             s.log(f"{p}/viewpoints/{cam}/ellipse", rr.LineStrips2D([_ellipse(az, el, vp["covariance"])]))
             self._log_camera(p, cam, az, el, b.image_size.get(cam, (640, 480)))

@@ -53,14 +53,15 @@ def _agent(k: int, az: float, el: float, args: argparse.Namespace, endpoint: str
 
 
 def _angle(a: float | None, b: float) -> str:
-    return "   n/a" if a is None else f"{(a - b + 180.0) % 360.0 - 180.0:+6.1f}"
+    from estimator.viewpoint import azimuth_difference_deg
+
+    return "   n/a" if a is None else f"{float(azimuth_difference_deg(a, b)):+6.1f}"
 
 
 def run_demo(args: argparse.Namespace) -> int:
     import logging
 
     import httpx
-    import numpy as np
 
     from service.server import BackgroundServer, free_port
     from service.settings import Settings
@@ -118,7 +119,7 @@ def run_demo(args: argparse.Namespace) -> int:
             for a in agents:
                 if a.poll() is None:
                     a.kill()
-        _report(summary, estimates, cams, np)
+        _report(summary, estimates, cams)
         print(f"\nREST: {url}/v1/rigs/demo/estimate   (API docs: {url}/docs)")
         if args.keep:
             print("serving until Ctrl-C ...", flush=True)
@@ -131,7 +132,9 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0 if summary["windows"]["estimated"] else 1
 
 
-def _report(summary: dict, estimates: list[dict], cams, np) -> None:
+def _report(summary: dict, estimates: list[dict], cams) -> None:
+    import numpy as np
+
     w = summary["windows"]
     f = summary["frames"]
     print(f"windows: {w['estimated']} estimated, {w['skipped']} skipped (walker absent), "
