@@ -38,7 +38,7 @@ import numpy as np
 
 from estimator.appearance import AppearanceModel, load_model
 from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
-from estimator.sequence import SequenceError, read_sequence, write_sequence
+from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
 
 from .jobs import JobGone, JobStore
 
@@ -495,7 +495,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         refined = None
         if options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
-            refined = (_refine_sequence(Path(input_dir), model, est) if kind == "sequence" else
+            refined = (_refine_sequence(seq, model, est) if kind == "sequence" else
                        _refine_videos(Path(input_dir), model, fps, est, segmentations, warmup))
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
@@ -523,11 +523,11 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         raise
 
 
-def _refine_sequence(folder: Path, model: AppearanceModel, estimate: WalkEstimate):
-    """A sequence folder's silhouettes fused with priors from the job's ``estimate``."""
+def _refine_sequence(seq: Sequence, model: AppearanceModel, estimate: WalkEstimate):
+    """The job's sequence's silhouettes fused with priors from the job's ``estimate``."""
     from capture.refine import refine_sequence
 
-    return refine_sequence(read_sequence(folder), model, renderer=_get_renderer(), estimate=estimate)
+    return refine_sequence(seq, model, renderer=_get_renderer(), estimate=estimate)
 
 
 def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: WalkEstimate,

@@ -11,7 +11,7 @@ from fastapi import APIRouter, File, Form, HTTPException, Query, Response, Uploa
 from fastapi.responses import FileResponse
 
 from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep
-from ..jobs import STATES
+from ..jobs import ACTIVE, STATES
 from ..schemas import JobList, JobOut, job_out
 from ..worker import UploadError, stage_upload
 
@@ -40,9 +40,6 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
     job_id = uuid.uuid4().hex
     job_dir = settings.data_dir / job_id
     try:
-        total = sum(f.size or 0 for f in files)
-        if total > settings.upload_limit_bytes:
-            raise UploadError(413, f"upload of {total} bytes exceeds the limit of {settings.upload_limit_bytes} bytes")
         staged = stage_upload([(f.filename or "", f.file) for f in files], job_dir,
                               limit_bytes=settings.upload_limit_bytes, max_frames=settings.max_frames)
     except UploadError as exc:
@@ -110,7 +107,7 @@ def get_silhouettes(job_id: str, store: StoreDep) -> FileResponse:
 def cancel_job(job_id: str, store: StoreDep) -> JobOut:
     """Cancel a queued or running job; 409 if it already ended."""
     row = _job_or_404(store, job_id)
-    if row.state not in ("queued", "running"):
+    if row.state not in ACTIVE:
         raise HTTPException(409, f"job {job_id} already ended ({row.state})")
     return job_out(store.cancel(job_id))
 
