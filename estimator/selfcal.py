@@ -797,14 +797,14 @@ def _smooth_tracks(y: np.ndarray, smoother: np.ndarray, fact: Factorization) -> 
     return np.where(np.isfinite(y), out, np.nan)
 
 
-def _length_prior(priors: Sequence[LengthPrior], links: Sequence[Link], sigma: float,
-                  strength: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+def _length_prior(priors: Sequence[LengthPrior], links: Sequence[Link],
+                  sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Soft length ratios as MAP residuals for :func:`_bundle_adjust`.
 
     Each prior ``(links_a, links_b, ratio, tol)`` says ``log(sum |a| / sum |b|)``
     is ``log(ratio)`` with standard deviation ``tol``; against image noise of
     standard deviation ``sigma`` (normalised units, the reprojection residuals'
-    scale) its residual weight is ``strength * sigma / tol``. Priors that name a
+    scale) its residual weight is ``sigma / tol``. Priors that name a
     link outside ``links`` are skipped. None without noise (``sigma <= 1e-9``):
     noise-free tracks stay exact.
     """
@@ -822,7 +822,7 @@ def _length_prior(priors: Sequence[LengthPrior], links: Sequence[Link], sigma: f
         for key in keys[len(la):]:
             b[index[key]] += 1.0
         a_rows.append(a); b_rows.append(b); log_r.append(np.log(ratio))
-        w.append(strength * sigma / tol)
+        w.append(sigma / tol)
     if not w:
         return None
     return np.array(a_rows), np.array(b_rows), np.array(log_r), np.array(w)
@@ -991,7 +991,7 @@ def _bundle_adjust(
             res.append(bone_weight * bl[bone_ok])
         res.append(x.mean(axis=1).ravel())
         if smooth:  # prior on each camera's predicted (centred) image track: (C, K, J, 2)
-            track = s[:, :, None, None] * np.einsum("cij,tkj->ctki", r[:, :2], x)
+            track = s[:, :, None, None] * proj
             res.append(np.einsum("kt,ctjd->ckjd", prior_op, track).ravel())
         if n_lp:
             lk_pos = np.maximum(lk, 1e-12)
