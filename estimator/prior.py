@@ -47,7 +47,6 @@ __all__ = [
     "body_extent",
     "explained",
     "phase_speed",
-    "predict_boxes",
     "predict_phases",
     "predict_priors",
     "prior_from_render",
@@ -393,7 +392,7 @@ def priors_for_window(
         renders = render_body(estimate.phase[rows], cam.viewpoint.azimuth_deg, cam.viewpoint.elevation_deg,
                               renderer=renderer, body=config.body, gait=gait,
                               pixels_per_metre=config.pixels_per_metre)
-        extent = body_extent(track, quantile=config.envelope) if np.isfinite(config.torn) else None
+        extent = _window_extent(track, config)
         for t, r in zip(rows, renders):
             p = prior_from_render(r, track.silhouettes[t], track.boxes[t], size, frame_index=first_index + t,
                                   config=config, extent=None if extent is None else tuple(extent[t]))
@@ -402,7 +401,8 @@ def priors_for_window(
     return out
 
 
-def body_extent(track: CameraTrack, *, quantile: float = 0.1, max_gap: int = 3) -> np.ndarray:
+def body_extent(track: CameraTrack, *, quantile: float = 0.1, max_gap: int = 3,
+                centroids: np.ndarray | None = None) -> np.ndarray:
     """The walker's full extent per frame, ``(centre x, top, bottom)``, robust to torn silhouettes.
 
     A torn silhouette (low contrast, an occluder) is a fragment of the body: its
@@ -415,6 +415,8 @@ def body_extent(track: CameraTrack, *, quantile: float = 0.1, max_gap: int = 3) 
     head or the feet are enough). Complete silhouettes give their own extent
     back (up to the head's bob).
 
+    ``centroids``: the track's :func:`silhouette_centroids`, when the caller has them.
+
     Returns
     -------
     ndarray of shape (T, 3)
@@ -423,7 +425,7 @@ def body_extent(track: CameraTrack, *, quantile: float = 0.1, max_gap: int = 3) 
     if not 0 < quantile < 0.5:
         raise ValueError(f"quantile must be in (0, 0.5), got {quantile}")
     boxes = np.asarray(track.boxes, float)
-    centroids = silhouette_centroids(track)
+    centroids = silhouette_centroids(track) if centroids is None else centroids
     known = np.flatnonzero(np.isfinite(boxes).all(axis=1) & np.isfinite(centroids).all(axis=1))
     out = np.full((len(boxes), 3), np.nan)
     for run in np.split(known, np.flatnonzero(np.diff(known) > max_gap) + 1) if known.size else ():
@@ -436,6 +438,14 @@ def body_extent(track: CameraTrack, *, quantile: float = 0.1, max_gap: int = 3) 
         out[span, 1] = at + bt * span
         out[span, 2] = -(ab + bb * span)
     return out
+
+
+def _window_extent(track: CameraTrack, config: PriorConfig,
+                   centroids: np.ndarray | None = None) -> np.ndarray | None:
+    """:func:`body_extent` with the config's quantile, or None when torn placement is off."""
+    if not np.isfinite(config.torn):
+        return None
+    return body_extent(track, quantile=config.envelope, centroids=centroids)
 
 
 def _envelope_line(t: np.ndarray, y: np.ndarray, q: float, slope: float, *, near: float = 0.3,
@@ -498,21 +508,6 @@ def phase_speed(phase: np.ndarray) -> float:
     d = np.diff(phase) % 1.0  # forward only
     d = np.where(d > 0.5, d - 1.0, d)  # a backward step (should not happen) counts as such
     return float(max(0.0, d.mean()))
-
-
-def predict_boxes(boxes: np.ndarray, n_ahead: int, *, history: int = 8) -> np.ndarray:
-    """Boxes of the next frames by a straight-line fit to the last ``history`` known boxes.
-
-    Parameters
-    ----------
-    boxes : ndarray of shape (T, 4)
-        ``(x, y, w, h)`` per frame, NaN where unknown.
-
-    Returns
-    -------
-    ndarray of shape (n_ahead, 4); NaN when fewer than one box is known.
-    """
-    return extrapolate(boxes, n_ahead, history=history)
 
 
 def extrapolate(values: np.ndarray, n_ahead: int, *, history: int = 8) -> np.ndarray:
@@ -592,7 +587,8 @@ def predict_priors(
                               renderer=renderer, body=config.body, gait=gait,
                               pixels_per_metre=config.pixels_per_metre)
         lb = track.boxes[last]
-        extent = tuple(body_extent(track, quantile=config.envelope)[last]) if np.isfinite(config.torn) else None
+        extent = _window_extent(track, config, centroids)
+        extent = None if extent is None else tuple(extent[last])
         for k, r in enumerate(renders):
             p = prior_from_render(r, track.silhouettes[last], lb, size, frame_index=first_index + T + skip + k,
                                   config=config, shift=(float(shifts[k, 0]), float(shifts[k, 1])), extent=extent)

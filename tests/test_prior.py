@@ -20,7 +20,6 @@ from estimator.prior import (
     PriorConfig,
     body_extent,
     extrapolate,
-    predict_boxes,
     predict_phases,
     predict_priors,
     prior_from_render,
@@ -68,14 +67,14 @@ def test_predict_phases_continues_the_path_across_the_cycle():
         predict_phases(est, -1)
 
 
-def test_predict_boxes_extrapolates_a_straight_walk():
+def test_extrapolate_continues_a_straight_walk():
     t = np.arange(10.0)
     boxes = np.stack([100 + 4 * t, 50 + 0 * t, 40 + 0 * t, 120 + 0.5 * t], 1)
     boxes[3] = np.nan
-    pred = predict_boxes(boxes, 2)
+    pred = extrapolate(boxes, 2)
     np.testing.assert_allclose(pred[:, 0], [140, 144], atol=1e-6)
     np.testing.assert_allclose(pred[:, 3], [125, 125.5], atol=1e-6)
-    assert np.isnan(predict_boxes(np.full((3, 4), np.nan), 2)).all()
+    assert np.isnan(extrapolate(np.full((3, 4), np.nan), 2)).all()
 
 
 def test_silhouette_centroids_follow_the_body_not_its_box():
