@@ -21,7 +21,6 @@ import argparse
 import json
 import logging
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -34,9 +33,9 @@ TARGET_FPS = 30.0
 
 
 def _free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    from service.server import free_port
+
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def _frames(args: argparse.Namespace) -> list:
@@ -49,11 +48,12 @@ def _frames(args: argparse.Namespace) -> list:
     from capture.sources import make_source
 
     with make_source(args.source) as source:
-        frames = []
+        frames, empty = [], None  # empty: frames before the first with a walker
         for frame in source:
             frames.append(frame)
-            empty = next((k for k, f in enumerate(frames) if f.mask.any()), len(frames))
-            if len(frames) >= min(empty, 100) + args.frames:
+            if empty is None and frame.mask.any():
+                empty = len(frames) - 1
+            if len(frames) >= min(len(frames) if empty is None else empty, 100) + args.frames:
                 return frames
     return frames
 

@@ -21,7 +21,6 @@ import argparse
 import logging
 import os
 import re
-import socket
 import subprocess
 import sys
 import tempfile
@@ -36,6 +35,7 @@ from capture.receiver import SilhouetteReceiver
 from capture.scene import SceneSpec, write_video
 from capture.segment import SegmentSettings, describe
 from capture.zconfig import build_config
+from service.server import free_port
 
 TARGET_P99_MS = 10.0
 WARMUP = 100
@@ -43,9 +43,7 @@ _SENT = re.compile(r"stopped after \d+ frames: .* published (\d+) \(unheard (\d+
 
 
 def _free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def _spawn(k: int, video: Path, endpoint: str, args: argparse.Namespace) -> subprocess.Popen:

@@ -38,7 +38,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from capture.refine import check_priors, segment, track_from_segmentations, trim  # noqa: E402
+from capture.refine import second_pass, segment, track_from_segmentations  # noqa: E402
 from capture.scene import iou  # noqa: E402
 from capture.segment import SegmentSettings  # noqa: E402
 from capture.synthetic import SyntheticSource  # noqa: E402
@@ -142,14 +142,9 @@ def run_condition(cond: Condition, model, n: int, settings: SegmentSettings, con
         per_frame = priors_for_window(est_raw, tracks, size, renderer=renderer,
                                       config=dataclasses.replace(config, torn=float("inf")))
     turned = {c: [rotate_prior(p) for p in priors[c]] for c in data}
-    # Segmenter with the priors (it checks each against its own evidence), then the
-    # trim with the priors checked against the first pass: as capture.refine does.
-    refined = {c: trim(segment(data[c][0], settings, priors[c]), check_priors(priors[c], raw[c]),
-                       reach=TRIM) for c in data}
-    registered = {c: trim(segment(data[c][0], settings, per_frame[c]), check_priors(per_frame[c], raw[c]),
-                          reach=TRIM) for c in data}
-    wrong = {c: trim(segment(data[c][0], settings, turned[c]), check_priors(turned[c], raw[c]),
-                     reach=TRIM) for c in data}
+    # The second pass as capture.refine.refine_cameras makes it, for each set of priors.
+    refined, registered, wrong = ({c: second_pass(data[c][0], settings, ps[c], raw[c], trim_reach=TRIM) for c in data}
+                                  for ps in (priors, per_frame, turned))
     trusting = settings.model_copy(update={"prior_check": False})
     unchecked = {c: segment(data[c][0], trusting, turned[c]) for c in data}
     est_ref = estimate_walk({c: track_from_segmentations(s) for c, s in refined.items()}, model)

@@ -177,8 +177,3 @@ class SilhouetteReceiver(ValidatingSubscriber[SilhouetteMessage]):
                 self._epochs[cam] = (msg.epoch_ns, msg.seq)
             self._stats.accepted += 1
         return Received(msg, receive_ns, new_epoch, lost)
-
-    def epochs(self) -> dict[tuple[str, str], int]:
-        """Current agent epoch per ``(rig, camera)``."""
-        with self._lock:
-            return {cam: epoch for cam, (epoch, _) in self._epochs.items()}

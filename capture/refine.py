@@ -33,7 +33,7 @@ from .sources import VideoFileSource
 from .wire import Box, FeedbackMessage
 
 __all__ = ["RefineResult", "RefinedSequence", "check_priors", "feedback_from_prior", "refine_cameras",
-           "refine_sequence", "refine_videos", "segment", "track_from_segmentations", "trim",
+           "refine_sequence", "refine_videos", "second_pass", "segment", "track_from_segmentations", "trim",
            "video_frames"]
 
 
@@ -81,9 +81,8 @@ def check_priors(priors: list[Prior], raw: list[Segmentation | None]) -> list[Pr
 
     The consistency check of :func:`estimator.prior.explained` /
     :func:`estimator.prior.weigh` against the frame's segmentation without
-    prior: a prior that contradicts the evidence is replaced by an empty one
-    (installing nothing would let the segmenter fall back to an older frame's
-    prior, displaced by the walker's motion).
+    prior; a prior that contradicts the evidence is dropped. Frames without a
+    raw silhouette keep theirs.
     """
     out = []
     for p in priors:
@@ -92,8 +91,21 @@ def check_priors(priors: list[Prior], raw: list[Segmentation | None]) -> list[Pr
             out.append(p)
             continue
         w = weigh(p, explained(p, s.full_mask()))
-        out.append(w if w is not None else Prior(p.frame_index, p.box, p.image_size, np.zeros_like(p.mask)))
+        if w is not None:
+            out.append(w)
     return out
+
+
+def second_pass(frames: Iterable[np.ndarray], settings: SegmentSettings, priors: list[Prior],
+                raw: list[Segmentation | None], *, trim_reach: float | None = 0.1) -> list[Segmentation | None]:
+    """Segment the frames again with their priors, then trim to the priors that explain ``raw``.
+
+    The segmenter checks each prior against its own evidence as it goes (the
+    agent-side check); the trim (:func:`trim`, skipped when ``trim_reach`` is
+    None) uses the priors checked against the first pass (:func:`check_priors`).
+    """
+    segs = segment(frames, settings, priors)
+    return segs if trim_reach is None else trim(segs, check_priors(priors, raw), reach=trim_reach)
 
 
 def trim(segs: list[Segmentation | None], priors: list[Prior], *, reach: float = 0.1) -> list[Segmentation | None]:
@@ -112,7 +124,7 @@ def trim(segs: list[Segmentation | None], priors: list[Prior], *, reach: float =
         full = trim_silhouette(s.full_mask(), p.full_mask(), reach=reach)
         cropped = crop_to_box(full)
         if cropped is None:
-            out.append(Segmentation(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), s.image_size, 0, True))
+            out.append(Segmentation.nothing(s.image_size, used_prior=True))
             continue
         crop, b = cropped
         out.append(Segmentation(crop, Box(*(int(v) for v in b)), s.image_size, int(np.count_nonzero(crop)), True))
@@ -182,13 +194,8 @@ def refine_cameras(
     priors = priors_for_window(estimate, tracks, sizes, renderer=renderer, config=config)
     if prior_transform is not None:
         priors = {name: [prior_transform(p) for p in ps] for name, ps in priors.items()}
-    refined = {}
-    for name, make in frames.items():
-        # The segmenter checks each prior against its own evidence as it goes (the
-        # agent-side check); the trim uses the priors checked against the first pass.
-        segs = segment(make(), settings, priors[name])
-        refined[name] = (trim(segs, check_priors(priors[name], raw[name]), reach=trim_reach)
-                         if trim_reach is not None else segs)
+    refined = {name: second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach)
+               for name, make in frames.items()}
     return RefineResult(raw, refined, estimate, priors, sizes)
 
 

@@ -129,10 +129,12 @@ class Segmentation:
 
     def full_mask(self) -> np.ndarray:
         """The crop pasted into a full-frame ``(height, width)`` canvas."""
-        out = np.zeros(self.image_size[::-1], np.uint8)
-        if not self.box.empty:
-            out[self.box.slices()] = self.mask
-        return out
+        return self.box.paste(self.mask, self.image_size)
+
+    @classmethod
+    def nothing(cls, size: tuple[int, int], used_prior: bool = False) -> Segmentation:
+        """A frame of ``size`` in which no walker was found."""
+        return cls(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), size, 0, used_prior)
 
 
 def _kernel(size: float) -> np.ndarray | None:
@@ -508,7 +510,7 @@ class Segmenter:
         size = g.size
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
-            return self._empty(size, used_prior)
+            return Segmentation.nothing(size, used_prior)
         if g.close is not None:
             m = g.close_px
             x0, y0 = max(0, rx - m), max(0, ry - m)
@@ -519,11 +521,11 @@ class Segmenter:
             region = fg[ry:ry + rh, rx:rx + rw]
         _, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
         if len(stats) < 2:
-            return self._empty(size, used_prior)
+            return Segmentation.nothing(size, used_prior)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         area = int(stats[best, cv2.CC_STAT_AREA])
         if area < g.min_area:
-            return self._empty(size, used_prior)
+            return Segmentation.nothing(size, used_prior)
         x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region
         m = self.settings.margin_px
         x0, y0 = max(0, rx + x - m), max(0, ry + y - m)  # crop box in the full frame
@@ -533,6 +535,3 @@ class Segmenter:
         crop[oy:oy + h, ox:ox + w] = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, area, used_prior)
 
-    @staticmethod
-    def _empty(size: tuple[int, int], used_prior: bool) -> Segmentation:
-        return Segmentation(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), size, 0, used_prior)

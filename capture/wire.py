@@ -122,6 +122,13 @@ class Box:
         """``image[box.slices()]`` is the crop."""
         return slice(self.y, self.y + self.h), slice(self.x, self.x + self.w)
 
+    def paste(self, crop: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+        """``crop`` (of shape ``(h, w)``) at this box in a zero ``(height, width)`` canvas."""
+        out = np.zeros(image_size[::-1], crop.dtype)
+        if not self.empty:
+            out[self.slices()] = crop
+        return out
+
 
 def _crop_fields(rig: str, camera: str, frame_index: int, box: Box,
                  image_size: tuple[int, int], mask: np.ndarray) -> None:
@@ -178,16 +185,9 @@ class SilhouetteMessage:
         if self.mask.size and np.any((self.mask != 0) & (self.mask != 255)):
             raise WireError("silhouette mask must be binary 0/255")
 
-    @property
-    def key(self) -> str:
-        return silhouette_key(self.rig, self.camera)
-
     def full_mask(self) -> np.ndarray:
         """The silhouette pasted into a full-frame ``(height, width)`` canvas."""
-        out = np.zeros(self.image_size[::-1], np.uint8)
-        if not self.box.empty:
-            out[self.box.slices()] = self.mask
-        return out
+        return self.box.paste(self.mask, self.image_size)
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,15 +216,9 @@ class FeedbackMessage:
     def __post_init__(self) -> None:
         _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
 
-    @property
-    def key(self) -> str:
-        return feedback_key(self.rig, self.camera)
-
     def full_mask(self) -> np.ndarray:
-        out = np.zeros(self.image_size[::-1], np.uint8)
-        if not self.box.empty:
-            out[self.box.slices()] = self.mask
-        return out
+        """The prior pasted into a full-frame ``(height, width)`` canvas."""
+        return self.box.paste(self.mask, self.image_size)
 
 
 Message = SilhouetteMessage | FeedbackMessage

@@ -31,14 +31,13 @@ from capture.wire import (
     silhouette_key,
 )
 from capture.zconfig import build_config
+from service.server import free_port
 
 SPEC = SceneSpec(width=160, height=120, frames=60, empty=30)
 
 
 def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 @pytest.fixture

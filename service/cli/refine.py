@@ -22,8 +22,6 @@ import os
 
 from . import CliError
 
-_VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v")
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -43,10 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _videos(folder: str) -> dict[str, str]:
+    from service.worker import VIDEO_EXTENSIONS  # what a job accepts, the CLI accepts
+
     out = {}
     for name in sorted(os.listdir(folder)):
         stem, ext = os.path.splitext(name)
-        if ext.lower() in _VIDEO_EXTENSIONS and os.path.isfile(os.path.join(folder, name)):
+        if ext.lower() in VIDEO_EXTENSIONS and os.path.isfile(os.path.join(folder, name)):
             out[stem] = os.path.join(folder, name)
     return out
 
