@@ -23,13 +23,14 @@ from estimator.appearance import load_model
 from estimator.mocap import read_motion
 from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence
 from estimator.synth import SynthSpec, synthesize
+from estimator.viewpoint import azimuth_difference_deg
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MOCAP = os.path.join(ROOT, "..", "shared", "data", "mocap")
 
 
 def az_err(a, b):
-    return np.abs((np.asarray(a) - np.asarray(b) + 180.0) % 360.0 - 180.0)
+    return np.abs(azimuth_difference_deg(a, np.asarray(b)))
 
 
 def ph_err(a, b):

@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_serve)
 
 
-def settings_from_args(args: argparse.Namespace, **extra):
+def settings_from_args(args: argparse.Namespace):
     """:class:`~service.settings.Settings` from the command line (and the environment)."""
     from pydantic import ValidationError
 
@@ -57,7 +57,7 @@ def settings_from_args(args: argparse.Namespace, **extra):
     if args.multicast:
         given["zenoh_multicast"] = True
     try:
-        return Settings(**given, **extra)
+        return Settings(**given)
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise CliError(f"invalid settings: {problems}") from None
@@ -69,14 +69,11 @@ def run_serve(args: argparse.Namespace) -> int:
     from service.app import create_app
     from service.settings import get_settings
 
-    from estimator.appearance import load_model
+    from .model import model_from_arg
 
     settings = settings_from_args(args)
-    if settings.model_path is not None:
-        try:
-            load_model(settings.model_path)
-        except (OSError, ValueError) as exc:
-            raise CliError(f"appearance model {settings.model_path}: {exc}") from None
+    if settings.model_path is not None:  # a bad --model is a CLI error (exit 2), before uvicorn starts
+        model_from_arg(str(settings.model_path))
     app = create_app()
     app.dependency_overrides[get_settings] = lambda: settings
     uvicorn.run(app, host=args.host, port=args.port, log_level="info")

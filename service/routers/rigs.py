@@ -12,9 +12,13 @@ from ..schemas import RigList, RigOut
 router = APIRouter(prefix="/v1/rigs", tags=["rigs"])
 
 
+def _unknown_rig(rig: str) -> HTTPException:
+    return HTTPException(404, f"unknown rig {rig!r}: no silhouettes received for it")
+
+
 def _rig_or_404(live: LiveDep, rig: str) -> None:
     if not live.has_rig(rig):
-        raise HTTPException(404, f"unknown rig {rig!r}: no silhouettes received for it")
+        raise _unknown_rig(rig)
 
 
 @router.get("", response_model=RigList)
@@ -29,7 +33,7 @@ def list_rigs(rt: RuntimeDep) -> RigList:
 def get_rig(rig: str, live: LiveDep) -> RigOut:
     summary = live.summary(rig)
     if summary is None:
-        raise HTTPException(404, f"unknown rig {rig!r}: no silhouettes received for it")
+        raise _unknown_rig(rig)
     return RigOut(**summary)
 
 
