@@ -206,11 +206,15 @@ def _check_links(links: Sequence[Link] | None, ratios: Sequence[Ratio]) -> tuple
     for r in ratios:
         if len(r) != 3 or float(r[2]) <= 0:
             raise ValueError(f"a length ratio must be (link_a, link_b, ratio > 0), got {r}")
-        for ln in r[:2]:
-            if len(ln) != 2 or not all(0 <= int(i) < N_JOINTS for i in ln):
-                raise ValueError(f"bad link {ln} in length ratio {r}")
-        out.append((tuple(map(int, r[0])), tuple(map(int, r[1])), float(r[2])))
+        out.append((_named_link(r[0], "length ratio", r), _named_link(r[1], "length ratio", r), float(r[2])))
     return [tuple(map(int, ln)) for ln in links], out
+
+
+def _named_link(ln, what: str, item) -> tuple[int, int]:
+    """A link named inside a ratio or proportion, as two joint indices; ValueError if it is not one."""
+    if len(ln) != 2 or not all(0 <= int(i) < N_JOINTS for i in ln):
+        raise ValueError(f"bad link {ln} in {what} {item}")
+    return int(ln[0]), int(ln[1])
 
 
 def _check_proportions(priors: Sequence[LengthPrior]) -> list:
@@ -218,11 +222,8 @@ def _check_proportions(priors: Sequence[LengthPrior]) -> list:
     for pr in priors or ():
         if len(pr) != 4 or not float(pr[2]) > 0 or not float(pr[3]) > 0 or not pr[0] or not pr[1]:
             raise ValueError(f"a body proportion must be (links_a, links_b, ratio > 0, tolerance > 0), got {pr}")
-        for ln in (*pr[0], *pr[1]):
-            if len(ln) != 2 or not all(0 <= int(i) < N_JOINTS for i in ln):
-                raise ValueError(f"bad link {ln} in body proportion {pr}")
-        out.append((tuple(tuple(map(int, ln)) for ln in pr[0]),
-                    tuple(tuple(map(int, ln)) for ln in pr[1]), float(pr[2]), float(pr[3])))
+        out.append((tuple(_named_link(ln, "body proportion", pr) for ln in pr[0]),
+                    tuple(_named_link(ln, "body proportion", pr) for ln in pr[1]), float(pr[2]), float(pr[3])))
     return out
 
 
