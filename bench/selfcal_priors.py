@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from selfcal_test2 import MOCAP, fixed_pair, wrap  # noqa: E402
+from selfcal_test2 import MOCAP, draw_trial, fixed_pair, wrap  # noqa: E402
 
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
 from estimator.joints import N_JOINTS  # noqa: E402
@@ -52,14 +52,8 @@ METHODS = {
 def trial(args: tuple) -> dict[str, np.ndarray]:
     """One window and noise draw; per method (E_rx, E_ry, E_rz, geodesic) in degrees."""
     seed, level, x_all = args
-    rng = np.random.default_rng(seed)
-    start = rng.integers(0, len(x_all) - 120)
-    x = x_all[start:start + 120:4]
-    rots, scales = fixed_pair(45)(rng)
-    rots, scales = rots[:2], np.asarray(scales[:2], dtype=float)
-    height = np.mean(x[..., 2].max(1) - x[..., 2].min(1))
-    y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, None, None, None]
-    y = y + rng.uniform(-1, 1, y.shape) * (level * height * scales)[:, None, None, None]
+    _, rots, _, _, y = draw_trial(x_all, np.random.default_rng(seed), level, fixed_pair(45))
+    y = y[:2]
     rel = rots[1] @ rots[0].T
     euler = Rotation.from_matrix(rel).as_euler("xyz", degrees=True)
     out = {}

@@ -85,6 +85,23 @@ METHODS = {
 }
 
 
+def draw_trial(x_all, rng, level, pair):
+    """One trial's window, cameras and noisy tracks: ``(x, rots, scales, height, y)``.
+
+    A random 30-frame window (every 4th frame), the cameras from ``pair(rng)``,
+    orthographic tracks of every camera with U(-a, a) noise, ``a`` = ``level`` x
+    the body height in that camera's image.
+    """
+    start = rng.integers(0, len(x_all) - 120)
+    x = x_all[start:start + 120:4]
+    rots, scales = pair(rng)
+    scales = np.asarray(scales, dtype=float)
+    height = np.mean(x[..., 2].max(1) - x[..., 2].min(1))
+    y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, None, None, None]
+    y = y + rng.uniform(-1, 1, y.shape) * (level * height * scales)[:, None, None, None]
+    return x, rots, scales, height, y
+
+
 def run_trials(x_all, rng, *, trials, methods, pair, cams=2):
     """Returns {method: {metric: (levels, trials) array}}, LC non-PD counts, failures."""
     out = {m: {k: np.full((len(LEVELS), trials), np.nan) for k in
@@ -93,13 +110,7 @@ def run_trials(x_all, rng, *, trials, methods, pair, cams=2):
     failed = {m: np.zeros(len(LEVELS), dtype=int) for m in methods}
     for li, level in enumerate(LEVELS):
         for k in range(trials):
-            start = rng.integers(0, len(x_all) - 120)
-            x = x_all[start:start + 120:4]
-            rots, scales = pair(rng)
-            scales = np.asarray(scales, dtype=float)
-            height = np.mean(x[..., 2].max(1) - x[..., 2].min(1))
-            y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * scales[:, None, None, None]
-            y = y + rng.uniform(-1, 1, y.shape) * (level * height * scales)[:, None, None, None]
+            x, rots, scales, height, y = draw_trial(x_all, rng, level, pair)
             y = y[:cams]
             truth = scales[0] * np.einsum("ij,tkj->tki", rots[0], x)
             truth -= truth.mean(axis=1, keepdims=True)
