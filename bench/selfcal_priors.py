@@ -31,12 +31,13 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from selfcal_test2 import MOCAP, draw_trial, fixed_pair, wrap  # noqa: E402
+from selfcal_test2 import MOCAP, draw_trial, fixed_pair  # noqa: E402
 
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
 from estimator.joints import N_JOINTS  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.selfcal import SYMMETRIC_RATIOS, self_calibrate  # noqa: E402
+from estimator.viewpoint import azimuth_difference_deg  # noqa: E402
 
 SYMMETRIC = tuple(((a,), (b,), 1.0, 0.02) for a, b, _ in SYMMETRIC_RATIOS)
 METHODS = {
@@ -59,8 +60,11 @@ def trial(args: tuple) -> dict[str, np.ndarray]:
     out = {}
     for name, kw in METHODS.items():
         res = self_calibrate(y, **kw)
-        out[name] = (np.r_[wrap(res.euler_xyz_deg[1] - euler), geodesic_deg(res.rotations[1], rel)]
-                     if res else np.full(4, np.nan))
+        if not res:
+            out[name] = np.full(4, np.nan)
+            continue
+        axes = np.abs(azimuth_difference_deg(res.euler_xyz_deg[1], euler))
+        out[name] = np.r_[axes, geodesic_deg(res.rotations[1], rel)]
     return out
 
 

@@ -58,18 +58,13 @@ from estimator.joints import N_JOINTS  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.selfcal import self_calibrate  # noqa: E402
 from estimator.selfcal_baselines import liebowitz_carlsson, tresadern_reid  # noqa: E402
+from estimator.viewpoint import azimuth_difference_deg  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MOCAP = ROOT.parent / "shared" / "data" / "mocap"
 TEST2_EULER = np.array([-10.0, -60.0, 20.0])
 LEVELS = np.arange(10) / 100.0
 S0 = 130.0  # camera 0 pixels per metre: body height (head to ankle) ~195 px, as in the paper
-
-
-
-
-def wrap(deg: np.ndarray) -> np.ndarray:
-    return np.abs((deg + 180.0) % 360.0 - 180.0)
 
 
 METHODS = {
@@ -128,7 +123,7 @@ def run_trials(x_all, rng, *, trials, methods, pair, cams=2):
                 d["e3d"][li, k] = np.nanmean(np.linalg.norm(res.joints3d - truth, axis=-1)) / (
                     scales[0] * height)
                 d["es"][li, k] = abs(res.scales[1] - s_true)
-                e = wrap(res.euler_xyz_deg[1] - euler_true)
+                e = np.abs(azimuth_difference_deg(res.euler_xyz_deg[1], euler_true))
                 d["ex"][li, k], d["ey"][li, k], d["ez"][li, k] = e
                 d["geo"][li, k] = geodesic_deg(res.rotations[1], rel)
     return out, non_pd, failed
