@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.sparse
 from scipy.spatial.transform import Rotation
 
 from estimator._factorization import factorize, noise_sigma
@@ -21,6 +22,8 @@ from estimator.joints import JOINT_INDEX, N_JOINTS
 from estimator.selfcal import (
     RIGID_LINKS,
     SelfCalibration,
+    _euler_covariance,
+    _laplace_covariance as selfcal_laplace,
     _link_noise_poly,
     _omega_family,
     _pd_interval,
@@ -553,3 +556,75 @@ def test_walker_prior_option_validation(walk):
         self_calibrate(y, refine=True, body_proportions=[(_THIGHS, _SHINS, 1.0, 0.0)])
     with pytest.raises(ValueError, match="bad link"):
         self_calibrate(y, refine=True, body_proportions=[(((0, 13),), _SHINS, 1.0, 0.05)])
+
+
+# ------------------------------------------------------------------ posterior uncertainty
+
+
+def test_laplace_covariance_is_the_inverse_gauss_newton_hessian():
+    jac = scipy.sparse.random(60, 12, density=0.4, random_state=1) + scipy.sparse.eye(60, 12)
+    full = 0.3**2 * np.linalg.inv((jac.T @ jac).toarray())
+    np.testing.assert_allclose(selfcal_laplace(jac, 0.3, 5), full[:5, :5], rtol=1e-9)
+    assert not selfcal_laplace(jac, 0.0, 5).any()  # noise-free: no uncertainty
+    # A parameter no residual touches: the others keep their covariance, unless it is one of them.
+    free_last = scipy.sparse.csr_matrix(np.hstack([jac.toarray(), np.zeros((60, 1))]))
+    np.testing.assert_allclose(selfcal_laplace(free_last, 0.3, 5), full[:5, :5], rtol=1e-6)
+    free_first = scipy.sparse.csr_matrix(np.hstack([np.zeros((60, 1)), jac.toarray()]))
+    assert np.isnan(selfcal_laplace(free_first, 0.3, 5)).all()
+
+
+def test_euler_covariance_matches_sampled_rotations():
+    """The linear propagation agrees with the covariance of Euler angles of sampled rotations."""
+    rng = np.random.default_rng(3)
+    rots = np.stack([np.eye(3), Rotation.from_euler("xyz", [-10, -60, 20], degrees=True).as_matrix()])
+    a = rng.normal(size=(3, 3))
+    cov_rv = np.radians(1.0) ** 2 * (a @ a.T + np.eye(3))
+    got = _euler_covariance(rots, cov_rv)
+    assert not got[0].any()
+    rv0 = Rotation.from_matrix(rots[1]).as_rotvec()
+    samples = Rotation.from_rotvec(rv0 + rng.multivariate_normal(np.zeros(3), cov_rv, 20000))
+    sampled = np.cov(samples.as_euler("xyz", degrees=True).T)
+    np.testing.assert_allclose(got[1], sampled, rtol=0.1, atol=0.05 * np.abs(sampled).max())
+
+
+def test_reported_uncertainty_zero_without_noise_absent_without_refine(walk):
+    y, _ = _test2_tracks(walk, 0.0, 0)
+    res = self_calibrate(y, refine=True)
+    assert res.euler_xyz_cov.shape == (2, 3, 3) and np.abs(res.euler_xyz_cov).max() < 1e-12
+    assert res.scale_std.shape == (2,) and res.scale_std.max() < 1e-12
+    assert self_calibrate(y).euler_xyz_cov is None and self_calibrate(y).euler_xyz_std_deg is None
+
+
+def test_reported_uncertainty_with_a_joint_no_camera_sees(walk):
+    """Maximum likelihood (no temporal prior): the unseen head is free to turn about the
+    shoulders, which leaves the rotation's uncertainty as it was."""
+    y, _ = _test2_tracks(walk, 0.03, 0)
+    kw = dict(refine=True, temporal_prior=False, noise_model=False)
+    full = self_calibrate(y, **kw).euler_xyz_std_deg[1]
+    y[:, 5, JOINT_INDEX["head"]] = np.nan
+    y[0, 7, JOINT_INDEX["left_wrist"]] = np.nan
+    np.testing.assert_allclose(self_calibrate(y, **kw).euler_xyz_std_deg[1], full, rtol=0.05)
+
+
+@pytest.mark.parametrize("upright", [False, True])
+def test_reported_uncertainty_covers_the_error(walk, upright):
+    """Test 2 at 4 % noise, 12 noise draws: the true Euler angles lie inside the reported 95 %
+    ellipsoid in at least 10 of 12, the reported standard deviation is the size of the actual
+    error (RMS within 0.5-1.5x), and it grows with the noise (bench: docs/SELFCAL.md)."""
+    m2, err, std, std_low = [], [], [], []
+    truth = Rotation.from_matrix(TEST2).as_euler("xyz", degrees=True)
+    for seed in range(12):
+        y, _ = _test2_tracks(walk, 0.04, seed)
+        res = self_calibrate(y, refine=True, upright=upright)
+        e = res.euler_xyz_deg[1] - truth
+        m2.append(e @ np.linalg.solve(res.euler_xyz_cov[1], e))
+        err.append(e)
+        std.append(res.euler_xyz_std_deg[1])
+        if seed < 3:
+            low = self_calibrate(_test2_tracks(walk, 0.01, seed)[0], refine=True, upright=upright)
+            std_low.append(low.euler_xyz_std_deg[1])
+        assert 0 < res.scale_std[1] < 0.05
+    assert np.sum(np.array(m2) < 7.81) >= 10, m2  # chi2(3) 95 % quantile
+    ratio = np.sqrt(np.mean(np.square(err), axis=0)) / np.median(std, axis=0)
+    assert np.all((ratio > 0.5) & (ratio < 1.5)), ratio
+    assert np.all(np.median(std[:3], axis=0) > 2.5 * np.median(std_low, axis=0))

@@ -65,6 +65,7 @@ def test_selfcal_writes_result(tmp_path, tracks):
     assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
     np.testing.assert_allclose(cam["euler_xyz_deg"], [-10, -60, 20], atol=0.01)
     assert cam["scale"] == pytest.approx(0.8, abs=1e-4)
+    assert "euler_xyz_std_deg" not in cam  # closed form only: no posterior
     assert 0.5 <= res["reflection_confidence"] <= 1
     assert len(res["frames"]) == 30 and res["frames"][3]["index"] == 3
     assert res["frames"][7]["joints3d"][0] is None
@@ -94,6 +95,7 @@ def test_varying_scale_option(tmp_path, tracks):
                  "--varying-scale"]) == 0
     cam = json.loads(out.read_text())["cameras"]["right"]
     assert len(cam["frame_scales"]) == 30
+    assert "euler_xyz_std_deg" in cam and "scale_std" not in cam  # per-frame scales: no single std
     assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
 
 
@@ -103,6 +105,13 @@ def test_refine_upright_option(tmp_path, tracks, capsys):
     assert main(["selfcal", str(doc), "--out", str(out), "--refine", "--upright"]) == 0
     cam = json.loads(out.read_text())["cameras"]["right"]
     assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01  # noise-free: still exact
+    assert cam["euler_xyz_std_deg"] == [0.0, 0.0, 0.0] and cam["scale_std"] == 0.0
+    noisy = tracks + np.random.default_rng(0).uniform(-6, 6, tracks.shape)  # 3 % of the height
+    assert main(["selfcal", str(write(tmp_path, as_doc(noisy))), "--out", str(out), "--refine"]) == 0
+    cam = json.loads(out.read_text())["cameras"]["right"]
+    assert all(0.05 < v < 10 for v in cam["euler_xyz_std_deg"]) and 0 < cam["scale_std"] < 0.05
+    err = np.abs(np.array(cam["euler_xyz_deg"]) - [-10, -60, 20])
+    assert np.all(err < 4 * np.array(cam["euler_xyz_std_deg"])), (err, cam["euler_xyz_std_deg"])
     assert main(["selfcal", str(doc), "--upright"]) == 2
     assert "--upright needs --refine" in capsys.readouterr().err
 

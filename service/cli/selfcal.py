@@ -38,7 +38,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="camera scales change over time: one U per frame and a bundle "
                         "adjustment (section 4.3)")
     p.add_argument("--refine", action="store_true",
-                   help="finish the closed form with the bundle adjustment")
+                   help="finish the closed form with the bundle adjustment (adds each "
+                        "angle's posterior standard deviation, euler_xyz_std_deg)")
     p.add_argument("--upright", action="store_true",
                    help="with --refine: the walker is upright with free arms (right angles "
                         "inside the trunk and shoulders as soft priors)")
@@ -124,10 +125,17 @@ def result_to_json(result, cameras: list[str]) -> dict:
                           "direction; its pixels; origin at each frame's joint centroid",
         "frames": [{"index": i, "joints3d": _nullable(j)} for i, j in enumerate(result.joints3d)],
     }
-    if result.frame_scales is not None:
-        for c, name in enumerate(cameras):
-            if c > 0:
-                doc["cameras"][name]["frame_scales"] = result.frame_scales[:, c].tolist()
+    std = result.euler_xyz_std_deg
+    for c, name in enumerate(cameras):
+        if c == 0:
+            continue
+        cam = doc["cameras"][name]
+        if std is not None:  # posterior standard deviations (bundle adjustment only)
+            cam["euler_xyz_std_deg"] = _nullable(std[c:c + 1])[0]
+        if result.scale_std is not None and np.isfinite(result.scale_std[c]):
+            cam["scale_std"] = float(result.scale_std[c])
+        if result.frame_scales is not None:
+            cam["frame_scales"] = result.frame_scales[:, c].tolist()
     return doc
 
 
