@@ -100,7 +100,7 @@ def draw_trial(x_all, rng, level, pair):
 def run_trials(x_all, rng, *, trials, methods, pair, cams=2):
     """Returns {method: {metric: (levels, trials) array}}, LC non-PD counts, failures."""
     out = {m: {k: np.full((len(LEVELS), trials), np.nan) for k in
-               ("e3d", "es", "ex", "ey", "ez", "geo")} for m in methods}
+               ("e3d", "es", "ex", "ey", "ez", "geo", "sx", "sy", "sz", "m2")} for m in methods}
     non_pd = np.zeros(len(LEVELS), dtype=int)
     failed = {m: np.zeros(len(LEVELS), dtype=int) for m in methods}
     for li, level in enumerate(LEVELS):
@@ -123,8 +123,11 @@ def run_trials(x_all, rng, *, trials, methods, pair, cams=2):
                 d["e3d"][li, k] = np.nanmean(np.linalg.norm(res.joints3d - truth, axis=-1)) / (
                     scales[0] * height)
                 d["es"][li, k] = abs(res.scales[1] - s_true)
-                e = np.abs(azimuth_difference_deg(res.euler_xyz_deg[1], euler_true))
-                d["ex"][li, k], d["ey"][li, k], d["ez"][li, k] = e
+                e = azimuth_difference_deg(res.euler_xyz_deg[1], euler_true)
+                d["ex"][li, k], d["ey"][li, k], d["ez"][li, k] = np.abs(e)
+                if res.euler_xyz_cov is not None and level > 0:  # the reported posterior
+                    d["sx"][li, k], d["sy"][li, k], d["sz"][li, k] = res.euler_xyz_std_deg[1]
+                    d["m2"][li, k] = e @ np.linalg.solve(res.euler_xyz_cov[1], e)
                 d["geo"][li, k] = geodesic_deg(res.rotations[1], rel)
     return out, non_pd, failed
 
@@ -201,6 +204,31 @@ def table(title, res, methods, metric, unit, fmt="{:.2f}", non_pd=None, failed=N
     return "\n".join(lines) + "\n"
 
 
+def uncertainty_table(res, methods) -> str:
+    """How the reported posterior (``euler_xyz_std_deg``) compares with the actual Euler errors."""
+    lines = ["**A. Test 2** — reported uncertainty against the actual error (Euler x / y / z, "
+             "degrees): median reported std; the actual error's robust std (1.4826 x median "
+             "absolute error, the std for Gaussian errors, not swayed by a rare flip); share of trials within the reported "
+             "±1.96 std; share inside the reported 95 % ellipsoid (Mahalanobis² < 7.81, "
+             "χ²₃)", ""]
+    lines += ["| noise | method | reported std | error (robust std) | within ±1.96 std | inside 95 % ellipsoid |",
+              "|---|---|---|---|---|---|"]
+    for li, level in enumerate(LEVELS[1:], start=1):
+        for m in methods:
+            d = {k: res[m][k][li] for k in ("ex", "ey", "ez", "sx", "sy", "sz", "m2")}
+            ok = np.isfinite(d["m2"])
+            if not ok.any():
+                continue
+            err = np.stack([d["ex"], d["ey"], d["ez"]])[:, ok]
+            std = np.stack([d["sx"], d["sy"], d["sz"]])[:, ok]
+            fmt = "{:.2f} / {:.2f} / {:.2f}"
+            lines.append(f"| {level:.0%} | {m} | {fmt.format(*np.median(std, axis=1))} | "
+                         f"{fmt.format(*1.4826 * np.median(err, axis=1))} | "
+                         f"{fmt.format(*np.mean(err <= 1.96 * std, axis=1))} | "
+                         f"{np.mean(d['m2'][ok] < 7.81):.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def medians(res, methods, metric) -> str:
     lines = ["| noise | " + " | ".join(methods) + " |", "|" + "---|" * (len(methods) + 1)]
     for li, level in enumerate(LEVELS):
@@ -269,7 +297,9 @@ def main(argv: list[str] | None = None) -> int:
                          f"{lv:.0%}: {np.nanmedian(res_a[m]['ex'][i]):.2f}/"
                          f"{np.nanmedian(res_a[m]['ey'][i]):.2f}/{np.nanmedian(res_a[m]['ez'][i]):.2f}"
                          for i, lv in enumerate(LEVELS)) for m in with_ba) + "\n")
-    print(sections["A"], flush=True)
+    posterior = [m for m in with_ba if np.isfinite(res_a[m]["m2"]).any()]
+    sections["A_uncertainty"] = uncertainty_table(res_a, posterior) if posterior else ""
+    print(sections["A"], sections["A_uncertainty"], flush=True)
 
     rng = np.random.default_rng(args.seed + 1)
     res_b, npd_b, fail_b = run_trials(x_all, rng, trials=args.trials, methods=base, pair=fixed_pair(90))
