@@ -48,6 +48,7 @@ import numpy as np
 import scipy.fft
 import scipy.linalg
 import scipy.sparse
+import scipy.sparse.linalg
 from scipy.optimize import least_squares, minimize_scalar
 from scipy.spatial.transform import Rotation
 
@@ -132,11 +133,13 @@ class SelfCalibration:
         Posterior covariance of each camera's ``euler_xyz_deg`` (degrees
         squared; zeros for camera 0, the reference), from the Laplace
         approximation at the bundle adjustment's optimum
-        (:func:`_laplace_covariance`). None without ``refine``; NaN if the
-        tracks do not determine the rotation; zeros on noise-free tracks.
+        (:func:`_laplace_covariance`). None for the closed form alone
+        (``refine=False``; the §4.3 path always refines) and for windows
+        too long for it (:data:`LAPLACE_MAX_PARAMS`); NaN if the tracks do
+        not determine the rotation; zeros on noise-free tracks.
     scale_std : ndarray of shape (C,) or None
         Posterior standard deviation of ``scales`` (fixed scales with
-        ``refine`` only; None otherwise).
+        ``refine`` only; None otherwise, NaN where undetermined).
     method : str
         ``"wang-leow"``, ``"wang-leow-lsq"`` (3+ cameras),
         ``"wang-leow-varying"``, or a baseline's name.
@@ -649,9 +652,10 @@ def self_calibrate(
                             noise_sigma=sigma)
         rots, sc_t, joints_n, cov, info = ba
         sc = sc_t[:, 0] / sc_t[0, 0]
-        n_rot = 3 * (n_cam - 1)
-        euler_cov = _euler_covariance(rots, cov[:n_rot, :n_rot])
-        scale_std = np.concatenate([[0.0], sc[1:] * np.sqrt(np.diag(cov)[n_rot:])])
+        if cov is not None:
+            n_rot = 3 * (n_cam - 1)
+            euler_cov = _euler_covariance(rots, cov[:n_rot, :n_rot])
+            scale_std = np.concatenate([[0.0], sc[1:] * np.sqrt(np.diag(cov)[n_rot:])])
         joints = joints_n * fact.norm * sc_t[0, 0]
         _, conf = kinematic_reflection(joints)
         diag.update(bundle=info)
@@ -751,7 +755,7 @@ def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_n
     n_rot = 3 * (n_cam - 1)
     return SelfCalibration(rots, np.median(frame_scales, axis=0), _mask_unseen(joints, fact.observed),
                            frame_scales, conf, method, "", diag,
-                           _euler_covariance(rots, cov[:n_rot, :n_rot]))
+                           None if cov is None else _euler_covariance(rots, cov[:n_rot, :n_rot]))
 
 
 def _temporal_prior(y: np.ndarray, fact: Factorization, strength: float = 1.0
@@ -959,9 +963,9 @@ def _bundle_adjust(
     Returns
     -------
     rotations (C, 3, 3), scales (C, T), joints (T, J, 3), the posterior
-    covariance of the rotation vectors of cameras 1.. and the log scales
-    (:func:`_laplace_covariance`, in parameter order: ``3 (C - 1)`` rotation
-    components, then the free log scales), info dict.
+    covariance (:func:`_laplace_covariance`; None when too large) of the
+    rotation errors ``omega`` of cameras 1.. (``R_hat = exp(omega) R``, in
+    radians) and then the free log scales, info dict.
 
     Notes
     -----
@@ -1144,63 +1148,100 @@ def _bundle_adjust(
     start_cost = 0.5 * float(np.sum(fun(p0) ** 2))
     res = least_squares(fun, p0, jac=jac, method="trf", x_scale="jac", max_nfev=max_nfev)
     r, s, _, x, _ = unpack(res.x)
-    cov = _laplace_covariance(jac(res.x), noise_sigma, n_rot + n_s)
+    cov = _laplace_covariance(jac(res.x), noise_sigma, n_rot + n_s, dense=smooth or n_ap > 0)
+    if cov is not None and n_rot:  # rotation vectors -> rotation errors, whatever their length
+        g = np.eye(n_rot + n_s)
+        g[:n_rot, :n_rot] = _local_rotation_jacobian(res.x[:n_rot].reshape(-1, 3))
+        bad = (np.abs(g) > 0) @ np.isnan(np.diag(cov)) > 0  # undetermined stays undetermined
+        cov = g @ np.nan_to_num(cov) @ g.T
+        cov[bad] = np.nan
+        cov[:, bad] = np.nan
     info = {"cost_start": start_cost, "cost_end": float(res.cost), "nfev": int(res.nfev),
             "status": int(res.status)}
     return r, s, x, cov, info
 
 
-def _laplace_covariance(jac: scipy.sparse.spmatrix, sigma: float, n: int) -> np.ndarray:
+LAPLACE_MAX_PARAMS = 6000
+"""Above this many bundle-adjustment parameters (about 150 frames x 13 joints
+with two cameras) the dense posterior covariance is not computed (memory grows
+with its square): windows are meant to be short."""
+
+
+def _laplace_covariance(jac: scipy.sparse.spmatrix, sigma: float, n: int, *,
+                        dense: bool = True) -> np.ndarray | None:
     """Posterior covariance of the first ``n`` bundle-adjustment parameters (Laplace approximation).
 
     The cost is ``sigma^2`` times the negative log-posterior (reprojection
-    residuals of standard deviation ``sigma``, every MAP residual weighted to
-    match), so near the optimum the posterior is Gaussian with covariance
-    ``sigma^2 (J^T J)^-1`` (the Gauss–Newton Hessian; on Test 2 the errors
-    match it: docs/SELFCAL.md). Dense Cholesky: the temporal prior couples
-    all frames of a joint and the bones all joints of a frame, so a sparse
-    factorisation fills in (slower here); about 50 ms for 30 frames x 13 joints.
-    When ``J^T J`` is singular (a joint no camera sees, without the temporal
-    prior, is free to move along its bones) the inverse is taken on its range,
-    which is exact for the first ``n`` parameters if the free directions leave
-    them alone; NaN if they do not. Zeros when ``sigma <= 1e-9`` (noise-free).
+    residuals of standard deviation ``sigma``; the MAP residuals weighted to
+    match; the bone-length residuals, weight 1, a soft prior of standard
+    deviation ``sigma`` on each length), so near the optimum the posterior is
+    Gaussian with covariance ``sigma^2 (J^T J)^-1`` (the Gauss–Newton Hessian;
+    on Test 2 the errors match it: docs/SELFCAL.md). ``dense``: Cholesky of
+    ``J^T J``, for when the temporal or the angle prior couples all frames
+    (a sparse factorisation fills in and is slower; about 50 ms for 30 frames
+    x 13 joints); otherwise a sparse LU, whose fill stays within frames.
+    Parameters that the tracks do not determine (``J^T J`` singular: e.g. a
+    joint no camera sees, without the temporal prior) get the inverse on the
+    range, exact for the others; rows and columns of the first ``n`` that the
+    free directions touch are NaN. Zeros when ``sigma <= 1e-9`` (noise-free);
+    None above :data:`LAPLACE_MAX_PARAMS` with ``dense``.
     """
     if not sigma > 1e-9:
         return np.zeros((n, n))
     jac = scipy.sparse.csr_matrix(jac)
-    h = (jac.T @ jac).toarray()
+    if dense and jac.shape[1] > LAPLACE_MAX_PARAMS:
+        return None
+    h = jac.T @ jac
     try:
-        cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h), np.eye(h.shape[0], n))[:n]
-    except np.linalg.LinAlgError:  # singular: invert on the range (eigendecomposition, slower)
-        w, v = np.linalg.eigh(h)
+        if dense:
+            cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h.toarray()), np.eye(h.shape[0], n))
+        else:
+            cov = scipy.sparse.linalg.splu(scipy.sparse.csc_matrix(h)).solve(np.eye(h.shape[0], n))
+        cov, touched = cov[:n], np.zeros(n, dtype=bool)
+    except (np.linalg.LinAlgError, RuntimeError):  # singular: the inverse on the range (slower)
+        w, v = np.linalg.eigh(h.toarray())
         free = w <= 1e-10 * w[-1]
-        if np.abs(v[:n, free]).max(initial=0.0) > 1e-6:
-            return np.full((n, n), np.nan)
+        touched = np.abs(v[:n, free]).max(axis=1, initial=0.0) > 1e-6
         cov = (v[:n, ~free] / w[~free]) @ v[:n, ~free].T
-    cov = sigma**2 * cov
-    if not np.isfinite(cov).all():
-        return np.full((n, n), np.nan)
-    return 0.5 * (cov + cov.T)
+    cov = sigma**2 * 0.5 * (cov + cov.T)
+    cov[touched] = np.nan
+    cov[:, touched] = np.nan
+    return cov
 
 
-def _euler_covariance(rots: np.ndarray, rotvec_cov: np.ndarray) -> np.ndarray:
-    """Propagate the covariance of cameras 1..'s rotation vectors to their XYZ Euler angles.
+def _central_jacobian(f, n: int, h: float = 1e-6, period: float | None = None) -> np.ndarray:
+    """``d f / d x`` at ``x = 0`` by central differences; ``f`` maps ``(2n, n)`` steps to ``(2n, m)``
+    values. ``period``: the values are angles, wrapped between the two steps."""
+    d = f(h * np.concatenate([np.eye(n), -np.eye(n)]))
+    d = d[:n] - d[n:]
+    if period is not None:
+        d = (d + period / 2) % period - period / 2
+    return d.T / (2 * h)
 
-    ``rotvec_cov`` is ``(3 (C - 1), 3 (C - 1))`` in radians^2 over the
-    bundle adjustment's rotation-vector parameters; returns ``(C, 3, 3)`` in
-    degrees^2 (zeros for camera 0), by the Jacobian of ``as_euler("xyz")``
-    with respect to the rotation vector (central differences).
+
+def _local_rotation_jacobian(rotvecs: np.ndarray) -> np.ndarray:
+    """Block diagonal ``d omega / d rv``: how the bundle adjustment's rotation vectors
+    move each rotation, as ``omega = log(R(rv + d) R(rv)^T)`` (a rotation in camera c's frame)."""
+    out = np.zeros((3 * len(rotvecs), 3 * len(rotvecs)))
+    for c, rv in enumerate(rotvecs):
+        r0 = Rotation.from_rotvec(rv).inv()
+        out[3 * c:3 * c + 3, 3 * c:3 * c + 3] = _central_jacobian(
+            lambda d, rv=rv, r0=r0: (Rotation.from_rotvec(rv[None] + d) * r0).as_rotvec(), 3)
+    return out
+
+
+def _euler_covariance(rots: np.ndarray, rot_cov: np.ndarray) -> np.ndarray:
+    """Propagate the covariance of cameras 1..'s rotation errors to their XYZ Euler angles.
+
+    ``rot_cov`` is ``(3 (C - 1), 3 (C - 1))`` in radians^2 over the rotation
+    errors ``omega`` (``R_hat = exp(omega) R``, from :func:`_bundle_adjust`);
+    returns ``(C, 3, 3)`` in degrees^2 (zeros for camera 0), by the Jacobian
+    of ``as_euler("xyz")`` with respect to ``omega``.
     """
-    n_cam = rots.shape[0]
-    out = np.zeros((n_cam, 3, 3))
-    h = 1e-6
-    for c in range(1, n_cam):
-        rv = Rotation.from_matrix(rots[c]).as_rotvec()
-        steps = rv[None] + h * np.concatenate([np.eye(3), -np.eye(3)])
-        e = Rotation.from_rotvec(steps).as_euler("xyz", degrees=True)
-        d = e[:3] - e[3:]
-        d = (d + 180.0) % 360.0 - 180.0  # an angle wrapping at +-180 between the two steps
-        jac = d.T / (2 * h)  # (euler, rotvec)
-        blk = rotvec_cov[3 * (c - 1):3 * c, 3 * (c - 1):3 * c]
-        out[c] = jac @ blk @ jac.T
+    out = np.zeros((rots.shape[0], 3, 3))
+    for c in range(1, rots.shape[0]):
+        rc = Rotation.from_matrix(rots[c])
+        jac = _central_jacobian(
+            lambda w: (Rotation.from_rotvec(w) * rc).as_euler("xyz", degrees=True), 3, period=360.0)
+        out[c] = jac @ rot_cov[3 * (c - 1):3 * c, 3 * (c - 1):3 * c] @ jac.T
     return out

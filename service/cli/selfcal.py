@@ -39,7 +39,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "adjustment (section 4.3)")
     p.add_argument("--refine", action="store_true",
                    help="finish the closed form with the bundle adjustment (adds each "
-                        "angle's posterior standard deviation, euler_xyz_std_deg)")
+                        "angle's posterior standard deviation, euler_xyz_std_deg, and scale_std; "
+                        "--varying-scale always refines)")
     p.add_argument("--upright", action="store_true",
                    help="with --refine: the walker is upright with free arms (right angles "
                         "inside the trunk and shoulders as soft priors)")
@@ -132,8 +133,8 @@ def result_to_json(result, cameras: list[str]) -> dict:
         cam = doc["cameras"][name]
         if std is not None:  # posterior standard deviations (bundle adjustment only)
             cam["euler_xyz_std_deg"] = _nullable(std[c:c + 1])[0]
-        if result.scale_std is not None and np.isfinite(result.scale_std[c]):
-            cam["scale_std"] = float(result.scale_std[c])
+        if result.scale_std is not None:  # null: the tracks do not determine it
+            cam["scale_std"] = float(result.scale_std[c]) if np.isfinite(result.scale_std[c]) else None
         if result.frame_scales is not None:
             cam["frame_scales"] = result.frame_scales[:, c].tolist()
     return doc
