@@ -59,6 +59,14 @@ def _rank3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return u[:, :, :3] * root[:, None, :], root[:, :, None] * vt[:, :3, :], s
 
 
+def _ridge(a: np.ndarray) -> np.ndarray:
+    """``a + eps I`` for a stack of 3x3 normal matrices, ``eps`` = 1e-12 of the trace: a
+    frame that some camera missed whole has rank < 3 on its own (``per_frame``) and
+    would make them singular; elsewhere the change is below rounding."""
+    eps = 1e-12 * np.trace(a, axis1=1, axis2=2) + 1e-300
+    return a + eps[:, None, None] * np.eye(3)
+
+
 def factorize(
     tracks: np.ndarray,
     *,
@@ -122,8 +130,8 @@ def factorize(
         # One alternating least-squares step on the filled matrix (same fixed
         # point as re-running the SVD, at a fraction of the cost).
         wc = split(w - centroids)
-        p = np.linalg.solve(np.swapaxes(m, 1, 2) @ m, np.swapaxes(m, 1, 2) @ wc)
-        m = np.swapaxes(np.linalg.solve(p @ np.swapaxes(p, 1, 2), p @ np.swapaxes(wc, 1, 2)), 1, 2)
+        p = np.linalg.solve(_ridge(np.swapaxes(m, 1, 2) @ m), np.swapaxes(m, 1, 2) @ wc)
+        m = np.swapaxes(np.linalg.solve(_ridge(p @ np.swapaxes(p, 1, 2)), p @ np.swapaxes(wc, 1, 2)), 1, 2)
         fit = merge(m @ p) + centroids
         step = fit[missing] - w[missing]
         change = np.sqrt(np.mean(step**2))
