@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         ("varying scales (sec. 4.3)", lambda y: self_calibrate(y, scales="varying"), noisy(few)),
     ]
     title = (f"self-calibration timing: {x.shape[0]} frames x {N_JOINTS} joints, noise 5% of height; "
-             "the bundle-adjustment rows include the posterior covariance (dense Cholesky, ~50 ms)")
+             "the bundle-adjustment rows include the posterior covariance (dense Cholesky with the temporal prior, ~50 ms; sparse LU without)")
     print(title)
     print(f"{'case':52s} {'runs':>5s} {'median ms':>10s} {'q25':>8s} {'q75':>8s}")
     rows = []
