@@ -65,6 +65,7 @@ from ._selfcal_core import (
     sym_from_vec,
 )
 from .joints import JOINT_INDEX, N_JOINTS
+from .viewpoint import azimuth_difference_deg
 
 __all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "UPRIGHT_PRIORS", "SelfCalibration", "self_calibrate"]
 
@@ -653,9 +654,8 @@ def self_calibrate(
         rots, sc_t, joints_n, cov, info = ba
         sc = sc_t[:, 0] / sc_t[0, 0]
         if cov is not None:
-            n_rot = 3 * (n_cam - 1)
-            euler_cov = _euler_covariance(rots, cov[:n_rot, :n_rot])
-            scale_std = np.concatenate([[0.0], sc[1:] * np.sqrt(np.diag(cov)[n_rot:])])
+            euler_cov = _euler_covariance(rots, cov)
+            scale_std = np.concatenate([[0.0], sc[1:] * np.sqrt(np.diag(cov)[3 * (n_cam - 1):])])
         joints = joints_n * fact.norm * sc_t[0, 0]
         _, conf = kinematic_reflection(joints)
         diag.update(bundle=info)
@@ -752,10 +752,9 @@ def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_n
     frame_scales = (sc_t / sc_t[0:1]).T
     diag = {"frames_solved": int(ok.sum()), "bundle": info, "reflected": flip,
             "temporal_prior": prior_diag}
-    n_rot = 3 * (n_cam - 1)
     return SelfCalibration(rots, np.median(frame_scales, axis=0), _mask_unseen(joints, fact.observed),
                            frame_scales, conf, method, "", diag,
-                           None if cov is None else _euler_covariance(rots, cov[:n_rot, :n_rot]))
+                           None if cov is None else _euler_covariance(rots, cov))
 
 
 def _temporal_prior(y: np.ndarray, fact: Factorization, strength: float = 1.0
@@ -1209,13 +1208,11 @@ def _laplace_covariance(jac: scipy.sparse.spmatrix, sigma: float, n: int, *,
     return cov
 
 
-def _central_jacobian(f, n: int, h: float = 1e-6, period: float | None = None) -> np.ndarray:
+def _central_jacobian(f, n: int, h: float = 1e-6, degrees: bool = False) -> np.ndarray:
     """``d f / d x`` at ``x = 0`` by central differences; ``f`` maps ``(2n, n)`` steps to ``(2n, m)``
-    values. ``period``: the values are angles, wrapped between the two steps."""
-    d = f(h * np.concatenate([np.eye(n), -np.eye(n)]))
-    d = d[:n] - d[n:]
-    if period is not None:
-        d = (d + period / 2) % period - period / 2
+    values. ``degrees``: the values are angles, wrapped between the two steps."""
+    v = f(h * np.concatenate([np.eye(n), -np.eye(n)]))
+    d = azimuth_difference_deg(v[:n], v[n:]) if degrees else v[:n] - v[n:]
     return d.T / (2 * h)
 
 
@@ -1233,8 +1230,8 @@ def _local_rotation_jacobian(rotvecs: np.ndarray) -> np.ndarray:
 def _euler_covariance(rots: np.ndarray, rot_cov: np.ndarray) -> np.ndarray:
     """Propagate the covariance of cameras 1..'s rotation errors to their XYZ Euler angles.
 
-    ``rot_cov`` is ``(3 (C - 1), 3 (C - 1))`` in radians^2 over the rotation
-    errors ``omega`` (``R_hat = exp(omega) R``, from :func:`_bundle_adjust`);
+    ``rot_cov`` starts with the ``3 (C - 1)`` rows and columns (radians^2) of the
+    rotation errors ``omega`` (``R_hat = exp(omega) R``, from :func:`_bundle_adjust`);
     returns ``(C, 3, 3)`` in degrees^2 (zeros for camera 0), by the Jacobian
     of ``as_euler("xyz")`` with respect to ``omega``.
     """
@@ -1242,6 +1239,6 @@ def _euler_covariance(rots: np.ndarray, rot_cov: np.ndarray) -> np.ndarray:
     for c in range(1, rots.shape[0]):
         rc = Rotation.from_matrix(rots[c])
         jac = _central_jacobian(
-            lambda w: (Rotation.from_rotvec(w) * rc).as_euler("xyz", degrees=True), 3, period=360.0)
+            lambda w: (Rotation.from_rotvec(w) * rc).as_euler("xyz", degrees=True), 3, degrees=True)
         out[c] = jac @ rot_cov[3 * (c - 1):3 * c, 3 * (c - 1):3 * c] @ jac.T
     return out
