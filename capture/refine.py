@@ -27,6 +27,7 @@ from estimator.prior import (
     weigh,
 )
 from estimator.sequence import Sequence
+from estimator.windows import SegmentedWalk
 
 from .segment import Segmentation, Segmenter, SegmentSettings
 from .sources import VideoFileSource
@@ -137,7 +138,7 @@ class RefineResult:
 
     raw: dict[str, list[Segmentation | None]]
     refined: dict[str, list[Segmentation | None]]
-    estimate: WalkEstimate
+    estimate: WalkEstimate | SegmentedWalk
     priors: dict[str, list[Prior]]
     image_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
 
@@ -152,7 +153,7 @@ def refine_cameras(
     prior_transform: Callable[[Prior], Prior] | None = None,
     trim_reach: float | None = 0.1,
     raw: dict[str, list[Segmentation | None]] | None = None,
-    estimate: WalkEstimate | None = None,
+    estimate: WalkEstimate | SegmentedWalk | None = None,
 ) -> RefineResult:
     """Segment, estimate, render priors, segment again with them.
 
@@ -213,7 +214,7 @@ class RefinedSequence:
     """
 
     sequence: Sequence
-    estimate: WalkEstimate
+    estimate: WalkEstimate | SegmentedWalk
     n_priors: int
     changed_pixels: int
     raw: dict[str, list[np.ndarray | Segmentation | None]]
@@ -248,7 +249,7 @@ def _changed(a: list[np.ndarray | None], b: list[np.ndarray | None]) -> int:
 
 def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
                     config: PriorConfig | None = None,
-                    estimate: WalkEstimate | None = None) -> RefinedSequence:
+                    estimate: WalkEstimate | SegmentedWalk | None = None) -> RefinedSequence:
     """Silhouettes fused with the model's priors (no images left to re-segment).
 
     Estimate the walk (unless the caller has, ``estimate``), render priors (:func:`estimator.prior.priors_for_window`)
@@ -297,7 +298,7 @@ def video_frames(path: str | os.PathLike) -> Callable[[], Iterator[np.ndarray]]:
 def refine_videos(videos: dict[str, str | os.PathLike], model: AppearanceModel, *, renderer,
                   warmup: int, fps: float, config: PriorConfig | None = None,
                   truth: dict | None = None, raw: dict[str, list[Segmentation | None]] | None = None,
-                  estimate: WalkEstimate | None = None) -> RefinedSequence:
+                  estimate: WalkEstimate | SegmentedWalk | None = None) -> RefinedSequence:
     """One video per camera, background-subtracted twice (:func:`refine_cameras`; the
     first pass and the estimate are reused when given).
 

@@ -42,7 +42,7 @@ from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, motion_cue
 
-__all__ = ["CameraTrack", "EstimateConfig", "WalkEstimate", "estimate_walk", "tracks_from_sequence"]
+__all__ = ["CameraTrack", "EstimateConfig", "WalkEstimate", "estimate_walk", "track_length", "tracks_from_sequence"]
 
 _J = {name: i for i, name in enumerate(FULL_JOINT_NAMES)}
 
@@ -294,6 +294,16 @@ def _phase_distances(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint) -> n
     return d.min(axis=2)
 
 
+def track_length(tracks: dict[str, CameraTrack]) -> int:
+    """Frames of synchronized camera tracks; ValueError for no cameras or differing lengths."""
+    if not tracks:
+        raise ValueError("no cameras")
+    lengths = {name: len(t.silhouettes) for name, t in tracks.items()}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"cameras have different numbers of frames: {lengths}")
+    return next(iter(lengths.values()))
+
+
 def estimate_walk(
     tracks: dict[str, CameraTrack],
     model: AppearanceModel,
@@ -319,12 +329,7 @@ def estimate_walk(
     """
     config = config or EstimateConfig()
     gait = gait or load_gait()
-    if not tracks:
-        raise ValueError("no cameras")
-    lengths = {name: len(t.silhouettes) for name, t in tracks.items()}
-    if len(set(lengths.values())) != 1:
-        raise ValueError(f"cameras have different numbers of frames: {lengths}")
-    T = next(iter(lengths.values()))
+    T = track_length(tracks)
     if T == 0 or all(s is None for t in tracks.values() for s in t.silhouettes):
         raise ValueError("no silhouettes in the window")
     n_phases = config.hmm.n_states

@@ -40,6 +40,7 @@ from .joints import N_JOINTS
 from .pipeline import CameraTrack, WalkEstimate
 from .registration import register
 from .skeleton import BodyShape, forward_kinematics
+from .windows import SegmentedWalk, window_tracks
 
 __all__ = [
     "Prior",
@@ -346,7 +347,7 @@ def _gate(observed: np.ndarray, reach_px: float) -> np.ndarray:
 
 
 def priors_for_window(
-    estimate: WalkEstimate,
+    estimate: WalkEstimate | SegmentedWalk,
     tracks: dict[str, CameraTrack],
     image_sizes: dict[str, tuple[int, int]] | tuple[int, int],
     *,
@@ -359,8 +360,10 @@ def priors_for_window(
 
     Parameters
     ----------
-    estimate : WalkEstimate
-        From :func:`estimator.pipeline.estimate_walk` on ``tracks``.
+    estimate : WalkEstimate or SegmentedWalk
+        From :func:`estimator.pipeline.estimate_walk` on ``tracks``, or from
+        :func:`estimator.windows.segment_walk` (each segment's frames get
+        priors from that segment's estimate).
     tracks : dict of str to CameraTrack
         The window's silhouettes; their boxes must be full-frame positions.
     image_sizes : (int, int) or dict of str to (int, int)
@@ -377,6 +380,16 @@ def priors_for_window(
     """
     config = config or PriorConfig()
     gait = gait or load_gait()
+    if isinstance(estimate, SegmentedWalk):
+        merged: dict[str, list[Prior]] = {name: [] for name in tracks}
+        for seg in estimate.segments:
+            if seg.estimate is None:
+                continue
+            got = priors_for_window(seg.estimate, window_tracks(tracks, seg.start, seg.stop), image_sizes,
+                                    renderer=renderer, config=config, gait=gait, first_index=first_index + seg.start)
+            for name, ps in got.items():
+                merged[name] += [p for p in ps if seg.first <= p.frame_index - first_index <= seg.last]
+        return merged
     if renderer.shape != config.body:
         renderer.set_shape(config.body)
     out: dict[str, list[Prior]] = {}

@@ -23,7 +23,7 @@ from .render import Renderer
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, GaitAngles, forward_kinematics
 
-__all__ = ["SynthSpec", "place_cameras", "synthesize", "walk"]
+__all__ = ["SynthSpec", "place_cameras", "synthesize", "synthesize_turns", "walk"]
 
 ELEVATION_RANGE = (-20.0, 35.0)
 """Elevations drawn by default: the appearance model's grid (paper: -20 .. +40)."""
@@ -247,3 +247,26 @@ def synthesize(
         silhouettes=silhouettes,
         truth=truth,
     )
+
+
+def synthesize_turns(specs: list[SynthSpec], **kwargs) -> Sequence:
+    """Walks back to back, one per spec: between them the walker turns, so every viewpoint changes.
+
+    Each stretch is :func:`synthesize` of its spec (``azimuths`` = the cameras'
+    viewpoints while the walker keeps that heading; same cameras and image size
+    in every spec). ``truth`` holds the frames, renumbered, and ``segments``:
+    per stretch its ``first_index``, ``last_index`` and ``cameras``.
+    """
+    parts = [synthesize(spec, **kwargs) for spec in specs]
+    first = parts[0]
+    if any(p.cameras != first.cameras or p.image_size != first.image_size for p in parts):
+        raise ValueError("every stretch needs the same cameras and image size")
+    frames, segments, start = [], [], 0
+    for p in parts:
+        frames += [dict(f, index=start + k) for k, f in enumerate(p.truth["frames"])]
+        segments.append({"first_index": start, "last_index": start + p.n_frames - 1, "cameras": p.truth["cameras"]})
+        start += p.n_frames
+    return Sequence(fps=first.fps, cameras=list(first.cameras), image_size=first.image_size,
+                    silhouettes={c: [s for p in parts for s in p.silhouettes[c]] for c in first.cameras},
+                    truth={"joint_names": list(JOINT_NAMES), "frames": frames, "segments": segments,
+                           "notes": "walks back to back; viewpoints per segment"})

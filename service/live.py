@@ -14,7 +14,7 @@ Per rig:
    ``window_hop``; a jump in frame index larger than half a window starts over.
 3. Windows wait in a bounded queue (oldest dropped on overflow); consumer
    threads send each to the process pool (:func:`service.worker.estimate_window`),
-   smooth the viewpoints (:class:`ViewpointTrack`), publish the result on
+   smooth the viewpoints (:class:`estimator.windows.ViewpointTrack`), publish the result on
    ``posecal/<rig>/estimate``, keep it for the REST API and log it to Rerun.
 4. Feedback (§7.1, ``feedback``): the window's estimate predicts the next
    ``feedback_ahead`` frames of every camera; their rendered, registered priors
@@ -42,13 +42,13 @@ from capture.receiver import Received, SilhouetteReceiver
 from capture.wire import Box, FeedbackMessage, SilhouetteMessage, encode, estimate_key, feedback_key
 from capture.refine import track_from_segmentations
 from estimator.pipeline import CameraTrack
-from estimator.viewpoint import azimuth_difference_deg, circular_mean_deg
+from estimator.windows import ViewpointTrack
 
 from .metrics import Metrics
 from .settings import Settings
 from .worker import StageBundle, estimate_window, predict_feedback, register_stage
 
-__all__ = ["FrameAssembler", "FrameSet", "LiveService", "ViewpointTrack", "WindowBuffer"]
+__all__ = ["FrameAssembler", "FrameSet", "LiveService", "WindowBuffer"]
 
 log = logging.getLogger(__name__)
 
@@ -217,72 +217,6 @@ class WindowBuffer:
     def clear(self) -> None:
         self.frames.clear()
         self._since = 0
-
-
-# ------------------------------------------------------------------- viewpoint smoothing
-
-
-def _view_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
-    return max(abs(float(azimuth_difference_deg(a[0], b[0]))), abs(a[1] - b[1]))
-
-
-class ViewpointTrack:
-    """A camera's viewpoint smoothed across windows, with change detection.
-
-    Windows within ``threshold_deg`` of the smoothed value refine it (running
-    mean over up to ``memory`` windows). A window farther away is held as an
-    outlier; ``confirm`` consecutive outliers that agree with each other mean
-    the camera moved: the estimate restarts from them and a change is recorded.
-    A lone outlier never moves the estimate.
-    """
-
-    def __init__(self, *, threshold_deg: float, confirm: int, memory: int = 10) -> None:
-        self.threshold, self.confirm, self.memory = threshold_deg, confirm, memory
-        self.value: tuple[float, float] | None = None
-        self.n = 0
-        self.pending: list[tuple[float, float, int]] = []
-        self.changes: list[dict[str, Any]] = []
-        self.outliers = 0
-
-    def update(self, az: float | None, el: float | None, index: int) -> dict[str, Any]:
-        """Add one window's viewpoint (None/NaN: the camera saw nothing; no change)."""
-        if az is not None and el is not None and np.isfinite(az) and np.isfinite(el):
-            self._update(float(az) % 360.0, float(el), index)
-        return self.state()
-
-    def _update(self, az: float, el: float, index: int) -> None:
-        if self.value is None:
-            self.value, self.n = (az, el), 1
-            return
-        if _view_distance((az, el), self.value) <= self.threshold:
-            self.pending.clear()
-            self.n = min(self.n + 1, self.memory)
-            a = 1.0 / self.n
-            self.value = ((self.value[0] + a * float(azimuth_difference_deg(az, self.value[0]))) % 360.0,
-                          self.value[1] + a * (el - self.value[1]))
-            return
-        self.outliers += 1
-        self.pending.append((az, el, index))
-        if len(self.pending) < self.confirm:
-            return
-        ref = self.pending[-1][:2]
-        if all(_view_distance(p[:2], ref) <= self.threshold for p in self.pending):
-            new = (circular_mean_deg(np.array([p[0] for p in self.pending])),
-                   float(np.mean([p[1] for p in self.pending])))
-            self.changes.append({"frame_index": self.pending[0][2],
-                                 "from": [round(v, 2) for v in self.value],
-                                 "to": [round(v, 2) for v in new]})
-            self.value, self.n = new, len(self.pending)
-            self.pending.clear()
-        else:
-            self.pending = self.pending[-(self.confirm - 1):] if self.confirm > 1 else []
-
-    def state(self) -> dict[str, Any]:
-        v = self.value
-        return {"azimuth_deg": None if v is None else round(v[0], 3),
-                "elevation_deg": None if v is None else round(v[1], 3),
-                "windows": self.n, "pending_outliers": len(self.pending),
-                "outliers": self.outliers, "changes": list(self.changes)}
 
 
 # ------------------------------------------------------------------------------ rigs

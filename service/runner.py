@@ -61,9 +61,10 @@ class JobRunner:
         try:
             # Submitted from a thread: after a worker died, submit starts a new pool.
             future = await asyncio.to_thread(self.pool.submit, call)
-            bundle = await asyncio.wrap_future(future)
-            if bundle is not None and self.rerun is not None:
-                await asyncio.to_thread(self.rerun.log_window, f"jobs/{job_id}", bundle)
+            bundles = await asyncio.wrap_future(future)
+            if bundles and self.rerun is not None:
+                for bundle in bundles:  # one per segment of the recording
+                    await asyncio.to_thread(self.rerun.log_window, f"jobs/{job_id}", bundle)
         except asyncio.CancelledError:
             raise  # shutdown: the row stays "running" and is re-queued on the next start
         except Exception as exc:

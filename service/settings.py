@@ -60,7 +60,8 @@ class Settings(BaseSettings):
     # live
     live: bool = Field(True, description="subscribe to silhouettes and estimate windows")
     live_workers: int = Field(1, ge=1, description="processes that estimate live windows")
-    window_length: int = Field(20, ge=4, description="frames per window (about one gait cycle)")
+    window_length: int = Field(20, ge=4, description="frames per window (about one gait cycle; "
+                               "live windows and the windows of batch jobs)")
     window_hop: int = Field(10, ge=1, description="frames between window starts")
     sync_tolerance_ms: float = Field(20.0, gt=0, description="capture times closer than this "
                                      "are the same frame (cameras synchronised by time)")
@@ -75,7 +76,8 @@ class Settings(BaseSettings):
     change_threshold_deg: float = Field(30.0, gt=0, description="a window this far from the "
                                         "smoothed viewpoint is an outlier ...")
     change_windows: int = Field(3, ge=1, description="... and this many consecutive agreeing "
-                                "outliers mean the camera moved")
+                                "outliers mean the camera moved or the walker turned (a batch "
+                                "job starts a new segment there)")
     # feedback (§7.1)
     feedback: bool = Field(True, description="publish silhouette priors to the segmenters "
                            "after each live window (in a process of its own)")
@@ -91,6 +93,11 @@ class Settings(BaseSettings):
     # rerun
     rerun: str | None = Field(None, description="save:PATH | serve[:PORT] | connect[:URL]")
     rerun_jobs: bool = Field(True, description="also log batch jobs to Rerun")
+
+    def segment_options(self) -> dict[str, float | int]:
+        """How batch jobs cut a recording (:func:`estimator.windows.segment_walk`): as live windows are."""
+        return {"length": self.window_length, "hop": self.window_hop,
+                "threshold_deg": self.change_threshold_deg, "confirm": self.change_windows}
 
     @field_validator("rerun")
     @classmethod

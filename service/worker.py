@@ -5,8 +5,9 @@ appearance model once (:func:`init_worker`). The event loop only awaits
 futures. Two entry points run in the pool:
 
 - :func:`run_job`: read the staged input (sequence folder or videos), build the
-  camera tracks, :func:`~estimator.pipeline.estimate_walk`, write the result to
-  the job store, writing progress as it goes;
+  camera tracks, estimate them window by window with one segment per heading
+  (:func:`~estimator.windows.segment_walk`), write the result to the job store,
+  writing progress as it goes;
 - :func:`estimate_window`: one live window;
 - :func:`predict_feedback`: priors for the frames after a live window (§7.1).
 
@@ -39,6 +40,7 @@ import numpy as np
 from estimator.appearance import AppearanceModel, load_model
 from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
 from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
+from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
 from .jobs import JobGone, JobStore
 
@@ -451,11 +453,14 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
 
 
 def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[str, Any],
-            *, want_bundle: bool = False) -> StageBundle | None:
+            *, want_bundle: bool = False) -> list[StageBundle] | None:
     """Run one claimed job to its end (in a worker).
 
-    Writes progress and the result (or the failure) to the store itself; raises
-    nothing for bad input. Returns the stage bundle for Rerun when asked and done.
+    The recording is estimated window by window, one segment per heading of
+    the walker (:func:`estimator.windows.segment_walk`, with ``options["windows"]``:
+    ``length``, ``hop``, ``threshold_deg``, ``confirm``). Writes progress and the
+    result (or the failure) to the store itself; raises nothing for bad input.
+    Returns the stage bundles (one per segment) for Rerun when asked and done.
     """
     store = _store(db_url)
     try:
@@ -483,9 +488,10 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         store.report(job_id, 0.5, "estimating")
         model = _get_model()
         t0 = time.perf_counter()
-        est = estimate_walk(tracks, model)
+        walk = segment_walk(tracks, model, **options.get("windows", {}),
+                            progress=lambda f: store.report(job_id, 0.5 + 0.4 * f, "estimating"))
         store.report(job_id, 0.9, "writing result")
-        result = json_safe(est.to_result(first_index=0))
+        result = json_safe(walk.to_result())
         result["fps"] = fps
         result["timing"] = {"estimate_s": round(time.perf_counter() - t0, 4)}
         if truth is not None and "cameras" in truth:
@@ -495,8 +501,8 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         refined = None
         if options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
-            refined = (_refine_sequence(seq, model, est) if kind == "sequence" else
-                       _refine_videos(Path(input_dir), model, fps, est, segmentations, warmup))
+            refined = (_refine_sequence(seq, model, walk) if kind == "sequence" else
+                       _refine_videos(Path(input_dir), model, fps, walk, segmentations, warmup))
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
             shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
@@ -504,15 +510,20 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             result["refined"] = {"silhouettes": f"/v1/jobs/{job_id}/silhouettes",
                                  "priors": refined.n_priors,
                                  "changed_pixels": refined.changed_pixels}
-        bundle = None
+        bundles = None
         if want_bundle:
-            n = len(next(iter(tracks.values())).silhouettes)
-            bundle = make_bundle(tracks, est, model, list(range(n)), image_size)
-            if refined is not None:
-                bundle.extra["feedback"] = feedback_views(refined)
+            views = feedback_views(refined) if refined is not None else {}
+            bundles = []
+            for seg in walk.segments:
+                if seg.estimate is None:
+                    continue
+                b = make_bundle(window_tracks(tracks, seg.start, seg.stop), seg.estimate, model,
+                                list(range(seg.start, seg.stop)), image_size, from_frame=seg.first - seg.start)
+                b.extra["feedback"] = {cam: v[seg.start:seg.stop] for cam, v in views.items()}
+                bundles.append(b)
         if not store.finish(job_id, result):
             return None  # cancelled or deleted meanwhile
-        return bundle
+        return bundles
     except JobGone:
         return None
     except (ValueError, OSError) as exc:  # SequenceError, unreadable video, nothing to estimate
@@ -523,14 +534,14 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         raise
 
 
-def _refine_sequence(seq: Sequence, model: AppearanceModel, estimate: WalkEstimate):
+def _refine_sequence(seq: Sequence, model: AppearanceModel, estimate: SegmentedWalk):
     """The job's sequence's silhouettes fused with priors from the job's ``estimate``."""
     from capture.refine import refine_sequence
 
     return refine_sequence(seq, model, renderer=_get_renderer(), estimate=estimate)
 
 
-def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: WalkEstimate,
+def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: SegmentedWalk,
                    segmentations: dict, warmup: int):
     """The videos segmented once more, with priors from the job's ``estimate``; the job's
     own segmentations are the first pass (``capture.refine.refine_videos``)."""

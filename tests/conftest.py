@@ -36,3 +36,18 @@ def small_model(small_model_path):
     from estimator.appearance import load_model
 
     return load_model(small_model_path)
+
+
+TURN_BEFORE, TURN_AFTER = (60.0, 150.0), (150.0, 240.0)
+
+
+@pytest.fixture(scope="session")
+def turn_sequence():
+    """Two cameras: 40 frames of a walk, then the walker turns by 90 degrees and walks 40 more.
+
+    The cameras see the walker from ``TURN_BEFORE`` azimuths, then from ``TURN_AFTER``.
+    """
+    from estimator.synth import SynthSpec, synthesize_turns
+
+    return synthesize_turns([SynthSpec(n_cameras=2, n_frames=40, seed=seed, azimuths=az, elevations=(10.0, 10.0),
+                                       image_size=(320, 240)) for seed, az in ((0, TURN_BEFORE), (10, TURN_AFTER))])

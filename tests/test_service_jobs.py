@@ -142,6 +142,21 @@ def test_refined_silhouettes_of_a_sequence_job(tmp_path, seq_dir, good_zip):
     assert changed == result["refined"]["changed_pixels"] > 0  # measured: a few dozen pixels
 
 
+def test_a_job_reports_one_segment_per_heading(tmp_path, turn_sequence):
+    from conftest import TURN_AFTER, TURN_BEFORE
+
+    write_sequence(tmp_path / "turn", turn_sequence)
+    with ServerThread(make_settings(tmp_path, change_windows=2)) as srv:
+        job = _submit(srv, sequence_zip(tmp_path / "turn")).json()
+        assert _done(srv, job["id"])["state"] == "done"
+        result = srv.client.get(f"/v1/jobs/{job['id']}/result").json()
+    assert len(result["frames"]) == 80 and [s["first_index"] for s in result["segments"]][0] == 0
+    assert len(result["segments"]) == 2 and len(result["windows"]) == 7
+    for seg, truth in zip(result["segments"], (TURN_BEFORE, TURN_AFTER)):
+        for cam, az in zip(("c0", "c1"), truth):
+            assert abs((seg["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 25
+
+
 def test_silhouettes_of_an_unfinished_job_are_409(tmp_path, good_zip):
     with ServerThread(make_settings(tmp_path, job_workers=0)) as srv:  # jobs stay queued
         job = srv.client.post("/v1/jobs", files={"files": ("walk.zip", good_zip, "application/zip")},

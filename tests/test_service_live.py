@@ -19,7 +19,8 @@ from capture.synthetic import SyntheticSource
 from capture.wire import Box, SilhouetteMessage, estimate_key
 from capture.zconfig import build_config
 from conftest_service import ServerThread, make_settings, wait_for
-from service.live import FrameAssembler, ViewpointTrack, WindowBuffer
+from estimator.windows import ViewpointTrack
+from service.live import FrameAssembler, WindowBuffer
 
 # ----------------------------------------------------------------------------- units
 

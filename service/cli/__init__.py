@@ -13,7 +13,7 @@ import importlib
 import logging
 import sys
 
-__all__ = ["CliError", "main"]
+__all__ = ["CliError", "main", "positive_int"]
 
 # Modules that provide sub-commands, imported lazily so that ``posecal synth``
 # never pays for importing the web stack.
@@ -22,6 +22,17 @@ _COMMANDS = ("synth", "estimate", "refine", "model", "selfcal", "capture", "serv
 
 class CliError(Exception):
     """A user-facing error: printed without a traceback, exit code 2."""
+
+
+def positive_int(text: str) -> int:
+    """argparse ``type`` for an integer of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:

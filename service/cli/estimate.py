@@ -6,7 +6,7 @@ import argparse
 import json
 import os
 
-from . import CliError
+from . import CliError, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -15,17 +15,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="estimate walking phase, 3D/2D joints and camera viewpoints of a sequence folder",
         description="Match every silhouette to the appearance model, fit each camera's viewpoint, "
         "decode the walking phase with the cyclic HMM and write the result (DESIGN.md format). "
+        "A recording longer than a window is estimated window by window and cut into segments "
+        "where the viewpoints change (the walker turned); the result lists them. "
         "The default appearance model is built and cached on first use (about two minutes).",
     )
     p.add_argument("sequence", metavar="SEQ", help="sequence folder (rig.json + per-camera PNG silhouettes)")
     p.add_argument("--out", required=True, help="result JSON to write")
     p.add_argument("--model", help="appearance model file (default: the cached default model)")
+    p.add_argument("--window", type=positive_int, default=20,
+                   help="frames per window (default 20, about one gait cycle at 15 Hz)")
+    p.add_argument("--hop", type=positive_int, default=10, help="frames between window starts (default 10)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from estimator.pipeline import estimate_walk, tracks_from_sequence
+    from estimator.pipeline import tracks_from_sequence
     from estimator.sequence import SequenceError, read_sequence
+    from estimator.windows import segment_walk
 
     from .model import model_from_arg
 
@@ -35,10 +41,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     model = model_from_arg(args.model)
     try:
-        estimate = estimate_walk(tracks_from_sequence(sequence), model)
+        walk = segment_walk(tracks_from_sequence(sequence), model, length=args.window, hop=args.hop)
     except ValueError as exc:
         raise CliError(f"{args.sequence}: {exc}") from None
-    result = estimate.to_result()
+    result = walk.to_result()
     result["sequence"] = {"fps": sequence.fps, "image_size": list(sequence.image_size), "frames": sequence.n_frames}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
@@ -54,4 +60,10 @@ def run(args: argparse.Namespace) -> int:
             t = truth["cameras"][name]
             line += f"   truth {t['azimuth_deg']:6.1f}, {t['elevation_deg']:5.1f}"
         print(line)
+    if len(result["segments"]) > 1:
+        print(f"  the viewpoints changed: {len(result['segments'])} segments (cameras above: the longest)")
+        for seg in result["segments"]:
+            views = ", ".join(f"{n} {c['azimuth_deg']:.1f}" for n, c in seg.get("cameras", {}).items()
+                              if c["azimuth_deg"] is not None)
+            print(f"    frames {seg['first_index']}-{seg['last_index']}: {views or seg.get('error')}")
     return 0

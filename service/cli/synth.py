@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from . import CliError
+from . import CliError, positive_int
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -13,16 +13,6 @@ def _floats(text: str) -> tuple[float, ...]:
         return tuple(float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,8 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "per-camera PNG silhouettes, truth.json and preview.png.",
     )
     p.add_argument("--out", required=True, help="sequence folder to write")
-    p.add_argument("--cameras", type=_positive_int, default=2, help="number of cameras (default 2)")
-    p.add_argument("--frames", type=_positive_int, default=40, help="frames per camera (default 40)")
+    p.add_argument("--cameras", type=positive_int, default=2, help="number of cameras (default 2)")
+    p.add_argument("--frames", type=positive_int, default=40, help="frames per camera (default 40)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--fps", type=float, default=15.0, help="frame rate (default 15)")
     p.add_argument("--motion", help="drive the body with a .bvh or .amc recording")

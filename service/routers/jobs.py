@@ -46,7 +46,8 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
         shutil.rmtree(job_dir, ignore_errors=True)
         metrics.uploads_rejected.labels(str(exc.status)).inc()
         raise HTTPException(exc.status, str(exc)) from None
-    options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames}
+    options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames,
+                               "windows": settings.segment_options()}
     if warmup is not None:
         options["warmup"] = warmup
     if refine:

@@ -1,0 +1,285 @@
+"""A recording as sliding windows, cut where the walker changes heading.
+
+The cameras can be taken as fixed relative to the walker only while the
+walker keeps one heading: a turn changes every camera's viewpoint (Izo–Grimson
+§3 fits a viewpoint per window of frames). The live service estimates short
+windows and smooths each camera's viewpoint across them
+(:class:`ViewpointTrack`). A recording is treated the same way
+(:func:`segment_walk`): windows of ``length`` frames every ``hop``, each
+estimated on its own; a :class:`ViewpointTrack` per camera finds the windows
+where a viewpoint changed (``confirm`` consecutive windows agreeing on a new
+viewpoint more than ``threshold_deg`` away); the windows between two changes
+form a segment, estimated again as one window so that it has all of its
+frames' evidence. A walker who keeps one heading gives one segment, the
+whole recording, exactly as one window would.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .appearance import AppearanceModel
+from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, track_length
+from .viewpoint import azimuth_difference_deg, circular_mean_deg
+
+__all__ = ["Segment", "SegmentedWalk", "ViewpointTrack", "segment_walk", "window_starts", "window_tracks"]
+
+
+def _view_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
+    return max(abs(float(azimuth_difference_deg(a[0], b[0]))), abs(a[1] - b[1]))
+
+
+class ViewpointTrack:
+    """A camera's viewpoint smoothed across windows, with change detection.
+
+    Windows within ``threshold_deg`` of the smoothed value refine it (running
+    mean over up to ``memory`` windows). A window farther away is held as an
+    outlier; ``confirm`` consecutive outliers that agree with each other mean
+    the viewpoint changed (the camera moved, or the walker turned): the
+    estimate restarts from them and a change is recorded, at the index of the
+    first of them. A lone outlier never moves the estimate.
+    """
+
+    def __init__(self, *, threshold_deg: float, confirm: int, memory: int = 10) -> None:
+        self.threshold, self.confirm, self.memory = threshold_deg, confirm, memory
+        self.value: tuple[float, float] | None = None
+        self.n = 0
+        self.pending: list[tuple[float, float, int]] = []
+        self.changes: list[dict[str, Any]] = []
+        self.outliers = 0
+
+    def update(self, az: float | None, el: float | None, index: int) -> dict[str, Any]:
+        """Add one window's viewpoint (None/NaN: the camera saw nothing; no change)."""
+        if az is not None and el is not None and np.isfinite(az) and np.isfinite(el):
+            self._update(float(az) % 360.0, float(el), index)
+        return self.state()
+
+    def _update(self, az: float, el: float, index: int) -> None:
+        if self.value is None:
+            self.value, self.n = (az, el), 1
+            return
+        if _view_distance((az, el), self.value) <= self.threshold:
+            self.pending.clear()
+            self.n = min(self.n + 1, self.memory)
+            a = 1.0 / self.n
+            self.value = ((self.value[0] + a * float(azimuth_difference_deg(az, self.value[0]))) % 360.0,
+                          self.value[1] + a * (el - self.value[1]))
+            return
+        self.outliers += 1
+        self.pending.append((az, el, index))
+        if len(self.pending) < self.confirm:
+            return
+        ref = self.pending[-1][:2]
+        if all(_view_distance(p[:2], ref) <= self.threshold for p in self.pending):
+            new = (circular_mean_deg(np.array([p[0] for p in self.pending])),
+                   float(np.mean([p[1] for p in self.pending])))
+            self.changes.append({"frame_index": self.pending[0][2],
+                                 "from": [round(v, 2) for v in self.value],
+                                 "to": [round(v, 2) for v in new]})
+            self.value, self.n = new, len(self.pending)
+            self.pending.clear()
+        else:
+            self.pending = self.pending[-(self.confirm - 1):] if self.confirm > 1 else []
+
+    def state(self) -> dict[str, Any]:
+        v = self.value
+        return {"azimuth_deg": None if v is None else round(v[0], 3),
+                "elevation_deg": None if v is None else round(v[1], 3),
+                "windows": self.n, "pending_outliers": len(self.pending),
+                "outliers": self.outliers, "changes": list(self.changes)}
+
+
+def window_starts(n_frames: int, length: int, hop: int) -> np.ndarray:
+    """First frames of the windows over ``n_frames``: every ``hop``, the last one ending at the end.
+
+    A recording of at most ``length`` frames is one window starting at 0.
+    """
+    if length < 1 or hop < 1:
+        raise ValueError(f"window length and hop must be positive, got {length} and {hop}")
+    if n_frames <= length:
+        return np.zeros(1, int)
+    starts = np.arange(0, n_frames - length + 1, hop)
+    if starts[-1] + length < n_frames:
+        starts = np.append(starts, n_frames - length)
+    return starts
+
+
+@dataclass
+class Segment:
+    """A stretch of the recording with one heading, estimated as one window.
+
+    Attributes
+    ----------
+    start, stop : int
+        Frames ``[start, stop)`` the estimate covers (whole windows).
+    first, last : int
+        The frames this segment reports (segments report disjoint stretches:
+        where two overlap, each frame goes to the nearer window centre).
+    estimate : WalkEstimate or None
+        None where nothing could be estimated (``error`` says why).
+    windows : int
+        Sliding windows in the segment.
+    error : str
+    """
+
+    start: int
+    stop: int
+    first: int
+    last: int
+    estimate: WalkEstimate | None
+    windows: int
+    error: str = ""
+
+
+@dataclass
+class SegmentedWalk:
+    """A recording's segments, in order, and each window's viewpoints.
+
+    Attributes
+    ----------
+    segments : list of Segment
+    windows : list of dict
+        Per sliding window: ``first_index``, ``last_index``, ``segment`` and
+        per camera ``azimuth_deg`` / ``elevation_deg`` (None where the window
+        had no estimate for it), or ``error``.
+    n_frames : int
+    """
+
+    segments: list[Segment]
+    windows: list[dict]
+    n_frames: int
+
+    @property
+    def main(self) -> Segment:
+        """The estimated segment that reports the most frames."""
+        done = [s for s in self.segments if s.estimate is not None]
+        return max(done, key=lambda s: s.last - s.first)
+
+    def to_result(self) -> dict:
+        """The DESIGN.md result with ``segments`` and ``windows``.
+
+        ``cameras`` are the viewpoints of the longest segment (of the whole
+        recording when the walker kept one heading); each frame carries the
+        ``segment`` that reports it, whose ``cameras`` give its viewpoints.
+        """
+        frames: list[dict] = []
+        segments = []
+        for k, seg in enumerate(self.segments):
+            out = {"first_index": seg.first, "last_index": seg.last, "windows": seg.windows}
+            if seg.estimate is None:
+                out["error"] = seg.error
+                frames += [{"index": t, "phase": None, "joints3d": None, "joints2d": {}, "observed_phase": {},
+                            "segment": k} for t in range(seg.first, seg.last + 1)]
+            else:
+                res = seg.estimate.to_result(first_index=seg.start)
+                out.update(cameras=res["cameras"], hmm=res["hmm"], notes=res["notes"])
+                frames += [dict(f, segment=k) for f in res["frames"][seg.first - seg.start:seg.last + 1 - seg.start]]
+            segments.append(out)
+        main = self.main
+        result = main.estimate.to_result(first_index=main.start)
+        result.update(frames=frames, segments=segments, windows=self.windows)
+        if len(self.segments) > 1:
+            result["notes"] = result["notes"] + [
+                f"the viewpoints changed during the recording: {len(self.segments)} segments; cameras are "
+                f"those of the longest (frames {main.first}-{main.last}), see segments"]
+        return result
+
+
+def window_tracks(tracks: dict[str, CameraTrack], a: int, b: int) -> dict[str, CameraTrack]:
+    """Frames ``[a, b)`` of every camera's track."""
+    return {n: CameraTrack(t.silhouettes[a:b], t.boxes[a:b], full_frame=t.full_frame) for n, t in tracks.items()}
+
+
+def _estimate(tracks, a, b, model, config) -> tuple[WalkEstimate | None, str]:
+    try:
+        return estimate_walk(window_tracks(tracks, a, b), model, config=config), ""
+    except ValueError as exc:
+        return None, str(exc)
+
+
+def segment_walk(
+    tracks: dict[str, CameraTrack],
+    model: AppearanceModel,
+    *,
+    length: int = 20,
+    hop: int = 10,
+    threshold_deg: float = 30.0,
+    confirm: int = 3,
+    config: EstimateConfig | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> SegmentedWalk:
+    """Estimate a recording window by window, one segment per heading (module docstring).
+
+    Parameters
+    ----------
+    tracks : dict of str to CameraTrack
+        The whole recording; every track has the same number of frames.
+    model : AppearanceModel
+    length, hop : int
+        Frames per window and between window starts.
+    threshold_deg, confirm : float, int
+        A viewpoint change: ``confirm`` consecutive windows agreeing on a
+        viewpoint more than ``threshold_deg`` from the current one.
+    config : EstimateConfig, optional
+    progress : callable, optional
+        Called with the fraction done (windows, then segments).
+
+    Raises
+    ------
+    ValueError
+        No cameras, tracks of different lengths, bad ``length``/``hop``, or
+        nothing estimable anywhere (the first window's reason).
+    """
+    n = track_length(tracks)
+    starts = window_starts(n, length, hop)
+    stops = np.minimum(starts + length, n)
+    progress = progress or (lambda f: None)
+    if len(starts) == 1:  # one window: no headings to tell apart
+        est, err = _estimate(tracks, 0, n, model, config)
+        if est is None:
+            raise ValueError(err)
+        progress(1.0)
+        return SegmentedWalk([Segment(0, n, 0, n - 1, est, 1)], [{"first_index": 0, "last_index": n - 1, "segment": 0}], n)
+
+    views = {name: ViewpointTrack(threshold_deg=threshold_deg, confirm=confirm) for name in tracks}
+    windows, cuts, errors = [], set(), []
+    for k, (a, b) in enumerate(zip(starts, stops)):
+        est, err = _estimate(tracks, a, b, model, config)
+        errors.append(err)
+        w: dict[str, Any] = {"first_index": int(a), "last_index": int(b) - 1}
+        if est is None:
+            w["error"] = err
+        else:
+            w["cameras"] = {}
+            for name, c in est.cameras.items():
+                az, el = c.viewpoint.azimuth_deg, c.viewpoint.elevation_deg
+                w["cameras"][name] = {"azimuth_deg": round(float(az), 3) if np.isfinite(az) else None,
+                                      "elevation_deg": round(float(el), 3) if np.isfinite(el) else None}
+                before = len(views[name].changes)
+                views[name].update(az, el, k)
+                cuts.update(c["frame_index"] for c in views[name].changes[before:])
+        windows.append(w)
+        progress(0.7 * (k + 1) / len(starts))
+    if all(errors):
+        raise ValueError(errors[0])
+
+    bounds = [0, *sorted(cuts), len(starts)]
+    centres = (starts + stops - 1) / 2.0
+    segments = []
+    for s, (i, j) in enumerate(zip(bounds[:-1], bounds[1:])):
+        # Frames from the midpoint with the previous segment's last window centre to the next one's.
+        first = 0 if i == 0 else int(np.floor((centres[i - 1] + centres[i]) / 2)) + 1
+        last = n - 1 if j == len(starts) else int(np.floor((centres[j - 1] + centres[j]) / 2))
+        a, b = int(starts[i]), int(stops[j - 1])
+        est, err = _estimate(tracks, a, b, model, config)
+        segments.append(Segment(a, b, first, last, est, j - i, err))
+        for w in windows[i:j]:
+            w["segment"] = s
+        progress(0.7 + 0.3 * (s + 1) / (len(bounds) - 1))
+    if all(seg.estimate is None for seg in segments):
+        raise ValueError(segments[0].error)
+    return SegmentedWalk(segments, windows, n)
