@@ -358,27 +358,53 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _median_se(x: np.ndarray, n_boot: int = 2000) -> float:
+    """Bootstrap standard error of the median (fixed seed: the report is reproducible)."""
+    x = x[np.isfinite(x)]
+    idx = np.random.default_rng(0).integers(0, x.size, size=(n_boot, x.size))
+    return float(np.std(np.median(x[idx], axis=1)))
+
+
 def check_targets(res, npd) -> str:
+    """The issue's targets on experiment A.
+
+    The issue measures the rotation error about each axis (the paper's E_rj,
+    its Fig. 3c-e); the geodesic error, our stricter summary, is listed too.
+    """
     i0, i5 = 0, 5
     ok = []
     ours = [m for m in res if m.startswith("ours")]
-    geo0 = max(np.nanmax(res[m]["geo"][i0]) for m in ours)
+    axes = ("ex", "ey", "ez")
+    geo0 = max(np.nanmax(res[m][k][i0]) for m in ours for k in axes + ("geo",))
     s0 = max(np.nanmax(res[m]["es"][i0]) for m in ours)
-    ok.append(("noise 0: rotation error < 0.01 deg (max over trials and our methods)",
+    ok.append(("noise 0: rotation error < 0.01 deg (max over trials, our methods, axes and geodesic)",
                f"{geo0:.2e} deg", geo0 < 0.01))
     ok.append(("noise 0: abs(s - 1) < 1e-4 (max over trials and our methods)", f"{s0:.2e}", s0 < 1e-4))
-    med = {m: np.nanmedian(res[m]["geo"][i5]) for m in res}
-    best = min(ours, key=lambda m: med[m])
-    ok.append(("noise 5%: median rotation error <= 3 deg (paper's closed form)",
-               f"{med['ours']:.2f} deg", med["ours"] <= 3))
-    ok.append((f"noise 5%: median rotation error <= 3 deg (best of ours: {best})",
-               f"{med[best]:.2f} deg", med[best] <= 3))
+    med = {m: np.array([np.nanmedian(res[m][k][i5]) for k in axes]) for m in res}
+    best = min(ours, key=lambda m: med[m].max())
+    se = [_median_se(res[best][k][i5]) for k in axes]
+
+    def xyz(v) -> str:
+        return " / ".join(f"{x:.2f}" for x in v)
+
+    ok.append(("noise 5%: median rotation error about each axis <= 3 deg, E_rx / E_ry / E_rz "
+               "(paper's closed form)", f"{xyz(med['ours'])} deg", med["ours"].max() <= 3))
+    ok.append((f"noise 5%: median rotation error about each axis <= 3 deg, E_rx / E_ry / E_rz "
+               f"(best of ours: {best}; [bootstrap standard error])",
+               f"{xyz(med[best])} deg [{xyz(se)}]", med[best].max() <= 3))
+    ok.append((f"noise 5%: {best} no worse than LC and TR on any axis",
+               f"{xyz(med[best])}; LC {xyz(med['LC'])}; TR {xyz(med['TR'])}",
+               bool(np.all(med[best] <= np.minimum(med["LC"], med["TR"])))))
+    geo = {m: np.nanmedian(res[m]["geo"][i5]) for m in res}
+    ok.append(("noise 5%: median geodesic error (stricter than the target; reported, not the target's "
+               "measure)", f"paper's closed form {geo['ours']:.2f}, {best} {geo[best]:.2f}, "
+               f"LC {geo['LC']:.2f}, TR {geo['TR']:.2f}", None))
     ok.append(("noise 5%: ours no worse than LC and TR (median geodesic)",
-               f"paper's closed form {med['ours']:.2f}, {best} {med[best]:.2f}, "
-               f"LC {med['LC']:.2f}, TR {med['TR']:.2f}",
-               max(med["ours"], med[best]) <= min(med["LC"], med["TR"])))
+               f"paper's closed form {geo['ours']:.2f}, {best} {geo[best]:.2f}",
+               max(geo["ours"], geo[best]) <= min(geo["LC"], geo["TR"])))
+    mark = {True: "yes", False: "**no**", None: "—"}
     lines = ["| target | measured | met |", "|---|---|---|"]
-    lines += [f"| {a} | {b} | {'yes' if c else '**no**'} |" for a, b, c in ok]
+    lines += [f"| {a} | {b} | {mark[c]} |" for a, b, c in ok]
     return "\n".join(lines) + "\n"
 
 
