@@ -154,10 +154,10 @@ class SegmentedWalk:
     n_frames: int
 
     @property
-    def main(self) -> Segment:
-        """The estimated segment that reports the most frames."""
-        done = [s for s in self.segments if s.estimate is not None]
-        return max(done, key=lambda s: s.last - s.first)
+    def main(self) -> int:
+        """Index of the estimated segment that reports the most frames."""
+        done = [k for k, s in enumerate(self.segments) if s.estimate is not None]
+        return max(done, key=lambda k: self.segments[k].last - self.segments[k].first)
 
     def to_result(self) -> dict:
         """The DESIGN.md result with ``segments`` and ``windows``.
@@ -166,21 +166,22 @@ class SegmentedWalk:
         recording when the walker kept one heading); each frame carries the
         ``segment`` that reports it, whose ``cameras`` give its viewpoints.
         """
+        per = [None if seg.estimate is None else seg.estimate.to_result(first_index=seg.start)
+               for seg in self.segments]
         frames: list[dict] = []
         segments = []
-        for k, seg in enumerate(self.segments):
+        for k, (seg, res) in enumerate(zip(self.segments, per)):
             out = {"first_index": seg.first, "last_index": seg.last, "windows": seg.windows}
-            if seg.estimate is None:
+            if res is None:
                 out["error"] = seg.error
                 frames += [{"index": t, "phase": None, "joints3d": None, "joints2d": {}, "observed_phase": {},
                             "segment": k} for t in range(seg.first, seg.last + 1)]
             else:
-                res = seg.estimate.to_result(first_index=seg.start)
                 out.update(cameras=res["cameras"], hmm=res["hmm"], notes=res["notes"])
                 frames += [dict(f, segment=k) for f in res["frames"][seg.first - seg.start:seg.last + 1 - seg.start]]
             segments.append(out)
-        main = self.main
-        result = main.estimate.to_result(first_index=main.start)
+        main = self.segments[self.main]
+        result = dict(per[self.main])
         result.update(frames=frames, segments=segments, windows=self.windows)
         if len(self.segments) > 1:
             result["notes"] = result["notes"] + [
@@ -238,17 +239,11 @@ def segment_walk(
     starts = window_starts(n, length, hop)
     stops = np.minimum(starts + length, n)
     progress = progress or (lambda f: None)
-    if len(starts) == 1:  # one window: no headings to tell apart
-        est, err = _estimate(tracks, 0, n, model, config)
-        if est is None:
-            raise ValueError(err)
-        progress(1.0)
-        return SegmentedWalk([Segment(0, n, 0, n - 1, est, 1)], [{"first_index": 0, "last_index": n - 1, "segment": 0}], n)
-
     views = {name: ViewpointTrack(threshold_deg=threshold_deg, confirm=confirm) for name in tracks}
-    windows, cuts, errors = [], set(), []
+    windows, cuts, estimates, errors = [], set(), [], []
     for k, (a, b) in enumerate(zip(starts, stops)):
         est, err = _estimate(tracks, a, b, model, config)
+        estimates.append(est)
         errors.append(err)
         w: dict[str, Any] = {"first_index": int(a), "last_index": int(b) - 1}
         if est is None:
@@ -275,7 +270,8 @@ def segment_walk(
         first = 0 if i == 0 else int(np.floor((centres[i - 1] + centres[i]) / 2)) + 1
         last = n - 1 if j == len(starts) else int(np.floor((centres[j - 1] + centres[j]) / 2))
         a, b = int(starts[i]), int(stops[j - 1])
-        est, err = _estimate(tracks, a, b, model, config)
+        # A segment of one window is that window's estimate; a longer one is estimated whole.
+        est, err = (estimates[i], errors[i]) if j - i == 1 else _estimate(tracks, a, b, model, config)
         segments.append(Segment(a, b, first, last, est, j - i, err))
         for w in windows[i:j]:
             w["segment"] = s
