@@ -146,12 +146,10 @@ class SegmentedWalk:
         Per sliding window: ``first_index``, ``last_index``, ``segment`` and
         per camera ``azimuth_deg`` / ``elevation_deg`` (None where the window
         had no estimate for it), or ``error``.
-    n_frames : int
     """
 
     segments: list[Segment]
     windows: list[dict]
-    n_frames: int
 
     @property
     def main(self) -> int:
@@ -251,11 +249,10 @@ def segment_walk(
         else:
             w["cameras"] = {}
             for name, c in est.cameras.items():
-                az, el = c.viewpoint.azimuth_deg, c.viewpoint.elevation_deg
-                w["cameras"][name] = {"azimuth_deg": round(float(az), 3) if np.isfinite(az) else None,
-                                      "elevation_deg": round(float(el), 3) if np.isfinite(el) else None}
+                vp = c.viewpoint.to_dict()
+                w["cameras"][name] = {key: vp[key] for key in ("azimuth_deg", "elevation_deg")}
                 before = len(views[name].changes)
-                views[name].update(az, el, k)
+                views[name].update(c.viewpoint.azimuth_deg, c.viewpoint.elevation_deg, k)
                 cuts.update(c["frame_index"] for c in views[name].changes[before:])
         windows.append(w)
         progress(0.7 * (k + 1) / len(starts))
@@ -278,4 +275,4 @@ def segment_walk(
         progress(0.7 + 0.3 * (s + 1) / (len(bounds) - 1))
     if all(seg.estimate is None for seg in segments):
         raise ValueError(segments[0].error)
-    return SegmentedWalk(segments, windows, n)
+    return SegmentedWalk(segments, windows)
