@@ -1,8 +1,10 @@
 """The capture agent: frames -> silhouettes -> ``posecal/<rig>/<camera>/silhouette``.
 
-One agent per camera. It opens the source, learns the background from the
-first ``warmup_frames`` frames (recorded sources are read as fast as possible
-during warm-up, then replayed in real time), segments every later frame and
+One agent per camera. It opens the source and learns the background: from
+frames of a recording sampled over its first seconds (re-read; the scene
+need not be empty, segmentation starts at frame 0), else from the first
+``warmup_frames`` frames (live cameras; recorded sources are read as fast as
+possible meanwhile, then replayed in real time). It segments every frame and
 publishes one :class:`~capture.wire.SilhouetteMessage` per frame, empty or
 not. It subscribes to its ``feedback`` key and hands valid priors to the
 segmenter (paper §7.1).
@@ -34,7 +36,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .receiver import ValidatingSubscriber
 from .scene import iou
-from .segment import PriorStats, Segmenter, SegmentSettings
+from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
 from .sources import Frame, FrameSource, make_source, paced
 from .wire import FeedbackMessage, SilhouetteMessage, encode, feedback_key, silhouette_key
 
@@ -91,6 +93,33 @@ class AgentStats:
     streaming_s: float = 0.0  # wall time from the end of warm-up to the end of the run
     cpu_s: float = 0.0  # process CPU time over the same span (all threads)
     latency_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))
+    segmented: int = 0  # frames segmented (after the background was known)
+    with_walker: int = 0  # ... in which a walker was found
+    candidates: int = 0  # person-sized candidates seen in the last frame
+    areas: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
+    stability: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
+    _last_box: tuple | None = None
+
+    def observe(self, seg: Segmentation) -> None:
+        """Count one silhouette for the quality figures (walker fraction, area, stability)."""
+        self.segmented += 1
+        self.candidates = seg.n_candidates
+        if seg.box.empty:
+            self._last_box = None
+            return
+        self.with_walker += 1
+        self.areas.append(seg.area)
+        box = (seg.box.x, seg.box.y, seg.box.w, seg.box.h)
+        if self._last_box is not None:
+            self.stability.append(box_iou(self._last_box, box))
+        self._last_box = box
+
+    def quality(self) -> dict[str, float]:
+        """Walker fraction, median silhouette area (px) and median box IoU between
+        consecutive silhouettes (1 = steady; a flickering or jumping mask scores low)."""
+        return {"walker_fraction": self.with_walker / self.segmented if self.segmented else 0.0,
+                "area_median": float(np.median(self.areas)) if self.areas else 0.0,
+                "stability": float(np.median(self.stability)) if self.stability else float("nan")}
 
     @property
     def fps(self) -> float:
@@ -187,6 +216,22 @@ class _PriorClock:
                   else f"came {(arrived - frame.timestamp_ns) / 1e6:.0f} ms late")
 
 
+def _bootstrap(source: FrameSource, segmenter: Segmenter) -> bool:
+    """Bootstrap the background from frames re-read from a recording (False if it cannot
+    be re-read, or the old warm-up is asked for): segmentation then starts at frame 0."""
+    s = segmenter.settings
+    n = None if source.live or s.background != "bootstrap" else source.frame_count()
+    if not n:
+        return False
+    images = source.sample(sample_indices(n, source.fps, s))
+    if not images:
+        return False
+    segmenter.bootstrap(images)
+    log.info("background bootstrapped from %d frames sampled over the first %d", len(images), n
+             if n < s.bootstrap_seconds * (source.fps or 15.0) else round(s.bootstrap_seconds * (source.fps or 15.0)))
+    return True
+
+
 def _warm_up(frames: Iterator[Frame], segmenter: Segmenter, stats: AgentStats,
              stop: threading.Event) -> None:
     """Learn the background from the first frames (paper §7: 100 empty frames)."""
@@ -215,6 +260,10 @@ def _log_stats(stats: AgentStats, sent_before: int, seconds: float, what: str) -
              stats.priors_ahead + stats.priors_behind,
              f", IoU vs ground truth {stats.mean_iou:.3f} over {stats.iou_frames} frames"
              if stats.iou_frames else "")
+    q = stats.quality()
+    log.info("%s quality: walker in %.0f%% of %d frames, median area %.0f px, stability %.2f, "
+             "candidates %d", what, 100 * q["walker_fraction"], stats.segmented, q["area_median"],
+             q["stability"], stats.candidates)
 
 
 def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | None = None,
@@ -262,7 +311,8 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
         log.info("agent %s/%s epoch %d: source %s (live=%s, sync by %s) -> %s",
                  settings.rig, settings.camera, stats.epoch_ns, source_name, source.live, sync, key)
         frames = iter(source)
-        _warm_up(frames, segmenter, stats, stop)
+        if not _bootstrap(source, segmenter):
+            _warm_up(frames, segmenter, stats, stop)
         if not source.live:
             frames = paced(frames, settings.fps or source.fps or 30.0)
         last_index, seq = None, 0
@@ -283,6 +333,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 clock.check(frame, stats)
             seg = segmenter.apply(frame.image, frame.index)
             stats.segmented_index = frame.index
+            stats.observe(seg)
             msg = SilhouetteMessage(
                 rig=settings.rig, camera=settings.camera, frame_index=frame.index,
                 capture_ns=frame.timestamp_ns, box=seg.box, image_size=seg.image_size,

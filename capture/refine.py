@@ -9,27 +9,32 @@ same fusion a live agent applies to the service's feedback messages.
 
 from __future__ import annotations
 
+import itertools
+import dataclasses
 import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from estimator.appearance import AppearanceModel
 from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
 from estimator.prior import (
+    FEEDBACK,
     Prior,
     PriorConfig,
     explained,
     priors_for_window,
     refine_silhouette,
     trim_silhouette,
+    walker_tracks,
     weigh,
 )
 from estimator.sequence import Sequence
 from estimator.windows import SegmentedWalk
 
-from .segment import Segmentation, Segmenter, SegmentSettings
+from .segment import Segmentation, Segmenter, SegmentSettings, sample_indices
 from .sources import VideoFileSource
 from .wire import Box, FeedbackMessage
 
@@ -45,14 +50,25 @@ def feedback_from_prior(prior: Prior, *, rig: str = "offline", camera: str = "c0
 
 
 def segment(frames: Iterable[np.ndarray], settings: SegmentSettings,
-            priors: Iterable[Prior] = ()) -> list[Segmentation | None]:
+            priors: Iterable[Prior] = (), fps: float | None = None) -> list[Segmentation | None]:
     """Segment BGR frames (index = position) with a fresh segmenter and the given priors.
 
-    Each prior is installed just before its frame, as a live agent would have
-    received it.
+    With ``settings.background = "bootstrap"`` (the default) the background is
+    bootstrapped from frames sampled over the first ones (``fps`` places
+    ``bootstrap_seconds``; 15 when unknown) and every frame is segmented, as
+    the agent does a file. Each prior is installed just before its frame, as a
+    live agent would have received it.
     """
     by_frame: dict[int, Prior] = {p.frame_index: p for p in priors}
     seg = Segmenter(settings)
+    if settings.background == "bootstrap":
+        # The agent's default for files: the background from frames sampled over the start
+        # (looked ahead: at most 3 per sample are held), then every frame from 0.
+        frames = iter(frames)
+        head = list(itertools.islice(frames, 3 * settings.bootstrap_samples))
+        if head:
+            seg.bootstrap([head[i] for i in sample_indices(len(head), fps, settings)])
+        frames = itertools.chain(head, frames)
     out: list[Segmentation | None] = []
     for k, image in enumerate(frames):
         p = by_frame.get(k)
@@ -65,6 +81,7 @@ def segment(frames: Iterable[np.ndarray], settings: SegmentSettings,
 def track_from_segmentations(segs: list[Segmentation | None]) -> CameraTrack:
     """A camera track (tight crops, full-frame boxes) from segmenter output."""
     sils, boxes = [], []
+    size = next((s.image_size for s in segs if s is not None), None)
     for s in segs:
         cropped = None if s is None or s.box.empty else crop_to_box(s.mask)
         if cropped is None:
@@ -74,7 +91,8 @@ def track_from_segmentations(segs: list[Segmentation | None]) -> CameraTrack:
             crop, b = cropped
             sils.append(crop)
             boxes.append([s.box.x + b[0], s.box.y + b[1], b[2], b[3]])
-    return CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=True)
+    return CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=True,
+                       image_size=None if size is None else tuple(size))
 
 
 def check_priors(priors: list[Prior], raw: list[Segmentation | None]) -> list[Prior]:
@@ -192,7 +210,7 @@ def refine_cameras(
     tracks = {name: track_from_segmentations(raw[name]) for name in frames}
     if estimate is None:
         estimate = estimate_walk(tracks, model)
-    priors = priors_for_window(estimate, tracks, sizes, renderer=renderer, config=config)
+    priors = priors_for_window(estimate, tracks, sizes, renderer=renderer, config=config or FEEDBACK)
     if prior_transform is not None:
         priors = {name: [prior_transform(p) for p in ps] for name, ps in priors.items()}
     refined = {name: second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach)
@@ -242,6 +260,17 @@ def _at_origin(sil: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return frame
 
 
+def _walker_frame(track: CameraTrack, k: int, size: tuple[int, int]) -> np.ndarray | None:
+    """Frame ``k`` of a (cleaned) track pasted at its box into a ``size`` canvas; None without one."""
+    sil, box = track.silhouettes[k], track.boxes[k]
+    if sil is None or not np.isfinite(box).all():
+        return None
+    b = Box(*(int(round(v)) for v in box))
+    if sil.shape != (b.h, b.w):
+        sil = cv2.resize(sil, (b.w, b.h), interpolation=cv2.INTER_NEAREST)
+    return b.paste(sil, size)
+
+
 def _changed(a: list[np.ndarray | None], b: list[np.ndarray | None]) -> int:
     return sum(int(np.count_nonzero((x > 0) != (y > 0))) for x, y in zip(a, b)
                if x is not None and y is not None and x.shape == y.shape)
@@ -252,11 +281,16 @@ def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
                     estimate: WalkEstimate | SegmentedWalk | None = None) -> RefinedSequence:
     """Silhouettes fused with the model's priors (no images left to re-segment).
 
-    Estimate the walk (unless the caller has, ``estimate``), render priors (:func:`estimator.prior.priors_for_window`)
-    and fuse each silhouette with its frame's prior
-    (:func:`estimator.prior.refine_silhouette`: holes the model explains are
-    filled, blobs away from the body dropped). Crops (silhouettes smaller than
-    the frame) are refined at the origin of a full canvas and cut back.
+    Estimate the walk (unless the caller has, ``estimate``), render priors
+    (:func:`estimator.prior.priors_for_window`; with ``config.trust``, the
+    default :data:`~estimator.prior.FEEDBACK`, only for frames that pass
+    :func:`estimator.prior.trust_test`) and fuse each silhouette with its
+    frame's prior (:func:`estimator.prior.refine_silhouette`, restricted to
+    the walker the estimate's clean-up found: holes and cut limbs the model
+    explains are filled, clutter dropped). A frame without a trusted prior is
+    returned unchanged, so a wrong estimate changes nothing (issue 17). Crops
+    (silhouettes smaller than the frame) are refined at the origin of a full
+    canvas and cut back.
 
     Raises ValueError if nothing can be estimated.
     """
@@ -264,17 +298,24 @@ def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
     if estimate is None:
         estimate = estimate_walk(tracks, model)
     size = tuple(seq.image_size)
-    priors = priors_for_window(estimate, tracks, size, renderer=renderer, config=config)
+    # No image to weigh the prior against: the evidence gate is a torn silhouette's
+    # everywhere, and refine_silhouette's fill rule (thick parts next to the walker) decides.
+    config = config or FEEDBACK
+    offline = dataclasses.replace(config, reach_min=config.reach_max)
+    priors = priors_for_window(estimate, tracks, size, renderer=renderer, config=offline)
+    walkers = walker_tracks(estimate, tracks)
     out = {}
     for cam in seq.cameras:
         by_frame = {p.frame_index: p for p in priors[cam]}
         out[cam] = []
         for k, sil in enumerate(seq.silhouettes[cam]):
             p = by_frame.get(k)
-            if sil is None or p is None:
+            walker = _walker_frame(walkers[cam], k, size)
+            if sil is None or p is None or walker is None:
                 out[cam].append(sil)
                 continue
-            refined = refine_silhouette(_at_origin(sil, size), p.full_mask())
+            refined = refine_silhouette(_at_origin(sil, size), p.full_mask(), walker=walker, reach=config.fill_reach,
+                                        limb=config.limb, limb_level=config.limb_level)
             out[cam].append(refined[: sil.shape[0], : sil.shape[1]])
     changed = sum(_changed(seq.silhouettes[c], out[c]) for c in seq.cameras)
     refined_seq = Sequence(fps=seq.fps, cameras=list(seq.cameras), image_size=seq.image_size,

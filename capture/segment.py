@@ -36,7 +36,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -47,7 +49,7 @@ from estimator.prior import trust_factor
 from .wire import Box, FeedbackMessage
 
 __all__ = ["MAX_PRIORS", "PriorStats", "SegmentSettings", "Segmentation", "Segmenter", "default_warmup",
-           "describe"]
+           "box_iou", "describe", "sample_indices"]
 
 MAX_PRIORS = 64  # priors kept per segmenter, newest frame indices first
 
@@ -57,8 +59,49 @@ class SegmentSettings(BaseModel):
 
     model_config = ConfigDict(frozen=True)
 
-    warmup_frames: int = Field(100, ge=1, description="empty frames learned before segmenting "
-                               "(paper: 100)")
+    background: Literal["bootstrap", "warmup"] = Field(
+        "bootstrap", description="how the background is learned: 'bootstrap' = per-pixel "
+        "temporal median of frames sampled over the first seconds (a re-readable file, "
+        "Segmenter.bootstrap) or of the start-up buffer (live), so the scene need not be empty; "
+        "'warmup' = the paper's MOG2 running average over empty start-up frames")
+    warmup_frames: int = Field(100, ge=1, description="start-up frames collected before "
+                               "segmenting when the background was not bootstrapped from a "
+                               "re-read file (live cameras); with background='warmup' they "
+                               "must be empty (paper: 100)")
+    bootstrap_samples: int = Field(40, ge=3, description="frames sampled for the median "
+                                   "background")
+    bootstrap_seconds: float = Field(15.0, gt=0, description="span at the start of a file over "
+                                     "which the samples are spread (the whole file if shorter)")
+    bootstrap_outlier: float = Field(25.0, gt=0, description="a sampled pixel farther than this "
+                                     "(grey levels, any channel) from the median is replaced by "
+                                     "it when priming MOG2 (the rest teaches MOG2 the real noise)")
+    bootstrap_still: float = Field(12.0, gt=0, description="start-up buffer: a pixel changing "
+                                   "more than this since the previous frame is moving and "
+                                   "counts less in the median")
+    shadows: bool = Field(False, description="(off: see docs/CAPTURE.md, removes dark clothing on the scripted scene) drop shadow/reflection pixels at full resolution "
+                          "(darker or brighter by a ratio in shadow_ratio, same chromaticity, "
+                          "same texture) unless enclosed by the body")
+    shadow_ratio: tuple[float, float] = Field((0.4, 0.95), description="brightness ratio "
+                                              "frame/background of a shadow")
+    reflection_ratio: float = Field(1.15, ge=1, description="up to this ratio a brighter pixel "
+                                    "with unchanged chromaticity and texture is a reflection "
+                                    "(1 = off)")
+    shadow_chroma: float = Field(0.06, gt=0, description="largest chromaticity distortion "
+                                 "|I - rB| / |B| of a shadow pixel")
+    shadow_texture: float = Field(0.3, gt=0, description="largest gradient change (relative to "
+                                  "the gradients present) of a shadow pixel")
+    ghost_frames: int = Field(10, ge=0, description="a foreground component that stays put "
+                              "this many frames is tested for being a ghost (its edges are the "
+                              "background model's, not the frame's) and absorbed; 0 = off")
+    ghost_edge_ratio: float = Field(1.3, gt=0, description="ghost = mean background-model "
+                                    "gradient on the component's outline above this many times "
+                                    "the frame's")
+    track_frames: int = Field(15, ge=0, description="frames the tracked walker's box is kept "
+                              "while no component continues it; a component continuing it is "
+                              "kept rather than the largest")
+    track_grow: float = Field(0.3, ge=0, description="the tracked box is grown by this fraction "
+                              "of its size per side (per frame missed, plus one) to find its "
+                              "continuation")
     model_width: int = Field(160, ge=0, description="width in pixels at which the background "
                              "model runs (frames no wider run at full resolution; 0 = always "
                              "full resolution); its mask is then refined at full resolution")
@@ -70,13 +113,16 @@ class SegmentSettings(BaseModel):
     refine_threshold: float = Field(16.0, gt=0, description="near the mask, foreground = squared "
                                     "colour distance to the full-resolution background above "
                                     "this many times the local noise variance (MOG2's test)")
+    refine_floor: float = Field(28.0, ge=0, description="...and above this colour distance "
+                                "(grey levels, channels combined): compression artefacts "
+                                "along edges (MJPG's 8x8 blocks) exceed the flat-area noise")
     gain_compensation: bool = Field(True, description="divide the frame's global brightness "
                                     "change (median ratio to the background) out before "
                                     "classifying")
     history: int = Field(500, ge=1, description="MOG2 history length in frames (warm-up rate)")
     var_threshold: float = Field(16.0, gt=0, description="MOG2 squared Mahalanobis threshold")
-    detect_shadows: bool = Field(False, description="mark shadows and drop them; off because dark "
-                                 "clothing is then taken for shadow (the paper does not do it)")
+    detect_shadows: bool = Field(False, description="MOG2's own shadow marking; off because dark "
+                                 "clothing is then taken for shadow (see ``shadows``)")
     learning_rate: float = Field(0.04, gt=0, le=1, description="MOG2 rate of each selective update")
     update_every: int = Field(4, ge=1, description="frames between selective background updates")
     update_phase: int = Field(0, ge=0, description="offset of the update schedule; the agents of "
@@ -88,7 +134,7 @@ class SegmentSettings(BaseModel):
                          "speckle; thins limbs); 0 = off")
     close_px: int = Field(9, ge=0, description="closing kernel in reference pixels, applied at "
                           "full resolution (fills holes); 0 = off")
-    min_area: int = Field(150, ge=1, description="a largest component below this many "
+    min_area: int = Field(600, ge=1, description="a largest component below this many "
                           "reference pixels = nothing")
     margin_px: int = Field(2, ge=0, description="margin in full-frame pixels around the "
                            "component in the crop")
@@ -126,15 +172,17 @@ class Segmentation:
     image_size: tuple[int, int]
     area: int
     used_prior: bool
+    n_candidates: int = 0  # person-sized components seen (the tracked walker among them)
 
     def full_mask(self) -> np.ndarray:
         """The crop pasted into a full-frame ``(height, width)`` canvas."""
         return self.box.paste(self.mask, self.image_size)
 
     @classmethod
-    def nothing(cls, size: tuple[int, int], used_prior: bool = False) -> Segmentation:
+    def nothing(cls, size: tuple[int, int], used_prior: bool = False,
+                n_candidates: int = 0) -> Segmentation:
         """A frame of ``size`` in which no walker was found."""
-        return cls(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), size, 0, used_prior)
+        return cls(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), size, 0, used_prior, n_candidates)
 
 
 def _kernel(size: float) -> np.ndarray | None:
@@ -207,6 +255,33 @@ def default_warmup(n_frames: int) -> int:
     return max(1, min(100, n_frames // 4 if n_frames else 30))
 
 
+def sample_indices(n_frames: int, fps: float | None, settings: SegmentSettings) -> list[int]:
+    """Frame indices to bootstrap the background from: ``bootstrap_samples`` spread evenly
+    over the first ``bootstrap_seconds`` of a recording of ``n_frames`` (all of it if
+    shorter; 15 fps when unknown)."""
+    span = min(n_frames, max(1, round(settings.bootstrap_seconds * (fps or 15.0))))
+    if span <= 0:
+        return []
+    return sorted({int(round(v)) for v in np.linspace(0, span - 1, min(span, settings.bootstrap_samples))})
+
+
+def _median(stack: np.ndarray, moving: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel median of ``stack`` (N, H, W, 3) uint8, preferring samples not ``moving``.
+
+    Moving samples (N, H, W bool) are replaced by alternately 0 and 255: the
+    median of the whole set is then the median of the still samples (exactly
+    for an even count), without a masked median's cost. Pixels moving in most
+    samples keep their values (nothing better is known there).
+    """
+    if moving is not None and moving.any():
+        moving = moving & (moving.sum(axis=0) < 0.8 * len(stack))[None]
+        rank = np.cumsum(moving, axis=0)  # alternate low/high over each pixel's moving samples
+        stack = stack.copy()
+        stack[moving & (rank % 2 == 1)] = 0
+        stack[moving & (rank % 2 == 0)] = 255
+    return np.median(stack, axis=0).astype(np.float32)
+
+
 def describe(settings: SegmentSettings, size: tuple[int, int]) -> str:
     """One line on how frames of ``size`` are segmented (for logs and benchmarks)."""
     g = _Geometry.of(settings, size)
@@ -240,11 +315,88 @@ class Segmenter:
         self._priors: dict[int, _StoredPrior] = {}
         self._lock = threading.Lock()
         self.prior_stats = PriorStats()
+        # Background bootstrap: the start-up buffer (sampled frames, their moving pixels),
+        # and each bootstrap sample's noise around the median at model resolution, kept to
+        # re-prime MOG2 when a ghost is absorbed.
+        self._buffer: list[np.ndarray] = []
+        self._buffer_moving: list[np.ndarray] = []
+        self._previous: np.ndarray | None = None
+        self._residuals: list[np.ndarray] = []
+        self._track: tuple[int, int, int, int] | None = None  # last tracked walker box
+        self._track_missed = 0
+        self._static: list[list] = []  # [box, frames seen in place] per still component
+        self.ghosts = 0  # ghost regions absorbed into the background
 
     @property
     def warming_up(self) -> bool:
-        """True until ``warmup_frames`` frames have been learned."""
+        """True until the background is known (bootstrapped, or ``warmup_frames`` learned)."""
         return self._learned < self.settings.warmup_frames
+
+    def bootstrap(self, images: Sequence[np.ndarray],
+                  moving: Sequence[np.ndarray] | None = None) -> None:
+        """Learn the background from frames that need not be empty; segment from then on.
+
+        The background is the per-pixel temporal median of ``images`` (BGR uint8,
+        spread over the first seconds: whoever walks is elsewhere in most of
+        them), preferring samples where the pixel is not ``moving`` (bool masks,
+        optional). MOG2 is primed with the samples in which pixels far from the
+        median (``bootstrap_outlier``) are replaced by it, so it learns the real
+        noise but not the walkers; the full-resolution background is the median.
+        """
+        if not len(images):
+            raise ValueError("bootstrap needs at least one frame")
+        stack = np.stack(images)
+        g = self._geometry_for((stack.shape[2], stack.shape[1]))
+        median = _median(stack, None if moving is None else np.stack(moving))
+        self._full_bg = median if g.refine_px else None
+        med_small = self._small(median.astype(np.uint8), g)
+        residuals = []
+        for image in stack:
+            small = self._small(image, g)
+            far = cv2.compare(cv2.absdiff(small, med_small).max(axis=2), self.settings.bootstrap_outlier,
+                              cv2.CMP_GT)
+            residual = cv2.subtract(small, med_small, dtype=cv2.CV_16S)
+            residual[far > 0] = 0
+            residuals.append(residual)
+        self._residuals = residuals
+        self._prime(med_small)
+        self._learned = self.settings.warmup_frames
+        self._buffer, self._buffer_moving, self._previous = [], [], None
+
+    @staticmethod
+    def _small(image: np.ndarray, g: _Geometry) -> np.ndarray:
+        return cv2.resize(image, g.model_size, interpolation=cv2.INTER_AREA) if g.downscaled else image
+
+    def _prime(self, base: np.ndarray) -> None:
+        """A fresh MOG2 fed ``base`` (model resolution) plus each bootstrap sample's noise."""
+        s = self.settings
+        self._mog = cv2.createBackgroundSubtractorMOG2(
+            history=s.history, varThreshold=s.var_threshold, detectShadows=s.detect_shadows)
+        base16 = base.astype(np.int16)
+        for residual in self._residuals:
+            self._mog.apply(cv2.convertScaleAbs(cv2.add(base16, residual, dtype=cv2.CV_16S)),
+                            learningRate=-1)
+        self._bg_level = self._level(self._mog.getBackgroundImage())
+
+    def _collect(self, image: np.ndarray, small: np.ndarray) -> None:
+        """Start-up buffer of a live source: keep about ``bootstrap_samples`` of the first
+        ``warmup_frames`` frames with their moving pixels, then bootstrap from them."""
+        s = self.settings
+        step = max(1, -(-s.warmup_frames // s.bootstrap_samples))
+        if self._learned % step == 0:
+            moving = np.zeros(image.shape[:2], bool)
+            if self._previous is not None:
+                change = cv2.compare(cv2.absdiff(small, self._previous).max(axis=2), s.bootstrap_still,
+                                     cv2.CMP_GT)
+                change = cv2.dilate(change, _kernel(3))
+                moving = cv2.resize(change, (image.shape[1], image.shape[0]),
+                                    interpolation=cv2.INTER_NEAREST) > 0
+            self._buffer.append(image.copy())
+            self._buffer_moving.append(moving)
+        self._previous = small.copy()
+        self._learned += 1
+        if not self.warming_up:
+            self.bootstrap(self._buffer, self._buffer_moving)
 
     def _geometry_for(self, size: tuple[int, int]) -> _Geometry:
         g = self._geometry
@@ -360,8 +512,10 @@ class Segmenter:
         self.learn()
         size = (image.shape[1], image.shape[0])
         g = self._geometry_for(size)
-        small = cv2.resize(image, g.model_size, interpolation=cv2.INTER_AREA) if g.downscaled \
-            else image
+        small = self._small(image, g)
+        if self.warming_up and self.settings.background == "bootstrap":
+            self._collect(image, small)
+            return None
         if self.warming_up:
             self._mog.apply(small, learningRate=-1)  # running average over the empty frames
             if g.refine_px:
@@ -398,7 +552,7 @@ class Segmenter:
             fg = cv2.compare(cv2.resize(fg, size, interpolation=cv2.INTER_LINEAR), 127, cv2.CMP_GT)
             if g.refine_px:
                 fg = self._refine(fg, image, None if prior is None else prior[1], g, gain)
-        return self._largest(fg, g, used_prior=prior is not None)
+        return self._largest(fg, g, used_prior=prior is not None, image=image, gain=gain)
 
     @staticmethod
     def _level(image: np.ndarray) -> np.ndarray:
@@ -478,8 +632,11 @@ class Segmenter:
         d2 = cv2.transform(cv2.multiply(d, d), np.ones((1, 3), np.float32))
         # Variance summed over channels, bounded like MOG2's (4..75 by default).
         var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
-        level = self.settings.refine_threshold * var
+        level = max(self.settings.refine_threshold * var, self.settings.refine_floor ** 2)
         refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
+        if self.settings.shadows:
+            refined = self._drop_shadows(refined, image[y0:y1, x0:x1], self._full_bg[y0:y1, x0:x1],
+                                         gain, var, g)
         if prior is not None:
             # Inside a trusted prior weaker evidence will do, at full resolution too
             # (§7.1), and the refinement must not undo the model's fused evidence.
@@ -488,6 +645,47 @@ class Segmenter:
             refined |= cv2.bitwise_and(weak, cv2.bitwise_and(trusted, near))
         fg[y0:y1, x0:x1] = refined
         return fg
+
+    def _drop_shadows(self, fg: np.ndarray, image: np.ndarray, background: np.ndarray,
+                      gain: float, var: float, g: _Geometry) -> np.ndarray:
+        """Remove shadow and reflection pixels from ``fg`` (a region, full resolution).
+
+        A pixel is shadow if its colour is the background's scaled by a ratio
+        ``r`` in ``shadow_ratio`` (or up to ``reflection_ratio`` brighter), with
+        little chromaticity distortion ``|I - rB| / |B|`` and the background's
+        texture still there (local gradients of ``I`` close to ``r`` times the
+        background's). Uniformly dark clothing on a plain background passes
+        those tests too, so shadow pixels enclosed by the remaining body (within
+        the closing of the rest, twice ``close_px``) are kept: a shadow is cast
+        *beside* the walker, clothing is inside it.
+        """
+        s = self.settings
+        frame = image.astype(np.float32) * np.float32(1.0 / gain)
+        bb = cv2.transform(cv2.multiply(background, background), np.ones((1, 3), np.float32)) + 1.0
+        r = cv2.transform(cv2.multiply(frame, background), np.ones((1, 3), np.float32)) / bb
+        dist = cv2.subtract(frame, cv2.multiply(background, cv2.merge([r, r, r])))
+        chroma = cv2.transform(cv2.multiply(dist, dist), np.ones((1, 3), np.float32)) / bb
+        lo, hi = s.shadow_ratio
+        dark = ((r >= lo) & (r <= hi)) | ((r > 1.0) & (r <= s.reflection_ratio))
+        shadow = dark & (chroma < s.shadow_chroma ** 2)
+        if not shadow.any():
+            return fg
+        gi, gb = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), cv2.cvtColor(background, cv2.COLOR_BGR2GRAY)
+        change = np.zeros_like(gi)
+        present = np.zeros_like(gi)
+        for dx, dy in ((1, 0), (0, 1)):
+            a = cv2.Sobel(gi, cv2.CV_32F, dx, dy, ksize=3)
+            b = cv2.Sobel(gb, cv2.CV_32F, dx, dy, ksize=3)
+            change += cv2.absdiff(a, cv2.multiply(b, r))
+            present += cv2.absdiff(a, 0) + cv2.absdiff(cv2.multiply(b, r), 0)
+        k = (5, 5)
+        floor = 8.0 * np.sqrt(var / 3.0)  # the gradient operator's response to noise alone
+        same_texture = cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
+        shadow = (shadow & same_texture).astype(np.uint8) * 255
+        body = cv2.bitwise_and(fg, cv2.bitwise_not(shadow))
+        enclosed = cv2.morphologyEx(body, cv2.MORPH_CLOSE, _kernel(2 * g.close_px + 1)) \
+            if g.close_px else body
+        return cv2.bitwise_or(body, cv2.bitwise_and(fg, enclosed))
 
     def _fuse(self, fg: np.ndarray, image: np.ndarray, background: np.ndarray,
               prior: np.ndarray) -> np.ndarray:
@@ -499,18 +697,22 @@ class Segmenter:
         weak = cv2.bitwise_and(cv2.compare(diff, level, cv2.CMP_GT), prior)
         return cv2.bitwise_or(fg, weak)
 
-    def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool) -> Segmentation:
-        """Close holes, keep the largest component, crop it.
+    def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool,
+                 image: np.ndarray | None = None, gain: float = 1.0) -> Segmentation:
+        """Close holes, keep the tracked walker's component (else the largest), crop it.
 
         Closing and labelling run only inside the bounding rectangle of all
         foreground (plus room for the closing kernel): usually a small region
         around the walker. With a convex kernel the closing stays inside that
-        rectangle, so the result equals closing the whole frame.
+        rectangle, so the result equals closing the whole frame. Components of
+        at least ``min_area`` are candidates; one that stayed put for
+        ``ghost_frames`` and whose outline is the background model's rather
+        than the frame's is a ghost, absorbed into the background and dropped.
         """
         size = g.size
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
-            return Segmentation.nothing(size, used_prior)
+            return self._nobody(size, used_prior, 0)
         if g.close is not None:
             m = g.close_px
             x0, y0 = max(0, rx - m), max(0, ry - m)
@@ -520,12 +722,19 @@ class Segmenter:
         else:
             region = fg[ry:ry + rh, rx:rx + rw]
         _, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
-        if len(stats) < 2:
-            return Segmentation.nothing(size, used_prior)
-        best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        candidates = [k for k in range(1, len(stats)) if stats[k, cv2.CC_STAT_AREA] >= g.min_area]
+        if image is not None and self.settings.ghost_frames and self._residuals \
+                and self._full_bg is not None:
+            candidates = self._drop_ghosts(candidates, labels, stats, (rx, ry), image, gain, g)
+        if not candidates:
+            return self._nobody(size, used_prior, 0)
+        boxes = {k: (rx + int(stats[k, 0]), ry + int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]))
+                 for k in candidates}
+        best = self._continuing(boxes)
+        if best is None:
+            best = max(candidates, key=lambda k: stats[k, cv2.CC_STAT_AREA])
+        self._track, self._track_missed = boxes[best], 0
         area = int(stats[best, cv2.CC_STAT_AREA])
-        if area < g.min_area:
-            return Segmentation.nothing(size, used_prior)
         x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region
         m = self.settings.margin_px
         x0, y0 = max(0, rx + x - m), max(0, ry + y - m)  # crop box in the full frame
@@ -533,5 +742,91 @@ class Segmenter:
         crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
         ox, oy = rx + x - x0, ry + y - y0
         crop[oy:oy + h, ox:ox + w] = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
-        return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, area, used_prior)
+        return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, area, used_prior,
+                            len(candidates))
 
+    def _nobody(self, size: tuple[int, int], used_prior: bool, n: int) -> Segmentation:
+        """No walker in this frame; the tracked box ages (forgotten after ``track_frames``)."""
+        self._track_missed += 1
+        if self._track_missed > self.settings.track_frames:
+            self._track = None
+        return Segmentation.nothing(size, used_prior, n)
+
+    def _continuing(self, boxes: dict[int, tuple[int, int, int, int]]) -> int | None:
+        """The candidate whose box overlaps the tracked walker's (grown) box most, if any."""
+        if self._track is None or self._track_missed > self.settings.track_frames:
+            return None
+        x, y, w, h = self._track
+        grow = self.settings.track_grow * (1 + self._track_missed)
+        gx, gy = x - grow * w, y - grow * h
+        gw, gh = w * (1 + 2 * grow), h * (1 + 2 * grow)
+        best, best_overlap = None, 0.0
+        for k, (bx, by, bw, bh) in boxes.items():
+            ix = max(0.0, min(gx + gw, bx + bw) - max(gx, bx))
+            iy = max(0.0, min(gy + gh, by + bh) - max(gy, by))
+            overlap = ix * iy / (bw * bh + w * h - ix * iy)  # IoU with the grown box
+            if overlap > best_overlap:
+                best, best_overlap = k, overlap
+        return best
+
+    def _drop_ghosts(self, candidates: list[int], labels: np.ndarray, stats: np.ndarray,
+                     origin: tuple[int, int], image: np.ndarray, gain: float,
+                     g: _Geometry) -> list[int]:
+        """Candidates minus ghosts, which are absorbed into the background.
+
+        A component whose box stays put (IoU > 0.8 with last frame's) for
+        ``ghost_frames`` frames is tested, then every ``ghost_frames`` frames:
+        on its outline the background model's gradient is compared with the
+        frame's. Where the model was wrong (someone stood there at bootstrap)
+        the outline is an edge of the model, not of the frame; a walker who
+        stands still has the frame's edges, so is never absorbed.
+        """
+        s = self.settings
+        ox, oy = origin
+        still, keep = [], []
+        for k in candidates:
+            box = (ox + int(stats[k, 0]), oy + int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]))
+            seen = next((n for b, n in self._static if box_iou(b, box) > 0.8), 0) + 1
+            still.append([box, seen])
+            ghost = self._ghost(labels, k, stats, origin, image, gain) \
+                if seen % s.ghost_frames == 0 else None
+            if ghost is not None:
+                self._absorb(*ghost, g)
+                continue
+            keep.append(k)
+        self._static = still
+        return keep
+
+    def _ghost(self, labels: np.ndarray, k: int, stats: np.ndarray, origin: tuple[int, int],
+               image: np.ndarray, gain: float) -> tuple | None:
+        """``(slices, component mask, frame patch)`` if component ``k`` is a ghost, else None."""
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        x0, y0 = max(0, x - 2), max(0, y - 2)
+        comp = cv2.compare(labels[y0:y + h + 2, x0:x + w + 2], k, cv2.CMP_EQ)
+        ring = cv2.morphologyEx(comp, cv2.MORPH_GRADIENT, _kernel(3))
+        sl = (slice(origin[1] + y0, origin[1] + y0 + comp.shape[0]),
+              slice(origin[0] + x0, origin[0] + x0 + comp.shape[1]))
+        frame = cv2.cvtColor(image[sl], cv2.COLOR_BGR2GRAY).astype(np.float32) / np.float32(gain)
+        model = cv2.cvtColor(self._full_bg[sl], cv2.COLOR_BGR2GRAY)
+        edges = [cv2.mean(cv2.magnitude(cv2.Sobel(a, cv2.CV_32F, 1, 0), cv2.Sobel(a, cv2.CV_32F, 0, 1)),
+                          mask=ring)[0] for a in (frame, model)]
+        if edges[1] <= self.settings.ghost_edge_ratio * max(edges[0], 1.0):
+            return None
+        return sl, cv2.dilate(comp, _kernel(5)), image[sl].astype(np.float32) * np.float32(1.0 / gain)
+
+    def _absorb(self, sl: tuple[slice, slice], mask: np.ndarray, patch: np.ndarray,
+                g: _Geometry) -> None:
+        """Copy the frame into the background under ``mask`` (full resolution), re-prime MOG2."""
+        cv2.copyTo(patch, mask, self._full_bg[sl])
+        base = self._small(cv2.convertScaleAbs(self._full_bg), g)
+        self._prime(base)
+        self._static = []
+        self.ghosts += 1
+
+
+def box_iou(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> float:
+    """IoU of two ``(x, y, w, h)`` boxes."""
+    ix = max(0, min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0]))
+    iy = max(0, min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    return inter / (a[2] * a[3] + b[2] * b[3] - inter) if inter else 0.0

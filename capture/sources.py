@@ -12,9 +12,12 @@ you hold resources). The contract:
   source has the same size. ``Frame.mask`` is the ground-truth silhouette,
   ``(H, W)`` uint8 0/255, or None when unknown (only synthetic and test
   sources know it).
-* Begin with frames of the empty scene if you can: the agent learns the
-  background from the first ``SegmentSettings.warmup_frames`` (default 100,
-  as in the paper) and anything moving in them is learned as background.
+* The scene need not be empty: the agent bootstraps the background from the
+  temporal median of frames sampled over the first seconds. A recorded source
+  that can be re-read implements ``sample(indices)`` (the frames at those
+  indices, read independently of iteration), so segmentation starts at frame
+  0; otherwise (live sources) the first ``SegmentSettings.warmup_frames`` are
+  collected at start-up and not segmented.
 * ``Frame.index`` counts frames from 0 (or the camera's hardware frame
   counter); a gap in indices means frames were lost before reaching us.
 * ``Frame.timestamp_ns`` is the capture time as :func:`time.time_ns` (wall
@@ -104,6 +107,15 @@ class FrameSource(abc.ABC):
 
     def close(self) -> None:
         """Release resources; safe to call twice."""
+
+    def frame_count(self) -> int | None:
+        """Frames in a recording that can be re-read, else None (live, unknown)."""
+        return None
+
+    def sample(self, indices: Iterable[int]) -> list[np.ndarray]:
+        """The images at ``indices`` (ascending), read again from the start without
+        disturbing iteration; only sources with a :meth:`frame_count`."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be re-read")
 
     def __enter__(self) -> Self:
         return self
@@ -223,8 +235,36 @@ class VideoFileSource(_CaptureSource):
         if not path.is_file():
             raise SourceError(f"video file not found: {path}")
         super().__init__(cv2.VideoCapture(str(path)), f"video file {path}")
+        self.path = path
         self.loop = loop
         self.hardware_sync = hardware_sync
+
+    def frame_count(self) -> int | None:
+        n = int(self._path_cap(lambda cap: cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        return n if n > 0 else None
+
+    def _path_cap(self, use):
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            return use(cap)
+        finally:
+            cap.release()
+
+    def sample(self, indices: Iterable[int]) -> list[np.ndarray]:
+        wanted = sorted(set(indices))
+
+        def read(cap: cv2.VideoCapture) -> list[np.ndarray]:
+            out: list[np.ndarray] = []
+            keep = set(wanted)
+            for k in range(wanted[-1] + 1 if wanted else 0):  # sequential: seeking is inexact
+                if not cap.grab():
+                    break
+                if k in keep:
+                    ok, image = cap.retrieve()
+                    if ok:
+                        out.append(_bgr(image))
+            return out
+        return self._path_cap(read)
 
     def _read(self) -> np.ndarray | None:
         image = super()._read()
@@ -287,6 +327,13 @@ class FolderSource(FrameSource):
                 index += 1
             if not self.loop:
                 return
+
+    def frame_count(self) -> int | None:
+        return len(self._files)
+
+    def sample(self, indices: Iterable[int]) -> list[np.ndarray]:
+        return [_bgr(cv2.imread(str(self._files[k]), cv2.IMREAD_UNCHANGED))
+                for k in sorted(set(indices)) if k < len(self._files)]
 
     def close(self) -> None:
         self._closed = True

@@ -26,12 +26,14 @@ The online path for one window of synchronized frames:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .appearance import AppearanceModel
 from .body import PARTS
+from .cleanup import CleanupConfig, CleanupReport, isolate_walker, trim_below_feet
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, hamming, pack
 from .gait import GaitModel, load_gait
@@ -42,7 +44,7 @@ from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, motion_cue
 
-__all__ = ["CameraTrack", "EstimateConfig", "WalkEstimate", "estimate_walk", "track_length", "tracks_from_sequence"]
+__all__ = ["CameraTrack", "EstimateConfig", "clean_tracks", "WalkEstimate", "estimate_walk", "track_length", "tracks_from_sequence"]
 
 _J = {name: i for i, name in enumerate(FULL_JOINT_NAMES)}
 
@@ -71,6 +73,9 @@ class EstimateConfig:
         Paper's path: score the Viterbi path against its half-cycle shift (step 5).
     body : BodyShape
         The model body whose joints are reported.
+    cleanup : CleanupConfig or None
+        Reduce each silhouette to the walker first (:mod:`estimator.cleanup`);
+        None feeds the silhouettes to registration as they are.
     """
 
     method: str = "exemplars"
@@ -81,6 +86,7 @@ class EstimateConfig:
     phase_view_window_deg: float = 30.0
     resolve_half_cycle: bool = True
     body: BodyShape = field(default_factory=BodyShape)
+    cleanup: CleanupConfig | None = field(default_factory=CleanupConfig)
 
     def __post_init__(self) -> None:
         if self.method not in ("exemplars", "paper"):
@@ -101,11 +107,15 @@ class CameraTrack:
         extents and carry no motion.
     full_frame : bool
         Whether the boxes are positions in the camera's full frame.
+    image_size : (int, int), optional
+        ``(width, height)`` of the full frame, when known: a walker touching
+        its border is cut by it (:mod:`estimator.cleanup`).
     """
 
     silhouettes: list[np.ndarray | None]
     boxes: np.ndarray
     full_frame: bool = True
+    image_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         self.boxes = np.asarray(self.boxes, dtype=float)
@@ -146,7 +156,9 @@ def tracks_from_sequence(sequence: Sequence) -> dict[str, CameraTrack]:
             sils.append(cropped[0])
             boxes.append(cropped[1])  # in the full frame, or in the crop's own pixels
             full.append(is_full)
-        tracks[cam] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=bool(full) and all(full))
+        full_frame = bool(full) and all(full)
+        tracks[cam] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=full_frame,
+                                  image_size=tuple(sequence.image_size) if full_frame else None)
     return tracks
 
 
@@ -160,6 +172,7 @@ class CameraEstimate:
     observations: np.ndarray  # (T,) phase observation, NaN where none
     joints2d: np.ndarray  # (T, 13, 2), NaN where no silhouette
     notes: list[str]
+    cleanup: CleanupReport | None = None
 
 
 @dataclass
@@ -173,6 +186,7 @@ class WalkEstimate:
     log_prob: float
     half_cycle_margin: float
     notes: list[str] = field(default_factory=list)
+    tracks: dict[str, CameraTrack] | None = None  # the tracks estimated from (after clean-up)
 
     def to_result(self, *, first_index: int = 0) -> dict:
         """The result format of DESIGN.md (JSON-able)."""
@@ -294,6 +308,32 @@ def _phase_distances(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint) -> n
     return d.min(axis=2)
 
 
+def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray]) -> np.ndarray:
+    """How unlike a walker each silhouette is: eq. 8 distance to its nearest cluster mean."""
+    registered, tf = model.register(silhouettes)
+    d = distance(registered, model.means).min(axis=1).astype(float)
+    d[~tf.valid] = np.inf
+    return d
+
+
+def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = None, *,
+                 score: Callable[[list[np.ndarray]], np.ndarray] | None = None
+                 ) -> tuple[dict[str, CameraTrack], dict[str, CleanupReport]]:
+    """Every camera's track reduced to the walker (:mod:`estimator.cleanup`).
+
+    With a ``score`` (see :func:`walker_score`) a shadow or reflection joined
+    to the feet is cut off too (:func:`estimator.cleanup.trim_below_feet`).
+    """
+    out, reports = {}, {}
+    for name, t in tracks.items():
+        sils, boxes, reports[name] = isolate_walker(
+            t.silhouettes, t.boxes, image_size=t.image_size if t.full_frame else None, config=config)
+        if score is not None:
+            sils, boxes, reports[name].cut = trim_below_feet(sils, boxes, score, config=config)
+        out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size)
+    return out, reports
+
+
 def track_length(tracks: dict[str, CameraTrack]) -> int:
     """Frames of synchronized camera tracks; ValueError for no cameras or differing lengths."""
     if not tracks:
@@ -337,6 +377,9 @@ def estimate_walk(
     if exemplars is not None and exemplars.n_phases != n_phases:
         raise ValueError(f"exemplars have {exemplars.n_phases} phases, the HMM {n_phases}")
 
+    reports: dict[str, CleanupReport] = {}
+    if config.cleanup is not None:
+        tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s))
     cams: dict[str, CameraEstimate] = {}
     distances: dict[str, np.ndarray] = {}
     log_emission = np.zeros((T, n_phases))
@@ -346,6 +389,9 @@ def estimate_walk(
         dist = np.full((T, model.n_clusters), np.inf, np.float32)
         cam_notes = []
         cue = motion_cue(track.boxes) if track.full_frame else None
+        note = reports[name].note() if name in reports else None
+        if note:
+            cam_notes.append(note)
         if not track.full_frame:
             cam_notes.append(
                 "cropped silhouettes: no position in the full frame, so no motion cue (ahead/behind decided by "
@@ -358,7 +404,8 @@ def estimate_walk(
         if present.size == 0:
             cam_notes.append("no silhouette in this window")
             vp = Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)
-            cams[name] = CameraEstimate(vp, cue, labels, np.full(T, np.nan), np.full((T, N_JOINTS, 2), np.nan), cam_notes)
+            cams[name] = CameraEstimate(vp, cue, labels, np.full(T, np.nan), np.full((T, N_JOINTS, 2), np.nan), cam_notes,
+                                        reports.get(name))
             distances[name] = dist
             continue
         d = distance(registered, model.means)
@@ -380,7 +427,8 @@ def estimate_walk(
             pd = _phase_distances(exemplars, bits, vp)
             log_emission[present] -= (pd - pd.min(axis=1, keepdims=True)) / config.tau_phase
             obs[present] = np.argmin(pd, axis=1) / n_phases
-        cams[name] = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes)
+        cams[name] = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes,
+                                    reports.get(name))
 
     if all(c.viewpoint.n_samples == 0 for c in cams.values()):
         raise ValueError("no non-empty silhouette in the window")
@@ -410,6 +458,7 @@ def estimate_walk(
         log_prob=log_prob,
         half_cycle_margin=margin,
         notes=[] if exemplars is not None else ["paper's path: cluster means only"],
+        tracks=tracks,
     )
 
 

@@ -190,7 +190,7 @@ class SegmentedWalk:
 
 def window_tracks(tracks: dict[str, CameraTrack], a: int, b: int) -> dict[str, CameraTrack]:
     """Frames ``[a, b)`` of every camera's track."""
-    return {n: CameraTrack(t.silhouettes[a:b], t.boxes[a:b], full_frame=t.full_frame) for n, t in tracks.items()}
+    return {n: CameraTrack(t.silhouettes[a:b], t.boxes[a:b], full_frame=t.full_frame, image_size=t.image_size) for n, t in tracks.items()}
 
 
 def _estimate(tracks, a, b, model, config) -> tuple[WalkEstimate | None, str]:

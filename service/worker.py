@@ -439,12 +439,12 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
     Per camera ``(frame index, full-frame box, soft mask crop)``; the renderer
     is made once per worker process.
     """
-    from estimator.prior import predict_priors
+    from estimator.prior import FEEDBACK, predict_priors
 
     # Predictions count frames on from the window's last one (a window may hold an
     # index gap, see WindowBuffer; the extrapolation is per frame of the window).
     priors = predict_priors(est, tracks, image_size, n_ahead, renderer=_get_renderer(),
-                            first_index=indices[-1] + 1 - len(indices), skip=skip)
+                            first_index=indices[-1] + 1 - len(indices), skip=skip, config=FEEDBACK)
     return {cam: [(p.frame_index, tuple(int(v) for v in p.box), p.mask) for p in ps]
             for cam, ps in priors.items()}
 
@@ -584,7 +584,8 @@ def _pad_tracks(tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:
     for name, t in tracks.items():
         k = n - len(t.silhouettes)
         out[name] = t if k == 0 else CameraTrack(
-            t.silhouettes + [None] * k, np.vstack([t.boxes, np.full((k, 4), np.nan)]), t.full_frame)
+            t.silhouettes + [None] * k, np.vstack([t.boxes, np.full((k, 4), np.nan)]), t.full_frame,
+            t.image_size)
     return out
 
 

@@ -146,7 +146,7 @@ def test_agent_streams_a_video_and_takes_priors(endpoint, video):
     truth = write_video(faint, SceneSpec(width=160, height=120, frames=60, empty=30,
                                          walker_alpha=0.15))
     settings = agent.AgentSettings(rig="lab", camera="c0", source=f"{faint}?loop=1", fps=60,
-                                   max_frames=30 + 150, segment=SegmentSettings(warmup_frames=30))
+                                   max_frames=30 + 150, segment=SegmentSettings(background="warmup", warmup_frames=30))
     received, sent_priors = [], 0
     with zenoh.open(build_config(listen=[endpoint])) as session, \
             SilhouetteReceiver(session, "lab", "c0") as receiver:

@@ -32,12 +32,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--azimuths", type=_floats, help="camera azimuths in degrees, e.g. 30,120")
     p.add_argument("--elevations", type=_floats, help="camera elevations in degrees, e.g. 5,20")
     p.add_argument("--size", type=_floats, default=(640.0, 480.0), help="image width,height (default 640,480)")
+    p.add_argument("--damage", help="damage the silhouettes as a real segmenter would: salt, blobs, holes, "
+                   "cut_limb, shadow, second_person, all, or kinds joined by '+' (truth.json stays clean)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from estimator.damage import damage_sequence, parse_damage
     from estimator.mocap import read_motion
     from estimator.sequence import write_sequence
     from estimator.synth import SynthSpec, synthesize
@@ -55,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
             image_size=(int(args.size[0]), int(args.size[1])),
         )
         motion = read_motion(args.motion) if args.motion else None
+        if args.damage:
+            parse_damage(args.damage)
     except (ValueError, OSError) as exc:
         raise CliError(str(exc)) from None
     if os.path.exists(args.out) and not os.path.isdir(args.out):
@@ -64,6 +69,9 @@ def run(args: argparse.Namespace) -> int:
             seq = synthesize(spec, motion=motion, progress=lambda done, total: bar.update(done - bar.n))
         except ValueError as exc:
             raise CliError(str(exc)) from None
+    if args.damage:
+        seq.silhouettes = damage_sequence(seq.silhouettes, args.damage, seed=args.seed, truth=seq.truth)
+        seq.truth["damage"] = args.damage
     write_sequence(args.out, seq)
     _write_preview(os.path.join(args.out, "preview.png"), seq)
     truth = seq.truth

@@ -1,0 +1,204 @@
+"""The capture segmenter on real footage (vtest.avi): bootstrap default vs the old warm-up.
+
+Clips are crops of ``/work/shared/data/video/vtest.avi`` (480x360, 10 fps,
+795 frames, outdoor, several pedestrians with shadows): ``lawn`` (nobody in
+view for long stretches, walkers entering after the start) and ``path``
+(walkers in view from frame 0, often several). Each clip is segmented with
+DEFAULT settings the way the agent does a file (background bootstrapped from
+frames sampled over the first seconds, then every frame from 0), and with the
+old default (``background="warmup"``: MOG2 learned from the first 100 frames).
+
+"Walker in view" / "nobody in view" come from offline masks: the difference to
+the temporal median of the WHOLE video (max channel > 25 grey levels), shadow
+pixels removed (ratio to the median in [0.4, 0.95], chromaticity distortion
+< 0.1), opened (3 px) and closed (5 px), components >= 80 px. A clip frame is
+"in view" with >= 150 such pixels in the crop, "empty" with < 10; frames in
+between (a sliver at the border) are in neither set. Reference masks
+(``tests/fixtures/vtest``, made by ``--make-fixtures`` from the same offline
+masks and checked by eye) give IoU of the tracked walker.
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_real_video.py [--montage docs/img/real_video_segment.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from capture.scene import iou
+from capture.segment import Segmenter, SegmentSettings, sample_indices
+
+VIDEO = Path("/work/shared/data/video/vtest.avi")
+FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "vtest"
+CLIPS = {"lawn": (80, 200, 320, 160), "path": (0, 80, 240, 160)}  # x, y, w, h in vtest
+FPS = 10.0
+
+
+def load_video(path: Path = VIDEO) -> np.ndarray:
+    """All frames, (N, H, W, 3) uint8 BGR."""
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, image = cap.read()
+        if not ok:
+            break
+        frames.append(image)
+    cap.release()
+    return np.stack(frames)
+
+
+def offline_masks(video: np.ndarray) -> np.ndarray:
+    """Foreground of every frame against the whole video's median (module docstring)."""
+    median = np.median(video, axis=0).astype(np.float32)
+    bb = (median ** 2).sum(axis=2) + 1.0
+    close, opening = (cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (n, n)) for n in (5, 3))
+    out = np.zeros(video.shape[:3], np.uint8)
+    for k, image in enumerate(video):
+        f = image.astype(np.float32)
+        r = (f * median).sum(axis=2) / bb
+        chroma = ((f - r[..., None] * median) ** 2).sum(axis=2) / bb
+        shadow = (r >= 0.4) & (r <= 0.95) & (chroma < 0.01)
+        fg = ((np.abs(f - median).max(axis=2) > 25) & ~shadow).astype(np.uint8) * 255
+        fg = cv2.morphologyEx(cv2.morphologyEx(fg, cv2.MORPH_OPEN, opening), cv2.MORPH_CLOSE, close)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+        keep = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= 80)
+        out[k] = np.isin(labels, keep[keep > 0]).astype(np.uint8) * 255
+    return out
+
+
+def crop(a: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    x, y, w, h = box
+    return a[:, y:y + h, x:x + w]
+
+
+def run(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:
+    """Segment a clip as the agent segments a file; (full masks or None, ms per frame)."""
+    seg = Segmenter(settings)
+    if settings.background == "bootstrap":
+        seg.bootstrap([frames[i] for i in sample_indices(len(frames), FPS, settings)])
+    out, t = [], time.perf_counter()
+    for k, image in enumerate(frames):
+        s = seg.apply(image, k)
+        seg.learn()
+        out.append(None if s is None or s.box.empty else s.full_mask())
+    return out, (time.perf_counter() - t) * 1e3 / len(frames)
+
+
+def load_fixtures() -> list[dict]:
+    """Reference masks: dicts with clip, frame, box (in the clip) and mask."""
+    out = []
+    for meta in sorted(FIXTURES.glob("*.json")):
+        d = json.loads(meta.read_text())
+        d["mask"] = cv2.imread(str(meta.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
+        out.append(d)
+    return out
+
+
+def fixture_ious(clip: str, masks: list) -> list[float]:
+    """IoU of the silhouette with each reference mask of ``clip``, inside its box."""
+    out = []
+    for d in load_fixtures():
+        if d["clip"] != clip:
+            continue
+        x, y, w, h = d["box"]
+        got = masks[d["frame"]]
+        got = np.zeros((h, w), np.uint8) if got is None else got[y:y + h, x:x + w]
+        out.append(iou(got, d["mask"]))
+    return out
+
+
+def make_fixtures(video: np.ndarray, offline: np.ndarray, picks: dict[str, list[int]]) -> None:
+    """Write one reference mask per (clip, frame): the offline component of the person
+    alone in the clip, holes filled, cropped to its box plus 6 px (overlays for checking
+    by eye go to /tmp/vtest_fixtures)."""
+    FIXTURES.mkdir(parents=True, exist_ok=True)
+    check = Path("/tmp/vtest_fixtures")
+    check.mkdir(exist_ok=True)
+    for clip, frames in picks.items():
+        box = CLIPS[clip]
+        for k in frames:
+            m = crop(offline[k:k + 1], box)[0].copy()
+            n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+            best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+            m = cv2.compare(labels, best, cv2.CMP_EQ)
+            contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            cv2.drawContours(m, contours, -1, 255, -1)  # fill holes
+            x, y, w, h = stats[best, :4]
+            x0, y0 = max(0, x - 6), max(0, y - 6)
+            x1, y1 = min(m.shape[1], x + w + 6), min(m.shape[0], y + h + 6)
+            name = f"{clip}_{k:03d}"
+            cv2.imwrite(str(FIXTURES / f"{name}.png"), m[y0:y1, x0:x1])
+            (FIXTURES / f"{name}.json").write_text(json.dumps(
+                {"clip": clip, "clip_box": list(box), "frame": k,
+                 "box": [int(x0), int(y0), int(x1 - x0), int(y1 - y0)]}) + "\n")
+            image = crop(video[k:k + 1], box)[0][y0:y1, x0:x1].copy()
+            over = image.copy()
+            over[m[y0:y1, x0:x1] > 0] = (0, 0, 255)
+            cv2.imwrite(str(check / f"{name}.png"),
+                        cv2.resize(np.hstack([image, cv2.addWeighted(image, 0.5, over, 0.5, 0)]),
+                                   None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST))
+
+
+def montage(path: Path, clips: dict, results: dict, frames: list[tuple[str, int]]) -> None:
+    """Frames with the default's silhouette (red) and the old warm-up's (blue outline)."""
+    tiles = []
+    for clip, k in frames:
+        image = clips[clip][k].copy()
+        new, old = results[clip]["bootstrap"][k], results[clip]["warmup"][k]
+        if new is not None:
+            image[new > 0] = (0.5 * image[new > 0] + (0, 0, 127)).astype(np.uint8)
+        if old is not None:
+            contours, _ = cv2.findContours(old, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            cv2.drawContours(image, contours, -1, (255, 128, 0), 1)
+        cv2.putText(image, f"{clip} {k}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1)
+        tiles.append(cv2.resize(image, (320, 160)))
+    while len(tiles) % 3:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.hstack(tiles[i:i + 3]) for i in range(0, len(tiles), 3)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.vstack(rows))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--montage", type=Path, default=None)
+    parser.add_argument("--make-fixtures", action="store_true")
+    parser.add_argument("--core", type=int, default=0)
+    args = parser.parse_args()
+    os.sched_setaffinity(0, {args.core})
+    cv2.setNumThreads(1)
+    video = load_video()
+    offline = offline_masks(video)
+    if args.make_fixtures:
+        make_fixtures(video, offline, {"lawn": [655, 665, 675], "path": [4, 162, 377, 401]})
+    clips = {name: crop(video, box) for name, box in CLIPS.items()}
+    results = {}
+    print(f"vtest.avi crops, {FPS:.0f} fps; load avg {os.getloadavg()[0]:.2f}\n")
+    print("| clip | background | in view: silhouette | nobody: silhouette | IoU reference (n) | ms/frame |")
+    print("|---|---|---|---|---|---|")
+    for clip, frames in clips.items():
+        area = (crop(offline, CLIPS[clip]) > 0).reshape(len(frames), -1).sum(axis=1)
+        inview, empty = area >= 150, area < 10
+        results[clip] = {}
+        for mode in ("bootstrap", "warmup"):
+            masks, ms = run(frames, SegmentSettings(background=mode))
+            results[clip][mode] = masks
+            got = np.array([m is not None for m in masks])
+            ious = fixture_ious(clip, masks)
+            ref = f"{np.mean(ious):.3f} (min {np.min(ious):.3f}, {len(ious)})" if ious else "-"
+            print(f"| {clip} | {mode}{' (default)' if mode == 'bootstrap' else ''} | "
+                  f"{got[inview].mean():.1%} of {inview.sum()} | {got[empty].mean():.1%} of {empty.sum()} | "
+                  f"{ref} | {ms:.2f} |")
+    if args.montage:
+        montage(args.montage, clips, results,
+                [("path", 0), ("path", 5), ("path", 300), ("lawn", 20), ("lawn", 560), ("lawn", 680)])
+
+
+if __name__ == "__main__":
+    main()

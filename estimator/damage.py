@@ -1,0 +1,231 @@
+"""Damage that real segmenters leave on silhouettes, drawn reproducibly.
+
+posecal's own renders are clean; a background subtractor on a real camera is
+not. These models put the typical faults onto full-frame binary silhouettes
+so that estimation and feedback can be measured on inputs the generator did
+not make (docs/ROBUSTNESS.md):
+
+- ``salt``: isolated foreground pixels over the whole frame (sensor noise,
+  compression, leaves);
+- ``blobs``: a few small compact regions away from the walker (a bag, a
+  door, a reflection);
+- ``holes``: discs cut out of the body (clothing that matches the background);
+- ``cut_limb``: a forearm or shin missing from elbow/knee down to the end
+  (the same, on a limb), which can split the silhouette;
+- ``shadow``: a dark ground-plane projection of the body attached at the
+  feet (the walker's own shadow or floor reflection classified as foreground);
+- ``second_person``: another walker of similar size elsewhere in the frame;
+- ``all``: every one of the above on the same frames.
+
+Each function takes one silhouette (uint8 0/255, full frame) and a
+``numpy.random.Generator`` and returns a new array; :func:`damage_sequence`
+applies a kind to every frame of every camera with one seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from .joints import JOINT_NAMES
+
+__all__ = ["DAMAGE_KINDS", "damage", "damage_sequence", "parse_damage", "salt", "blobs", "holes", "cut_limb", "shadow",
+           "second_person"]
+
+_J = {name: i for i, name in enumerate(JOINT_NAMES)}
+# (upper joint, end joint) of the limbs a cut can remove: forearms and shins.
+_LIMBS = [("left_elbow", "left_wrist"), ("right_elbow", "right_wrist"),
+          ("left_knee", "left_ankle"), ("right_knee", "right_ankle")]
+
+
+def _box(sil: np.ndarray) -> tuple[int, int, int, int] | None:
+    x, y, w, h = cv2.boundingRect(sil)
+    return None if w == 0 or h == 0 else (x, y, w, h)
+
+
+def salt(sil: np.ndarray, rng: np.random.Generator, *, fraction: float = 0.002) -> np.ndarray:
+    """Set ``fraction`` of the frame's pixels, at random, to foreground."""
+    out = sil.copy()
+    n = int(round(fraction * out.size))
+    idx = rng.choice(out.size, size=n, replace=False)
+    out.reshape(-1)[idx] = 255
+    return out
+
+
+def blobs(sil: np.ndarray, rng: np.random.Generator, *, n: int = 2, size: float = 0.06) -> np.ndarray:
+    """Add ``n`` filled ellipses of about ``size`` of the walker's height, away from the walker."""
+    out = sil.copy()
+    box = _box(sil)
+    H, W = sil.shape
+    h = box[3] if box else H // 4
+    r = max(2, int(round(size * h)))
+    for _ in range(n):
+        for _try in range(20):  # a centre at least one walker-height from the walker's box
+            cx, cy = int(rng.integers(r, W - r)), int(rng.integers(r, H - r))
+            if box is None:
+                break
+            x, y, w, bh = box
+            dx = max(x - cx, 0, cx - (x + w))
+            dy = max(y - cy, 0, cy - (y + bh))
+            if max(dx, dy) > 0.5 * h:
+                break
+        axes = (r, max(2, int(round(r * rng.uniform(0.5, 1.5)))))
+        cv2.ellipse(out, (cx, cy), axes, float(rng.uniform(0, 180)), 0, 360, 255, -1)
+    return out
+
+
+def holes(sil: np.ndarray, rng: np.random.Generator, *, n: int = 3, size: float = 0.05) -> np.ndarray:
+    """Cut ``n`` discs of radius ``size`` of the walker's height out of the body."""
+    out = sil.copy()
+    ys, xs = np.nonzero(sil)
+    if ys.size == 0:
+        return out
+    h = ys.max() - ys.min() + 1
+    r = max(1, int(round(size * h)))
+    for k in rng.choice(ys.size, size=n):
+        cv2.circle(out, (int(xs[k]), int(ys[k])), r, 0, -1)
+    return out
+
+
+def cut_limb(sil: np.ndarray, rng: np.random.Generator, joints2d: np.ndarray | None = None, *,
+             width: float = 0.09) -> np.ndarray:
+    """Erase one forearm or shin (a thick line from elbow/knee to wrist/ankle and beyond).
+
+    Needs the frame's 13 ``joints2d`` (the truth); without them the lower
+    quarter of one side of the body is erased instead.
+    """
+    out = sil.copy()
+    box = _box(sil)
+    if box is None:
+        return out
+    x, y, w, h = box
+    thick = max(2, int(round(width * h)))
+    if joints2d is None or not np.all(np.isfinite(joints2d)):
+        side = int(rng.integers(2))
+        out[y + 3 * h // 4:y + h, x + side * w // 2:x + (side + 1) * w // 2] = 0
+        return out
+    a, b = _LIMBS[int(rng.integers(len(_LIMBS)))]
+    p, q = np.asarray(joints2d[_J[a]], float), np.asarray(joints2d[_J[b]], float)
+    end = q + 0.25 * (q - p)  # the hand or foot too
+    start = p + 0.15 * (q - p)  # from just below the elbow or knee
+    cv2.line(out, tuple(int(round(v)) for v in start), tuple(int(round(v)) for v in end), 0, thick)
+    return out
+
+
+def shadow(sil: np.ndarray, rng: np.random.Generator, *, length: tuple[float, float] = (0.25, 0.6),
+           slant: tuple[float, float] = (-1.2, 1.2)) -> np.ndarray:
+    """Attach the body's shadow on the ground: the silhouette mirrored about its feet,
+    squashed to ``length`` of its height and sheared sideways by ``slant`` (ratio of
+    sideways to downward displacement), as a light behind the walker casts it towards
+    the camera (or as a shiny floor reflects the walker)."""
+    box = _box(sil)
+    if box is None:
+        return sil.copy()
+    x, y, w, h = box
+    k = float(rng.uniform(*length))
+    s = float(rng.uniform(*slant))
+    foot = y + h  # the ground line
+    # v' = foot + k (foot - v); u' = u + s * (v' - foot): mirrored, squashed, sheared.
+    m = np.array([[1.0, -s * k, s * k * foot], [0.0, -k, foot * (1 + k)]], np.float32)
+    cast = cv2.warpAffine(sil, m, (sil.shape[1], sil.shape[0]), flags=cv2.INTER_NEAREST)
+    return cv2.bitwise_or(sil, cast)
+
+
+def second_person(sil: np.ndarray, rng: np.random.Generator, *, scale: tuple[float, float] = (0.6, 0.9)) -> np.ndarray:
+    """Add another walker: the silhouette mirrored, rescaled (a bystander a little
+    farther away) and moved at least one body width aside (clipped by the frame if
+    it does not fit)."""
+    box = _box(sil)
+    if box is None:
+        return sil.copy()
+    x, y, w, h = box
+    H, W = sil.shape
+    f = float(rng.uniform(*scale))
+    crop = cv2.flip(sil[y:y + h, x:x + w], 1)
+    crop = cv2.resize(crop, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_NEAREST)
+    ch, cw = crop.shape
+    gap = int(rng.uniform(1.0, 3.0) * max(w, h // 3))
+    left = x - gap - cw
+    right = x + w + gap
+    nx = left if (left >= 0 and (rng.random() < 0.5 or right + cw > W)) else right
+    ny = int(np.clip(y + h - ch + rng.integers(-h // 10, h // 10 + 1), 0, max(0, H - ch)))
+    out = sil.copy()
+    x0, x1 = max(0, nx), min(W, nx + cw)
+    if x1 > x0:
+        out[ny:ny + ch, x0:x1] |= crop[:, x0 - nx:x1 - nx]
+    return out
+
+
+_KINDS: dict[str, Callable] = {
+    "salt": salt,
+    "blobs": blobs,
+    "holes": holes,
+    "cut_limb": cut_limb,
+    "shadow": shadow,
+    "second_person": second_person,
+}
+DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
+"""Damage kinds :func:`damage` knows, ``"all"`` applying every other one in turn."""
+
+
+_STEADY = ("shadow", "second_person")  # placement-like: one draw per camera over a sequence
+
+
+_ORDER = ("shadow", "holes", "cut_limb", "second_person", "blobs", "salt")
+
+
+def parse_damage(kind: str) -> tuple[str, ...]:
+    """The kinds named by ``kind`` ("all", one kind, or kinds joined by "+"), in :data:`_ORDER`."""
+    names = _ORDER if kind == "all" else tuple(kind.split("+"))
+    bad = [k for k in names if k not in _KINDS]
+    if bad or not names:
+        raise ValueError(f"unknown damage {kind!r}; expected one of {', '.join(DAMAGE_KINDS)} "
+                         "or kinds joined by '+'")
+    return tuple(k for k in _ORDER if k in names)
+
+
+def damage(sil: np.ndarray, kind: str, rng: np.random.Generator, joints2d: np.ndarray | None = None, *,
+           steady_rng: np.random.Generator | None = None) -> np.ndarray:
+    """Apply damage ``kind`` (one of :data:`DAMAGE_KINDS`, or kinds joined by ``+``) to one
+    full-frame silhouette.
+
+    ``joints2d`` (13, 2), the frame's true joints, is used by ``cut_limb``;
+    ``steady_rng`` (default ``rng``) draws the shadow and the second person.
+    Order for ``"all"``: the walker's own faults first (shadow, holes, a cut
+    limb), then what lies around it (a second person, blobs, salt).
+    """
+    kinds = parse_damage(kind)
+    out = sil
+    for k in kinds:
+        r = steady_rng if (k in _STEADY and steady_rng is not None) else rng
+        out = _KINDS[k](out, r, joints2d) if k == "cut_limb" else _KINDS[k](out, r)
+    return out
+
+
+def damage_sequence(silhouettes: dict[str, list[np.ndarray | None]], kind: str, *, seed: int = 0,
+                    truth: dict | None = None) -> dict[str, list[np.ndarray | None]]:
+    """Damage every full-frame silhouette of every camera; None frames stay None.
+
+    The second person and the shadow keep one placement per camera over the
+    sequence (drawn once per camera), as a bystander or a light would; the
+    other damage is drawn afresh per frame. ``truth`` (a sequence's truth
+    dict) gives ``cut_limb`` the true joints.
+    """
+    out = {}
+    for c, (cam, frames) in enumerate(silhouettes.items()):
+        rng = np.random.default_rng([seed, c])
+        steady = int(rng.integers(2**31))  # one draw per camera for placement-like damage
+        damaged = []
+        for t, sil in enumerate(frames):
+            if sil is None:
+                damaged.append(None)
+                continue
+            j2d = None
+            if truth is not None:
+                j2d = np.asarray(truth["frames"][t]["joints2d"].get(cam, np.full((13, 2), np.nan)), float)
+            damaged.append(damage(sil, kind, np.random.default_rng([seed, c, t]), j2d,
+                                  steady_rng=np.random.default_rng([seed, c, steady])))
+        out[cam] = damaged
+    return out
