@@ -27,6 +27,7 @@ This module is pure: arrays and dataclasses in and out; the renderer is passed i
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
@@ -43,6 +44,7 @@ from .skeleton import BodyShape, forward_kinematics
 from .windows import SegmentedWalk, window_tracks
 
 __all__ = [
+    "FEEDBACK",
     "Prior",
     "PriorConfig",
     "body_extent",
@@ -57,6 +59,11 @@ __all__ = [
     "rotate_prior",
     "soften",
     "trim_silhouette",
+    "Trust",
+    "trust_test",
+    "trusted_priors",
+    "turn_viewpoints",
+    "walker_tracks",
     "weigh",
 ]
 
@@ -104,6 +111,39 @@ class PriorConfig:
         ``torn = inf`` turns this off.
     body : BodyShape
         The model body (the estimator reports its joints).
+    trust : bool
+        Apply :func:`trust_test` where priors are made (:func:`priors_for_window`,
+        :func:`predict_priors`): a prior from an estimate that does not explain
+        the observations is not made at all. Every feedback path turns it on
+        (:data:`FEEDBACK`: offline refine, REST refine jobs, live priors); off
+        by default for the bare rendering (evaluations, ablations).
+    max_spread_deg, min_flip_margin : float
+        Trust test, per camera: the viewpoint cloud's semi-major axis at most
+        ``max_spread_deg`` (a wider cloud is no viewpoint), and, where the
+        motion cue did not settle ahead/behind, a flip margin of at least
+        ``min_flip_margin``.
+    min_window_agreement, min_agreement : float
+        Trust test on :attr:`Prior.agreement` (IoU of the registered render
+        with the cleaned observation): the window's median at least
+        ``min_window_agreement`` (a right estimate: 0.63-0.92 on damaged
+        synthetic walks, its viewpoint turned by 90 deg: 0.37-0.51), each
+        frame's own at least ``min_agreement`` (a frame whose walker the
+        clean-up missed).
+    min_view_margin : float
+        Trust test: the window's median agreement must exceed by this much
+        the best median agreement of the model rendered from the viewpoint
+        turned by +-90 deg (on ``trust_window`` of its frames): data that fit a
+        viewpoint 90 deg away as well do not establish this one.
+    trust_window : int
+        Frames rendered for the turned viewpoints; and, for live priors
+        (:func:`predict_priors`, frames not seen yet), the window's last
+        frames on which the agreement is measured.
+    fill_reach, limb, limb_level : float, float, int
+        Offline refinement of binary silhouettes (:func:`refine_silhouette`'s
+        ``reach``, ``limb``, ``limb_level``): only the parts of the prior
+        missing from the walker that are thicker than ``2 * limb`` x height
+        (a cut limb, a hole) and the holes it encloses are filled, no band
+        along the outline (``bench/eval_refine_damage.py``, docs/FEEDBACK.md).
     """
 
     pixels_per_metre: float = 120.0
@@ -118,6 +158,16 @@ class PriorConfig:
     torn: float = 0.1
     envelope: float = 0.1
     body: BodyShape = field(default_factory=BodyShape)
+    trust: bool = False
+    max_spread_deg: float = 35.0
+    min_flip_margin: float = 0.1
+    min_window_agreement: float = 0.6
+    min_agreement: float = 0.5
+    min_view_margin: float = 0.1
+    trust_window: int = 4
+    fill_reach: float = 0.0
+    limb: float = 0.02
+    limb_level: int = 160
 
     def __post_init__(self) -> None:
         if self.pixels_per_metre <= 0 or self.band <= 0:
@@ -128,6 +178,10 @@ class PriorConfig:
             raise ValueError(f"need torn >= 0 and 0 < envelope < 0.5, got {self.torn}, {self.envelope}")
         if not 0 <= self.reach_min <= self.reach_max:
             raise ValueError(f"need 0 <= reach_min <= reach_max, got {self.reach_min}, {self.reach_max}")
+
+
+FEEDBACK = PriorConfig(trust=True)
+"""The configuration of every feedback path: priors only from estimates that pass :func:`trust_test`."""
 
 
 @dataclass(frozen=True)
@@ -144,12 +198,18 @@ class Prior:
         ``(width, height)`` of the full frame.
     mask : ndarray of shape (h, w), uint8
         0 = surely background / no opinion ... 255 = surely the walker.
+    agreement : float
+        IoU of the registered render (before softening and the evidence gate)
+        with the observation it was registered onto (for a torn observation,
+        placed by the extent: the fraction of it the render covers): how well
+        the estimate explains this frame (:func:`trust_test`); NaN when unknown.
     """
 
     frame_index: int
     box: tuple[int, int, int, int]
     image_size: tuple[int, int]
     mask: np.ndarray = field(repr=False, compare=False)
+    agreement: float = float("nan")
 
     def __post_init__(self) -> None:
         x, y, w, h = self.box
@@ -281,8 +341,35 @@ def prior_from_render(
     (with ``rotate``) equal axes.
     """
     config = config or PriorConfig()
+    placed = _place(rendered, observed, box, image_size, config=config, shift=shift, extent=extent)
+    if placed is None:
+        return None
+    binary, obs_box, (x0, y0), height, agreement = placed
+    band = config.band * height
+    soft = soften(binary.astype(np.uint8), band_px=band, inset_px=config.inset * height)
+    if np.isfinite(config.reach_max) and binary.any():
+        ratio = float(obs_box.sum()) / float(binary.sum())
+        span = max(config.complete_ratio - 0.5, 1e-6)
+        reach = config.reach_min + (config.reach_max - config.reach_min) * float(
+            np.clip((config.complete_ratio - ratio) / span, 0.0, 1.0))
+        soft *= _gate(obs_box, reach * height) / 255.0
+    return Prior(frame_index, (x0, y0, binary.shape[1], binary.shape[0]), (int(image_size[0]), int(image_size[1])),
+                 np.clip(soft + 0.5, 0, 255).astype(np.uint8), agreement)
+
+
+def _place(rendered: np.ndarray, observed: np.ndarray, box: np.ndarray, image_size: tuple[int, int], *,
+           config: PriorConfig, shift: tuple[float, float] = (0.0, 0.0),
+           extent: tuple[float, float, float] | None = None) -> tuple | None:
+    """The render placed as :func:`prior_from_render` places it, before softening.
+
+    Returns ``(binary, observation, (x0, y0), height, agreement)``: the placed
+    render and the observation in the prior's box (bool, uint8 0/1), the box's
+    corner, the body's height in pixels and :attr:`Prior.agreement`; None when
+    either silhouette is empty.
+    """
     x, y, w, h = (float(v) for v in box)
-    if extent is not None and h < (1.0 - config.torn) * (extent[2] - extent[1]):
+    torn = extent is not None and h < (1.0 - config.torn) * (extent[2] - extent[1])
+    if torn:
         # A torn observation: place the render by the window's extent of the walker.
         m, height = _extent_map(rendered, extent, (x, y))
         if m is None:
@@ -319,28 +406,148 @@ def prior_from_render(
         if dx or dy:
             m[:, 2] += (dx, dy)
             binary = cv2.warpAffine(rendered, m, out_size, flags=cv2.INTER_LINEAR) > 127
-    band = config.band * height
-    soft = soften(binary.astype(np.uint8), band_px=band, inset_px=config.inset * height)
-    if np.isfinite(config.reach_max) and binary.any():
-        ratio = float(obs_box.sum()) / float(binary.sum())
-        span = max(config.complete_ratio - 0.5, 1e-6)
-        reach = config.reach_min + (config.reach_max - config.reach_min) * float(
-            np.clip((config.complete_ratio - ratio) / span, 0.0, 1.0))
-        soft *= _gate(obs_box, reach * height) / 255.0
-    return Prior(frame_index, (x0, y0, x1 - x0, y1 - y0), (int(W), int(H)), np.clip(soft + 0.5, 0, 255).astype(np.uint8))
+    # A torn observation is a fragment: agreement is how much of it the body covers (as in explained()).
+    inter = float(np.count_nonzero(binary & (obs_box > 0)))
+    union = np.count_nonzero(obs_box) if torn else np.count_nonzero(binary | (obs_box > 0))
+    agreement = inter / max(1, union)
+    return binary, obs_box, (x0, y0), height, agreement
+
+
+def _holes(mask: np.ndarray) -> np.ndarray:
+    """The background pixels of a 0/1 uint8 mask enclosed by its foreground (0/1 uint8)."""
+    h, w = mask.shape
+    background = cv2.copyMakeBorder((1 - mask).astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=1)
+    cv2.floodFill(background, np.zeros((h + 4, w + 4), np.uint8), (0, 0), 0)  # what remains 1 is enclosed
+    return background[1:-1, 1:-1]
 
 
 def _gate(observed: np.ndarray, reach_px: float) -> np.ndarray:
     """255 within ``reach_px`` of the observed foreground or its enclosed holes, fading outside."""
-    filled = observed.copy()
-    h, w = filled.shape
-    flood = np.zeros((h + 2, w + 2), np.uint8)
-    background = (1 - observed).astype(np.uint8)
-    cv2.floodFill(background, flood, (0, 0), 0)  # what remains 1 is enclosed by foreground
-    filled |= background
+    filled = observed | _holes(observed)
     dist = cv2.distanceTransform(1 - filled, cv2.DIST_L2, 5)
     fade = 255.0 / (1.0 + np.exp(np.minimum(dist - reach_px - 1.0, 50.0)))  # 1-pixel fade beyond the reach
     return np.where(dist <= reach_px, np.float32(255.0), fade).astype(np.float32)
+
+
+# ------------------------------------------------------------------------ trust
+
+
+@dataclass(frozen=True)
+class Trust:
+    """Outcome of :func:`trust_test` for one camera's window.
+
+    Attributes
+    ----------
+    camera : bool
+        Whether the camera's estimate may give priors at all.
+    frames : ndarray of shape (T,), bool
+        Per frame of the window: its prior may be used (all False when
+        ``camera`` is False).
+    reason : str
+        Why the camera is not trusted ("" when it is).
+    """
+
+    camera: bool
+    frames: np.ndarray
+    reason: str = ""
+
+
+def trust_test(agreement: np.ndarray, *, spread_deg: float, flip: str, flip_margin: float,
+               config: PriorConfig | None = None, window: np.ndarray | None = None,
+               rival: float = float("nan")) -> Trust:
+    """Whether priors from one camera's estimate can be trusted, per camera and per frame.
+
+    A wrong estimate renders a body that does not look like the observed
+    walker, so feedback from it would paint a wrong body into the silhouettes
+    (issue 17): the camera is trusted only when its viewpoint is well defined
+    (spread at most ``config.max_spread_deg``; ahead/behind settled by the
+    motion cue or by a margin of at least ``config.min_flip_margin``) and the
+    rendered model agrees with the cleaned observations over the window
+    (median :attr:`Prior.agreement` at least ``config.min_window_agreement``),
+    better by ``config.min_view_margin`` than from the viewpoint turned by
+    90 deg (``rival``); a frame of a trusted camera also needs its own
+    agreement of at least ``config.min_agreement``.
+
+    Parameters
+    ----------
+    agreement : ndarray of shape (T,)
+        Per frame, the agreement of its prior (NaN: none or unknown, never trusted).
+    spread_deg, flip, flip_margin
+        The camera's :class:`estimator.viewpoint.Viewpoint` fields.
+    window : ndarray, optional
+        Agreements that stand for the window (default ``agreement``): for
+        predicted frames, those of the window's last observed frames.
+    rival : float
+        Median agreement of the model rendered from the viewpoint turned by
+        +-90 deg, the better one (NaN: not measured, not tested).
+    """
+    config = config or PriorConfig()
+    agreement = np.asarray(agreement, float)
+    median = _median(agreement if window is None else np.asarray(window, float))
+    if not spread_deg <= config.max_spread_deg:
+        reason = f"viewpoint spread {spread_deg:.0f} deg > {config.max_spread_deg:.0f}"
+    elif flip != "motion" and not flip_margin >= config.min_flip_margin:
+        reason = f"ahead/behind undecided (margin {flip_margin:.2f} < {config.min_flip_margin:.2f})"
+    elif not median >= config.min_window_agreement:
+        reason = f"model and silhouettes disagree (median IoU {median:.2f} < {config.min_window_agreement:.2f})"
+    elif median - rival < config.min_view_margin:
+        reason = f"a viewpoint turned by 90 deg fits as well (median IoU {rival:.2f} vs {median:.2f})"
+    else:
+        with np.errstate(invalid="ignore"):
+            return Trust(True, agreement >= config.min_agreement)
+    return Trust(False, np.zeros(agreement.shape, bool), reason)
+
+
+def trusted_priors(priors: list[Prior], viewpoint, config: PriorConfig | None = None, *,
+                   window: np.ndarray | None = None, rival: float = float("nan")) -> tuple[list[Prior], Trust]:
+    """The priors of one camera that pass :func:`trust_test`, and the test's outcome.
+
+    ``viewpoint``: the camera's :class:`estimator.viewpoint.Viewpoint`;
+    ``window``, ``rival``: as in :func:`trust_test`. With ``window`` (predicted
+    priors) every prior of a trusted camera is kept: a predicted frame has no
+    observation of its own to agree with (the agent checks it against its
+    evidence, :func:`weigh`).
+    """
+    agreement = np.array([p.agreement for p in priors], float)
+    trust = trust_test(agreement, spread_deg=viewpoint.spread_deg, flip=viewpoint.flip,
+                       flip_margin=viewpoint.flip_margin, config=config, window=window, rival=rival)
+    keep = np.full(len(priors), trust.camera) if window is not None else trust.frames
+    return [p for p, k in zip(priors, keep) if k], trust
+
+
+def walker_tracks(estimate: WalkEstimate | SegmentedWalk, tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:
+    """The tracks as the estimate saw them: reduced to the walker by its clean-up.
+
+    ``estimate.tracks`` (:func:`estimator.pipeline.estimate_walk`), per segment
+    for a :class:`SegmentedWalk` (each segment's own frames); ``tracks`` as
+    given where the estimate kept none (or of other frames). Priors are
+    registered onto, and refined silhouettes restricted to, these tracks,
+    never onto clutter.
+    """
+    if isinstance(estimate, WalkEstimate):
+        cleaned = estimate.tracks or {}
+        return {name: cleaned[name] if name in cleaned and len(cleaned[name].silhouettes) == len(t.silhouettes)
+                else t for name, t in tracks.items()}
+    out = {}
+    for name, t in tracks.items():
+        sils, boxes = list(t.silhouettes), t.boxes.copy()
+        for seg in estimate.segments:
+            cleaned = None if seg.estimate is None or not seg.estimate.tracks else seg.estimate.tracks.get(name)
+            if cleaned is None:
+                continue
+            a, b = seg.first, seg.last + 1
+            sils[a:b] = cleaned.silhouettes[a - seg.start : b - seg.start]
+            boxes[a:b] = cleaned.boxes[a - seg.start : b - seg.start]
+        out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size)
+    return out
+
+
+def turn_viewpoints(estimate: WalkEstimate, angle_deg: float = 90.0) -> WalkEstimate:
+    """The estimate with every camera's azimuth turned by ``angle_deg`` (a deliberately wrong estimate)."""
+    cams = {name: dataclasses.replace(c, viewpoint=dataclasses.replace(
+        c.viewpoint, azimuth_deg=(c.viewpoint.azimuth_deg + angle_deg) % 360.0))
+        for name, c in estimate.cameras.items()}
+    return dataclasses.replace(estimate, cameras=cams)
 
 
 # ------------------------------------------------------------------------ windows
@@ -393,25 +600,69 @@ def priors_for_window(
     if renderer.shape != config.body:
         renderer.set_shape(config.body)
     out: dict[str, list[Prior]] = {}
-    for name, track in tracks.items():
+    for name, track in walker_tracks(estimate, tracks).items():
         size = image_sizes[name] if isinstance(image_sizes, dict) else image_sizes
         cam = estimate.cameras.get(name)
         out[name] = []
         if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg):
             continue
-        rows = [t for t, s in enumerate(track.silhouettes) if s is not None and np.isfinite(track.boxes[t, 0])]
-        if not rows:
-            continue
-        renders = render_body(estimate.phase[rows], cam.viewpoint.azimuth_deg, cam.viewpoint.elevation_deg,
-                              renderer=renderer, body=config.body, gait=gait,
-                              pixels_per_metre=config.pixels_per_metre)
-        extent = _window_extent(track, config)
-        for t, r in zip(rows, renders):
-            p = prior_from_render(r, track.silhouettes[t], track.boxes[t], size, frame_index=first_index + t,
-                                  config=config, extent=None if extent is None else tuple(extent[t]))
-            if p is not None:
-                out[name].append(p)
+        rows = _known_frames(track)
+        out[name] = _window_priors(estimate, cam, track, rows, size, renderer=renderer, config=config, gait=gait,
+                                   first_index=first_index)
+        if config.trust and rows:
+            sample = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, config.trust_window).astype(int))]
+            rival = _rival_agreement(estimate, cam, track, sample, size, renderer=renderer, config=config, gait=gait)
+            out[name] = trusted_priors(out[name], cam.viewpoint, config, rival=rival)[0]
     return out
+
+
+def _known_frames(track: CameraTrack) -> list[int]:
+    """Frames of a track with a silhouette and a box."""
+    return [t for t, s in enumerate(track.silhouettes) if s is not None and np.isfinite(track.boxes[t, 0])]
+
+
+def _rival_agreement(estimate: WalkEstimate, cam, track: CameraTrack, rows: list[int], size: tuple[int, int], *,
+                     renderer, config: PriorConfig, gait: GaitModel) -> float:
+    """Best median agreement on frames ``rows`` of the model seen from the viewpoint turned by +-90 deg."""
+    return max(_median(_window_agreement(estimate, cam, track, rows, size, renderer=renderer, config=config,
+                                         gait=gait, turn=turn)) for turn in (-90.0, 90.0))
+
+
+def _median(values: np.ndarray) -> float:
+    """Median of the finite values; NaN when there are none."""
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if values.size else float("nan")
+
+
+def _window_renders(estimate: WalkEstimate, cam, track: CameraTrack, rows: list[int], *, renderer,
+                    config: PriorConfig, gait: GaitModel, turn: float = 0.0
+                    ) -> list[tuple[int, np.ndarray, tuple | None]]:
+    """``(frame, render, extent)`` for the window's frames ``rows`` of one camera, the model seen
+    from its estimated viewpoint (``turn``: azimuth turned by this, the trust test's rivals)."""
+    if not rows:
+        return []
+    renders = render_body(estimate.phase[rows], cam.viewpoint.azimuth_deg + turn, cam.viewpoint.elevation_deg,
+                          renderer=renderer, body=config.body, gait=gait, pixels_per_metre=config.pixels_per_metre)
+    extent = _window_extent(track, config)
+    return [(t, r, None if extent is None else tuple(extent[t])) for t, r in zip(rows, renders)]
+
+
+def _window_priors(estimate: WalkEstimate, cam, track: CameraTrack, rows: list[int], size: tuple[int, int], *,
+                   renderer, config: PriorConfig, gait: GaitModel, first_index: int) -> list[Prior]:
+    """Priors (untested) of the window's frames ``rows`` of one camera, each registered onto its silhouette."""
+    out = [prior_from_render(r, track.silhouettes[t], track.boxes[t], size, frame_index=first_index + t,
+                             config=config, extent=e)
+           for t, r, e in _window_renders(estimate, cam, track, rows, renderer=renderer, config=config, gait=gait)]
+    return [p for p in out if p is not None]
+
+
+def _window_agreement(estimate: WalkEstimate, cam, track: CameraTrack, rows: list[int], size: tuple[int, int], *,
+                      renderer, config: PriorConfig, gait: GaitModel, turn: float = 0.0) -> np.ndarray:
+    """:attr:`Prior.agreement` of the window's frames ``rows`` (NaN where none), without making the priors."""
+    placed = [_place(r, track.silhouettes[t], track.boxes[t], size, config=config, extent=e)
+              for t, r, e in _window_renders(estimate, cam, track, rows, renderer=renderer, config=config, gait=gait,
+                                             turn=turn)]
+    return np.array([np.nan if p is None else p[-1] for p in placed], float)
 
 
 def body_extent(track: CameraTrack, *, quantile: float = 0.1, max_gap: int = 3,
@@ -575,6 +826,9 @@ def predict_priors(
     registered onto the camera's last silhouette (placed by the window's
     :func:`body_extent` if that silhouette is torn), then moved with the motion
     of the silhouette's centroid extrapolated from the window (:func:`extrapolate`).
+    The silhouettes are the estimate's cleaned ones (:func:`walker_tracks`); with
+    ``config.trust`` a camera whose estimate fails :func:`trust_test` on the
+    window's last ``config.trust_window`` frames gets no priors.
     """
     if skip < 0:
         raise ValueError(f"skip must be >= 0, got {skip}")
@@ -585,13 +839,19 @@ def predict_priors(
     phases = predict_phases(estimate, skip + n_ahead)[skip:]
     T = len(estimate.phase)
     out: dict[str, list[Prior]] = {}
-    for name, track in tracks.items():
+    for name, track in walker_tracks(estimate, tracks).items():
         size = image_sizes[name] if isinstance(image_sizes, dict) else image_sizes
         cam = estimate.cameras.get(name)
         out[name] = []
-        known = [t for t, s in enumerate(track.silhouettes) if s is not None and np.isfinite(track.boxes[t, 0])]
+        known = _known_frames(track)
         if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg) or not known or n_ahead == 0:
             continue
+        if config.trust:  # the window's last frames stand for the predicted ones
+            recent = known[-config.trust_window:]
+            window = _window_agreement(estimate, cam, track, recent, size, renderer=renderer, config=config, gait=gait)
+            rival = _rival_agreement(estimate, cam, track, recent, size, renderer=renderer, config=config, gait=gait)
+            if not trusted_priors([], cam.viewpoint, config, window=window, rival=rival)[1].camera:
+                continue
         last = known[-1]
         centroids = silhouette_centroids(track)
         # Predicted centroid minus the last observed one.
@@ -662,7 +922,7 @@ def weigh(prior: Prior, coverage: float, *, low: float = 0.5, high: float = 0.8)
         return None
     if f == 1.0:
         return prior
-    return Prior(prior.frame_index, prior.box, prior.image_size, (prior.mask * f + 0.5).astype(np.uint8))
+    return dataclasses.replace(prior, mask=(prior.mask * f + 0.5).astype(np.uint8))
 
 
 def trust_factor(coverage: float, *, low: float = 0.5, high: float = 0.8) -> float | None:
@@ -709,8 +969,16 @@ def refine_silhouette(
     fill_level: int = 200,
     keep_level: int = 64,
     reach: float = 0.04,
+    walker: np.ndarray | None = None,
+    limb: float = 0.0,
+    limb_level: int = 160,
 ) -> np.ndarray:
     """Fuse a binary silhouette with a soft prior when no image is left (offline, §7.1).
+
+    With ``walker`` (the silhouette reduced to the walker, e.g. by the
+    estimator's clean-up) the result is restricted to it: the walker, the
+    observed pixels the prior is sure of, and the filled parts; nothing else
+    of the silhouette (clutter) is kept, and nothing far from the walker added.
 
     Parameters
     ----------
@@ -719,7 +987,8 @@ def refine_silhouette(
     prior : ndarray of shape (H, W), uint8
         Soft prior on the same frame (:meth:`Prior.full_mask`).
     fill_level : int
-        Prior value from which a missing pixel is filled ...
+        Prior value from which a missing pixel is filled if it lies in a hole
+        enclosed by the observation or ...
     reach : float
         ... if it lies within ``reach * height`` of observed foreground (the
         model explains a hole or a thin gap, it does not invent a limb far from
@@ -727,7 +996,14 @@ def refine_silhouette(
     keep_level : int
         Connected components of the observation touching no pixel with a prior
         of at least this value are dropped (blobs far from the body). The
-        largest component is always kept.
+        largest component is always kept. Not used with ``walker``.
+    walker : ndarray of shape (H, W), optional
+        The walker's part of ``silhouette``.
+    limb : float
+        Also filled: the parts of the prior (at least ``limb_level``) missing
+        from the observation that are thicker than ``2 * limb * height`` and
+        touch it — a cut forearm or shin, a hole — but not the thin slivers
+        where the model body is wider than the walker; 0 turns this off.
 
     Returns
     -------
@@ -738,19 +1014,31 @@ def refine_silhouette(
     if silhouette.shape != prior.shape:
         raise ValueError(f"silhouette and prior must have the same shape, got {silhouette.shape} and {prior.shape}")
     fg = (silhouette > 0).astype(np.uint8)
+    sure = prior >= fill_level
+    if walker is not None:
+        if walker.shape != silhouette.shape:
+            raise ValueError(f"walker must have the silhouette's shape {silhouette.shape}, got {walker.shape}")
+        fg = ((walker > 0) | (fg.astype(bool) & sure)).astype(np.uint8)
     if not fg.any():
         return fg * 255
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
-    support = prior >= keep_level
-    keep = np.zeros(n, bool)
-    hit = np.unique(labels[support & (labels > 0)])
-    keep[hit] = True
-    keep[1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))] = True
-    keep[0] = False
-    fg = keep[labels].astype(np.uint8)
+    if walker is None:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+        keep = np.zeros(n, bool)
+        keep[np.unique(labels[(prior >= keep_level) & (labels > 0)])] = True
+        keep[1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))] = True
+        keep[0] = False
+        fg = keep[labels].astype(np.uint8)
     rows = np.flatnonzero(fg.any(axis=1))
     height = float(rows[-1] - rows[0] + 1)
     dist = cv2.distanceTransform(1 - fg, cv2.DIST_L2, 3)
-    fill = (prior >= fill_level) & (dist <= reach * height)
-    out = (fg.astype(bool) | fill).astype(np.uint8) * 255
-    return out
+    fill = sure & ((dist <= reach * height) | (_holes(fg) > 0))
+    if limb > 0:
+        r = max(1, int(round(limb * height)))
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        missing = ((prior >= limb_level) & (fg == 0)).astype(np.uint8)
+        n, labels = cv2.connectedComponents(cv2.morphologyEx(missing, cv2.MORPH_OPEN, disc), connectivity=8)
+        touching = np.zeros(n, bool)
+        touching[np.unique(labels[(dist <= r + 1.5) & (labels > 0)])] = True
+        # The thick parts, and the seam between them and the walker the opening took.
+        fill |= (cv2.dilate(touching[labels].astype(np.uint8), disc) & missing) > 0
+    return (fg.astype(bool) | fill).astype(np.uint8) * 255

@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _refine_pngs(args: argparse.Namespace, model) -> int:
     from capture.refine import refine_sequence
-    from estimator.prior import PriorConfig
+    from estimator.prior import FEEDBACK
     from estimator.render import Renderer
     from estimator.sequence import SequenceError, read_sequence
 
@@ -88,7 +88,7 @@ def _refine_pngs(args: argparse.Namespace, model) -> int:
         seq = read_sequence(args.sequence)
     except SequenceError as exc:
         raise CliError(str(exc)) from None
-    config = PriorConfig()
+    config = FEEDBACK  # priors only from estimates that pass the trust test
     try:
         with Renderer(config.body) as renderer:
             refined = refine_sequence(seq, model, renderer=renderer, config=config)
@@ -105,7 +105,7 @@ def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> i
 
     from capture.refine import refine_videos
     from capture.segment import default_warmup
-    from estimator.prior import PriorConfig
+    from estimator.prior import FEEDBACK
     from estimator.render import Renderer
 
     counts, fps = {}, 0.0
@@ -123,7 +123,7 @@ def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> i
     if os.path.exists(truth_path):
         with open(truth_path) as fh:
             truth = json.load(fh)
-    config = PriorConfig()
+    config = FEEDBACK  # priors only from estimates that pass the trust test
     try:
         with Renderer(config.body) as renderer:
             refined = refine_videos(videos, model, renderer=renderer, warmup=warmup,
