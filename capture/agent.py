@@ -223,12 +223,12 @@ def _bootstrap(source: FrameSource, segmenter: Segmenter) -> bool:
     n = None if source.live or s.background != "bootstrap" else source.frame_count()
     if not n:
         return False
-    images = source.sample(sample_indices(n, source.fps, s))
+    indices = sample_indices(n, source.fps, s)
+    images = source.sample(indices)
     if not images:
         return False
     segmenter.bootstrap(images)
-    log.info("background bootstrapped from %d frames sampled over the first %d", len(images), n
-             if n < s.bootstrap_seconds * (source.fps or 15.0) else round(s.bootstrap_seconds * (source.fps or 15.0)))
+    log.info("background bootstrapped from %d frames sampled over frames 0-%d", len(images), indices[-1])
     return True
 
 

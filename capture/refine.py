@@ -9,8 +9,8 @@ same fusion a live agent applies to the service's feedback messages.
 
 from __future__ import annotations
 
-import itertools
 import dataclasses
+import itertools
 import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field

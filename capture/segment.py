@@ -753,7 +753,9 @@ class Segmenter:
         return Segmentation.nothing(size, used_prior, n)
 
     def _continuing(self, boxes: dict[int, tuple[int, int, int, int]]) -> int | None:
-        """The candidate whose box overlaps the tracked walker's (grown) box most, if any."""
+        """The candidate that overlaps the tracked walker's grown box most, if any: the
+        intersection with the grown box over the union of the candidate's and the
+        tracked box's own areas (not :func:`box_iou` with the grown box)."""
         if self._track is None or self._track_missed > self.settings.track_frames:
             return None
         x, y, w, h = self._track

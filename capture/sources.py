@@ -240,31 +240,24 @@ class VideoFileSource(_CaptureSource):
         self.hardware_sync = hardware_sync
 
     def frame_count(self) -> int | None:
-        n = int(self._path_cap(lambda cap: cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        n = 0 if self._cap is None else int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))  # a header field
         return n if n > 0 else None
 
-    def _path_cap(self, use):
-        cap = cv2.VideoCapture(str(self.path))
-        try:
-            return use(cap)
-        finally:
-            cap.release()
-
     def sample(self, indices: Iterable[int]) -> list[np.ndarray]:
-        wanted = sorted(set(indices))
-
-        def read(cap: cv2.VideoCapture) -> list[np.ndarray]:
-            out: list[np.ndarray] = []
-            keep = set(wanted)
-            for k in range(wanted[-1] + 1 if wanted else 0):  # sequential: seeking is inexact
+        keep = set(indices)
+        out: list[np.ndarray] = []
+        cap = cv2.VideoCapture(str(self.path))  # a second reader: iteration is not disturbed
+        try:
+            for k in range(max(keep) + 1 if keep else 0):  # sequential: seeking is inexact
                 if not cap.grab():
                     break
                 if k in keep:
                     ok, image = cap.retrieve()
                     if ok:
                         out.append(_bgr(image))
-            return out
-        return self._path_cap(read)
+        finally:
+            cap.release()
+        return out
 
     def _read(self) -> np.ndarray | None:
         image = super()._read()

@@ -158,13 +158,15 @@ def second_person(sil: np.ndarray, rng: np.random.Generator, *, scale: tuple[flo
     return out
 
 
+# In the order they are applied together: the walker's own faults first (shadow, holes,
+# a cut limb), then what lies around it (a second person, blobs, salt).
 _KINDS: dict[str, Callable] = {
-    "salt": salt,
-    "blobs": blobs,
+    "shadow": shadow,
     "holes": holes,
     "cut_limb": cut_limb,
-    "shadow": shadow,
     "second_person": second_person,
+    "blobs": blobs,
+    "salt": salt,
 }
 DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
 """Damage kinds :func:`damage` knows, ``"all"`` applying every other one in turn."""
@@ -173,17 +175,14 @@ DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
 _STEADY = ("shadow", "second_person")  # placement-like: one draw per camera over a sequence
 
 
-_ORDER = ("shadow", "holes", "cut_limb", "second_person", "blobs", "salt")
-
-
 def parse_damage(kind: str) -> tuple[str, ...]:
-    """The kinds named by ``kind`` ("all", one kind, or kinds joined by "+"), in :data:`_ORDER`."""
-    names = _ORDER if kind == "all" else tuple(kind.split("+"))
+    """The kinds named by ``kind`` ("all", one kind, or kinds joined by "+"), in the order applied."""
+    names = tuple(_KINDS) if kind == "all" else tuple(kind.split("+"))
     bad = [k for k in names if k not in _KINDS]
     if bad or not names:
         raise ValueError(f"unknown damage {kind!r}; expected one of {', '.join(DAMAGE_KINDS)} "
                          "or kinds joined by '+'")
-    return tuple(k for k in _ORDER if k in names)
+    return tuple(k for k in _KINDS if k in names)
 
 
 def damage(sil: np.ndarray, kind: str, rng: np.random.Generator, joints2d: np.ndarray | None = None, *,
