@@ -250,7 +250,7 @@ class RigState:
     restarts: int = 0
     last_logged_index: int = -1
     priors_sent: int = 0
-    feedback_lag_s: float = 0.0  # last frame's capture to its window's priors published (EMA)
+    feedback_lag_s: float | None = None  # last frame's capture to its window's priors published (EMA)
     publisher: Any = None
     feedback: dict[str, Any] = field(default_factory=dict)  # camera -> feedback publisher
 
@@ -493,7 +493,7 @@ class LiveService:
             lag_s = self._rigs[w.rig].feedback_lag_s
         # Frames captured before these priors can arrive need none: skip them.
         period_s = _frame_period_s(w.frames)
-        skip = 0 if period_s is None else int(lag_s / period_s)
+        skip = 0 if period_s is None or lag_s is None else int(lag_s / period_s)
         future = self.feedback_pool.submit(predict_feedback, est, tracks, w.indices, sizes,
                                            self.settings.feedback_ahead, skip)
         deadline = time.monotonic() + 60
@@ -532,8 +532,11 @@ class LiveService:
         lag = (time.time_ns() - w.frames[-1].capture_ns) / 1e9  # last frame captured -> priors out
         with self._lock:
             rig.priors_sent += sent
-            if 0 <= lag < 10:  # a moving average of what the next window's priors will take
-                rig.feedback_lag_s += 0.3 * (lag - rig.feedback_lag_s)
+            if 0 <= lag < 10:  # a moving average of what the next window's priors will take,
+                # from the first lag measured (an average started at 0 s underestimates it
+                # for the first windows, whose priors then name frames already captured)
+                old = rig.feedback_lag_s
+                rig.feedback_lag_s = lag if old is None else old + 0.3 * (lag - old)
         if self.rerun is not None and priors:
             self.rerun.log_priors(f"rigs/{w.rig}", priors)
 
