@@ -27,6 +27,7 @@ import time
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -38,9 +39,9 @@ from .receiver import ValidatingSubscriber
 from .scene import iou
 from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
 from .sources import Frame, FrameSource, make_source, paced
-from .wire import FeedbackMessage, SilhouetteMessage, encode, feedback_key, silhouette_key
+from .wire import FeedbackMessage, Quality, SilhouetteMessage, encode, feedback_key, silhouette_key
 
-__all__ = ["AgentSettings", "AgentStats", "main"]
+__all__ = ["AgentSettings", "AgentStats", "CaptureView", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,14 @@ class AgentSettings(BaseSettings):
     score_truth: bool = Field(False, description="score each silhouette against the source's "
                               "ground truth when it has one (synthetic; benchmarks), after "
                               "publishing")
+    quality_every: int = Field(30, ge=1, description="messages between quality figures on the "
+                               "wire (the first message carries them too)")
+    rerun: str | None = Field(None, description="Rerun sink for the camera view, save:PATH | "
+                              "serve[:PORT] | connect[:URL]; opened by `posecal capture`, which "
+                              "hands main() the view (off by default)")
+    rerun_every: int = Field(10, ge=1, description="segmented frames between views logged to "
+                             "Rerun (raw frame, background, silhouette), so viewing never slows "
+                             "capture")
     segment: SegmentSettings = SegmentSettings()
 
 
@@ -114,12 +123,13 @@ class AgentStats:
             self.stability.append(box_iou(self._last_box, box))
         self._last_box = box
 
-    def quality(self) -> dict[str, float]:
+    def quality(self) -> Quality:
         """Walker fraction, median silhouette area (px) and median box IoU between
-        consecutive silhouettes (1 = steady; a flickering or jumping mask scores low)."""
-        return {"walker_fraction": self.with_walker / self.segmented if self.segmented else 0.0,
-                "area_median": float(np.median(self.areas)) if self.areas else 0.0,
-                "stability": float(np.median(self.stability)) if self.stability else float("nan")}
+        consecutive silhouettes (1 = steady; a flickering or jumping mask scores low;
+        None before two consecutive silhouettes), as sent on the wire."""
+        return Quality(walker_fraction=self.with_walker / self.segmented if self.segmented else 0.0,
+                       area_median=float(np.median(self.areas)) if self.areas else 0.0,
+                       stability=float(np.median(self.stability)) if self.stability else None)
 
     @property
     def fps(self) -> float:
@@ -261,16 +271,41 @@ def _log_stats(stats: AgentStats, sent_before: int, seconds: float, what: str) -
              f", IoU vs ground truth {stats.mean_iou:.3f} over {stats.iou_frames} frames"
              if stats.iou_frames else "")
     q = stats.quality()
-    log.info("%s quality: walker in %.0f%% of %d frames, median area %.0f px, stability %.2f, "
-             "candidates %d", what, 100 * q["walker_fraction"], stats.segmented, q["area_median"],
-             q["stability"], stats.candidates)
+    log.info("%s quality: walker in %.0f%% of %d frames, median area %.0f px, stability %s, "
+             "candidates %d", what, 100 * q.walker_fraction, stats.segmented, q.area_median,
+             "-" if q.stability is None else f"{q.stability:.2f}", stats.candidates)
+
+
+class CaptureView(Protocol):
+    """Where the agent shows what it sees: :class:`service.rerun_log.RerunLog` for
+    ``posecal capture --rerun`` (the capture package itself imports no Rerun)."""
+
+    def log_capture(self, camera: str, index: int, frame: np.ndarray,
+                    background: np.ndarray | None, silhouette: np.ndarray) -> None:
+        """One frame (BGR), the background model (BGR, None if unknown) and the
+        full-frame silhouette (uint8 0/255) at frame ``index``."""
+
+
+def _show(view: CaptureView, camera: str, frame: Frame, seg: Segmentation,
+          segmenter: Segmenter) -> bool:
+    """Log one frame to ``view``; False (logged once) if viewing failed: capture goes on."""
+    try:
+        # A copy: the view may hold the pixels after this returns, and sources may reuse buffers.
+        view.log_capture(camera, frame.index, frame.image.copy(), segmenter.background_image(),
+                         seg.full_mask())
+        return True
+    except Exception:
+        log.exception("logging the camera view failed; viewing is off for this run")
+        return False
 
 
 def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | None = None,
-         stop: threading.Event | None = None) -> AgentStats:
+         stop: threading.Event | None = None, view: CaptureView | None = None) -> AgentStats:
     """Run one agent until the source ends, ``max_frames``, ``stop`` or a signal.
 
     ``source`` overrides ``settings.source`` (benchmarks pass in-memory ones).
+    ``view`` receives every ``settings.rerun_every``-th segmented frame, after it
+    was published (the caller opens and closes it, as it does the Zenoh config).
     Raises :class:`~capture.sources.SourceError` if the source cannot be opened.
     """
     stop = stop or threading.Event()
@@ -338,7 +373,9 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 rig=settings.rig, camera=settings.camera, frame_index=frame.index,
                 capture_ns=frame.timestamp_ns, box=seg.box, image_size=seg.image_size,
                 epoch_ns=stats.epoch_ns, seq=seq,
-                mask=seg.mask, sync=sync, publish_ns=time.time_ns())
+                mask=seg.mask, sync=sync, publish_ns=time.time_ns(),
+                n_candidates=int(seg.n_candidates),
+                quality=stats.quality() if seq % settings.quality_every == 0 else None)
             seq += 1
             try:
                 publisher.put(encode(msg, png_compression=settings.png_compression))
@@ -352,6 +389,8 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 stats.unheard += 1
             stats.latency_ms.append((time.time_ns() - frame.timestamp_ns) / 1e6)
             segmenter.learn()  # the deferred background update, off the latency path
+            if view is not None and (stats.segmented - 1) % settings.rerun_every == 0:
+                view = view if _show(view, settings.camera, frame, seg, segmenter) else None
             if settings.score_truth and frame.mask is not None and frame.mask.any():
                 stats.iou_sum += iou(seg.full_mask(), frame.mask)
                 stats.iou_frames += 1

@@ -78,17 +78,18 @@ class SegmentSettings(BaseModel):
     bootstrap_still: float = Field(12.0, gt=0, description="start-up buffer: a pixel changing "
                                    "more than this since the previous frame is moving and "
                                    "counts less in the median")
-    shadows: bool = Field(False, description="(off: see docs/CAPTURE.md, removes dark clothing on the scripted scene) drop shadow/reflection pixels at full resolution "
+    shadows: bool = Field(True, description="drop shadow/reflection pixels at full resolution "
                           "(darker or brighter by a ratio in shadow_ratio, same chromaticity, "
-                          "same texture) unless enclosed by the body")
+                          "same texture) unless enclosed by the body, or unless they would "
+                          "take most of it")
     shadow_ratio: tuple[float, float] = Field((0.4, 0.95), description="brightness ratio "
                                               "frame/background of a shadow")
     reflection_ratio: float = Field(1.15, ge=1, description="up to this ratio a brighter pixel "
                                     "with unchanged chromaticity and texture is a reflection "
                                     "(1 = off)")
-    shadow_chroma: float = Field(0.06, gt=0, description="largest chromaticity distortion "
+    shadow_chroma: float = Field(0.08, gt=0, description="largest chromaticity distortion "
                                  "|I - rB| / |B| of a shadow pixel")
-    shadow_texture: float = Field(0.3, gt=0, description="largest gradient change (relative to "
+    shadow_texture: float = Field(0.4, gt=0, description="largest gradient change (relative to "
                                   "the gradients present) of a shadow pixel")
     ghost_frames: int = Field(10, ge=0, description="a foreground component that stays put "
                               "this many frames is tested for being a ghost (its edges are the "
@@ -116,6 +117,10 @@ class SegmentSettings(BaseModel):
     refine_floor: float = Field(28.0, ge=0, description="...and above this colour distance "
                                 "(grey levels, channels combined): compression artefacts "
                                 "along edges (MJPG's 8x8 blocks) exceed the flat-area noise")
+    edge_split: bool = Field(True, description="at full resolution, a pixel on the walker's "
+                             "edge is foreground only if its colour is nearer the walker's "
+                             "nearby colour than the background's (edges where blur and "
+                             "compression mix the two are split halfway, not at the noise level)")
     gain_compensation: bool = Field(True, description="divide the frame's global brightness "
                                     "change (median ratio to the background) out before "
                                     "classifying")
@@ -136,6 +141,10 @@ class SegmentSettings(BaseModel):
                           "full resolution (fills holes); 0 = off")
     min_area: int = Field(600, ge=1, description="a largest component below this many "
                           "reference pixels = nothing")
+    min_width: float = Field(12.0, ge=0, description="a candidate must be at least this wide "
+                             "somewhere (reference pixels; the widest disc inside it): a torso "
+                             "is, a fluttering tape, a wire or a sliver at the image border is "
+                             "not; 0 = off")
     margin_px: int = Field(2, ge=0, description="margin in full-frame pixels around the "
                            "component in the crop")
     prior_level: int = Field(128, ge=1, le=255, description="prior value from which it is trusted")
@@ -201,6 +210,7 @@ class _Geometry:
     refine_px: int  # full-frame pixels re-tested around the upsampled mask (0 = none)
     close_px: int
     min_area: int
+    min_width: float  # full-frame pixels
     scale: float  # model / full resolution
     guard: np.ndarray | None  # update guard kernel, model resolution
     near: np.ndarray | None  # refinement band kernel, full resolution
@@ -221,7 +231,7 @@ class _Geometry:
         refine = 0 if scale == 1.0 else int(np.ceil(settings.refine_px / scale))
         close = _kernel(settings.close_px * k)
         return cls(size, model_size, refine, 0 if close is None else close.shape[0],
-                   max(1, round(settings.min_area * k * k)), scale,
+                   max(1, round(settings.min_area * k * k)), settings.min_width * k, scale,
                    _kernel(max(1.0, settings.update_guard_px * k * scale)),
                    _kernel(2 * refine + 1) if refine else None,
                    close)
@@ -331,6 +341,15 @@ class Segmenter:
     def warming_up(self) -> bool:
         """True until the background is known (bootstrapped, or ``warmup_frames`` learned)."""
         return self._learned < self.settings.warmup_frames
+
+    def background_image(self) -> np.ndarray | None:
+        """The background model as a BGR uint8 copy, for viewing: full resolution when
+        refining, else MOG2's (model resolution); None while warming up."""
+        if self.warming_up:
+            return None
+        if self._full_bg is not None:
+            return cv2.convertScaleAbs(self._full_bg)
+        return self._mog.getBackgroundImage()
 
     def bootstrap(self, images: Sequence[np.ndarray],
                   moving: Sequence[np.ndarray] | None = None) -> None:
@@ -634,6 +653,8 @@ class Segmenter:
         var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
         level = max(self.settings.refine_threshold * var, self.settings.refine_floor ** 2)
         refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
+        if self.settings.edge_split:
+            refined = self._split_edges(refined, image[y0:y1, x0:x1], gain, d2)
         if self.settings.shadows:
             refined = self._drop_shadows(refined, image[y0:y1, x0:x1], self._full_bg[y0:y1, x0:x1],
                                          gain, var, g)
@@ -646,6 +667,34 @@ class Segmenter:
         fg[y0:y1, x0:x1] = refined
         return fg
 
+    def _split_edges(self, fg: np.ndarray, image: np.ndarray, gain: float,
+                     d2: np.ndarray) -> np.ndarray:
+        """Keep an edge pixel of ``fg`` only where it is nearer the walker's colour than
+        the background's (a region, full resolution; ``d2`` = squared distance to the
+        background, offset removed).
+
+        Motion blur, defocus and compression (MJPG's 4:2:0 chroma) mix body
+        and background over 1-3 px; a noise-level test takes every mixed
+        pixel, so silhouettes grow by that band wherever the contrast is high
+        (a dark coat on grass: ~0.75 IoU against careful masks). The walker's
+        colour near each pixel is the mean of the interior (``fg`` eroded by
+        a 5 px square) over a 9 px window; where no interior is that close
+        the pixel is kept.
+        """
+        interior = cv2.erode(fg, _kernel(5))
+        if not cv2.countNonZero(interior):
+            return fg
+        frame = image.astype(np.float32) * np.float32(1.0 / gain)
+        weight = cv2.boxFilter(interior, cv2.CV_32F, (9, 9), normalize=False) / 255.0
+        body = cv2.boxFilter(cv2.bitwise_and(frame, frame, mask=interior), cv2.CV_32F, (9, 9),
+                             normalize=False)
+        body /= np.maximum(weight, 1.0)[..., None]
+        to_body = cv2.transform(cv2.multiply(frame - body, frame - body), np.ones((1, 3), np.float32))
+        nearer_bg = (d2 < to_body) & (weight > 0) & (interior == 0)
+        out = fg.copy()
+        out[nearer_bg] = 0
+        return out
+
     def _drop_shadows(self, fg: np.ndarray, image: np.ndarray, background: np.ndarray,
                       gain: float, var: float, g: _Geometry) -> np.ndarray:
         """Remove shadow and reflection pixels from ``fg`` (a region, full resolution).
@@ -657,7 +706,11 @@ class Segmenter:
         background's). Uniformly dark clothing on a plain background passes
         those tests too, so shadow pixels enclosed by the remaining body (within
         the closing of the rest, twice ``close_px``) are kept: a shadow is cast
-        *beside* the walker, clothing is inside it.
+        *beside* the walker, clothing is inside it. Opaque clothing fails the
+        texture test (it hides the background's texture); a walker who shows
+        the background through (thin, semi-transparent, or a reflection) may
+        pass all three, so when the tests would remove most of the foreground
+        nothing is removed: never worse than no suppression.
         """
         s = self.settings
         frame = image.astype(np.float32) * np.float32(1.0 / gain)
@@ -683,6 +736,8 @@ class Segmenter:
         same_texture = cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
         shadow = (shadow & same_texture).astype(np.uint8) * 255
         body = cv2.bitwise_and(fg, cv2.bitwise_not(shadow))
+        if 2 * cv2.countNonZero(body) < cv2.countNonZero(fg):
+            return fg  # most of it "shadow": a walker that looks like one (see docstring)
         enclosed = cv2.morphologyEx(body, cv2.MORPH_CLOSE, _kernel(2 * g.close_px + 1)) \
             if g.close_px else body
         return cv2.bitwise_or(body, cv2.bitwise_and(fg, enclosed))
@@ -722,7 +777,8 @@ class Segmenter:
         else:
             region = fg[ry:ry + rh, rx:rx + rw]
         _, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
-        candidates = [k for k in range(1, len(stats)) if stats[k, cv2.CC_STAT_AREA] >= g.min_area]
+        candidates = [k for k in range(1, len(stats)) if stats[k, cv2.CC_STAT_AREA] >= g.min_area
+                      and self._wide(labels, stats, k, g)]
         if image is not None and self.settings.ghost_frames and self._residuals \
                 and self._full_bg is not None:
             candidates = self._drop_ghosts(candidates, labels, stats, (rx, ry), image, gain, g)
@@ -744,6 +800,18 @@ class Segmenter:
         crop[oy:oy + h, ox:ox + w] = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, area, used_prior,
                             len(candidates))
+
+    @staticmethod
+    def _wide(labels: np.ndarray, stats: np.ndarray, k: int, g: _Geometry) -> bool:
+        """Whether component ``k`` holds a disc of ``min_width`` (distance transform)."""
+        if not g.min_width:
+            return True
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        if min(w, h) < g.min_width:
+            return False
+        comp = cv2.copyMakeBorder(cv2.compare(labels[y:y + h, x:x + w], k, cv2.CMP_EQ),
+                                  1, 1, 1, 1, cv2.BORDER_CONSTANT)
+        return 2.0 * cv2.minMaxLoc(cv2.distanceTransform(comp, cv2.DIST_L2, 5))[1] >= g.min_width
 
     def _nobody(self, size: tuple[int, int], used_prior: bool, n: int) -> Segmentation:
         """No walker in this frame; the tracked box ages (forgotten after ``track_frames``)."""

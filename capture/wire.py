@@ -28,8 +28,9 @@ import dataclasses
 import json
 import re
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, TypeVar
 
 import cv2
 import numpy as np
@@ -38,6 +39,7 @@ __all__ = [
     "WIRE_VERSION",
     "Box",
     "FeedbackMessage",
+    "Quality",
     "SilhouetteMessage",
     "WireError",
     "decode",
@@ -53,10 +55,12 @@ MAGIC = b"PCAL"
 _PREFIX = struct.Struct(">4sBBI")  # magic, version, kind, header length
 _MAX_HEADER = 64 * 1024
 _MAX_SIDE = 1 << 15
+_MAX_CANDIDATES = 1 << 16
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _ROOT = "posecal"
 
 Sync = Literal["index", "time"]
+T = TypeVar("T")
 
 
 class WireError(ValueError):
@@ -149,6 +153,31 @@ def _crop_fields(rig: str, camera: str, frame_index: int, box: Box,
 
 
 @dataclass(frozen=True, slots=True)
+class Quality:
+    """A camera's segmentation quality over its agent's recent frames (``AgentStats``).
+
+    ``walker_fraction``: share of segmented frames in which a walker was found,
+    in [0, 1]; ``area_median``: median silhouette area in full-frame pixels
+    (0 = no walker yet); ``stability``: median box IoU of consecutive
+    silhouettes in [0, 1] (1 = steady, low = flickering or jumping), None until
+    two consecutive frames had a walker.
+    """
+
+    walker_fraction: float
+    area_median: float
+    stability: float | None = None
+
+    def __post_init__(self) -> None:
+        for name, high in (("walker_fraction", 1), ("area_median", _MAX_SIDE ** 2), ("stability", 1)):
+            value = getattr(self, name)
+            if value is None and name == "stability":
+                continue
+            # type() excludes bool; the range test excludes NaN and infinity (json reads both)
+            if type(value) not in (int, float) or not 0 <= value <= high:
+                raise WireError(f"quality.{name} must be a number in [0, {high}], got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
 class SilhouetteMessage:
     """One segmented frame from one camera (capture -> service).
 
@@ -158,6 +187,15 @@ class SilhouetteMessage:
     messages from 0: a new epoch means the agent restarted. ``sync`` tells how
     frames of different cameras align: by ``frame_index`` (hardware-triggered
     or recorded rigs) or by ``capture_ns``.
+
+    Optional, None = not reported (older agents; left out of the header):
+    ``n_candidates`` is the number of person-sized components in this frame
+    (> 1: several people in view, the tracked walker is the one sent), on every
+    message because it belongs to the frame; ``quality`` is the agent's
+    :class:`Quality` over its recent frames, sent only every few messages
+    (``AgentSettings.quality_every``): its medians over hundreds of frames move
+    slowly, so computing them per frame would cost the latency path for
+    nothing, and a receiver keeps the latest.
     """
 
     KIND: ClassVar[int] = 1
@@ -173,9 +211,18 @@ class SilhouetteMessage:
     mask: np.ndarray = dataclasses.field(repr=False, compare=False)
     sync: Sync = "time"
     publish_ns: int = 0
+    n_candidates: int | None = None
+    quality: Quality | None = None
 
     def __post_init__(self) -> None:
         _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
+        if self.n_candidates is not None and (type(self.n_candidates) is not int
+                                              or not 0 <= self.n_candidates <= _MAX_CANDIDATES):
+            raise WireError(f"n_candidates must be an integer in [0, {_MAX_CANDIDATES}], "
+                            f"got {self.n_candidates!r}")
+        if self.quality is not None and self.quality.area_median > self.image_size[0] * self.image_size[1]:
+            raise WireError(f"quality.area_median {self.quality.area_median} exceeds the image "
+                            f"{self.image_size}")
         if self.capture_ns <= 0 or self.epoch_ns <= 0:
             raise WireError("capture_ns and epoch_ns must be positive nanoseconds")
         if self.seq < 0:
@@ -231,18 +278,24 @@ _KINDS: dict[int, type[SilhouetteMessage] | type[FeedbackMessage]] = {
 # ------------------------------------------------------------------------- encoding
 
 
+def _header_value(value: Any) -> Any:
+    """A field as JSON: boxes as [x, y, w, h], structs as objects without their None fields."""
+    if isinstance(value, Box):
+        return dataclasses.astuple(value)
+    if dataclasses.is_dataclass(value):
+        return {k: v for k, v in dataclasses.asdict(value).items() if v is not None}
+    return value
+
+
 def encode(msg: Message, *, png_compression: int = 1) -> bytes:
     """Serialise a message into one envelope (see the module docstring).
 
     ``png_compression`` (0-9) trades CPU for bytes; 1 is fast and binary masks
-    compress well anyway.
+    compress well anyway. Optional fields that are None are left out.
     """
-    header: dict[str, Any] = {}
-    for field in dataclasses.fields(msg):
-        if field.name == "mask":
-            continue
-        value = getattr(msg, field.name)
-        header[field.name] = dataclasses.astuple(value) if isinstance(value, Box) else value
+    header = {field.name: _header_value(getattr(msg, field.name))
+              for field in dataclasses.fields(msg)
+              if field.name != "mask" and getattr(msg, field.name) is not None}
     head = json.dumps(header, separators=(",", ":")).encode()
     png = b""
     if not msg.box.empty:
@@ -265,6 +318,19 @@ def _ints(header: dict[str, Any], name: str, n: int) -> tuple[int, ...]:
     if not isinstance(value, list) or len(value) != n or any(type(v) is not int for v in value):
         raise WireError(f"header field {name!r} must be a list of {n} integers, got {value!r}")
     return tuple(value)
+
+
+def _quality(header: dict[str, Any], name: str) -> Quality:
+    value = header.get(name)
+    if not isinstance(value, dict):
+        raise WireError(f"header field {name!r} must be an object, got {value!r}")
+    return Quality(walker_fraction=value.get("walker_fraction"), area_median=value.get("area_median"),
+                   stability=value.get("stability"))
+
+
+def _optional(header: dict[str, Any], name: str, parse: Callable[[dict[str, Any], str], T]) -> T | None:
+    """``parse`` the field if the header has it, else None (a field older senders lack)."""
+    return parse(header, name) if name in header else None
 
 
 def _str(header: dict[str, Any], name: str) -> str:
@@ -320,6 +386,8 @@ def decode(payload: bytes | bytearray | memoryview, *,
         return SilhouetteMessage(**common, capture_ns=_int(header, "capture_ns"),
                                  epoch_ns=_int(header, "epoch_ns"), seq=_int(header, "seq"),
                                  sync=_str(header, "sync"),  # type: ignore[arg-type]
-                                 publish_ns=_int(header, "publish_ns"))
+                                 publish_ns=_int(header, "publish_ns"),
+                                 n_candidates=_optional(header, "n_candidates", _int),
+                                 quality=_optional(header, "quality", _quality))
     return FeedbackMessage(**common, issued_ns=_int(header, "issued_ns"),
-                           epoch_ns=_int(header, "epoch_ns") if "epoch_ns" in header else 0)
+                           epoch_ns=_optional(header, "epoch_ns", _int) or 0)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import dataclasses
 import json
 import logging
 import queue
@@ -39,7 +40,7 @@ import numpy as np
 import zenoh
 
 from capture.receiver import Received, SilhouetteReceiver
-from capture.wire import Box, FeedbackMessage, SilhouetteMessage, encode, estimate_key, feedback_key
+from capture.wire import Box, FeedbackMessage, Quality, SilhouetteMessage, encode, estimate_key, feedback_key
 from capture.refine import track_from_segmentations
 from estimator.pipeline import CameraTrack
 from estimator.windows import ViewpointTrack
@@ -230,6 +231,36 @@ class CameraState:
     epoch_ns: int = 0
     sync: str = "time"
     image_size: tuple[int, int] = (0, 0)
+    n_candidates: int | None = None  # person-sized components in the last frame (None: not reported)
+    quality: Quality | None = None  # the agent's latest quality figures (sent every few frames)
+
+    def report(self, msg: SilhouetteMessage) -> None:
+        """Keep what the agent reports about its segmentation (older agents report nothing)."""
+        if msg.n_candidates is not None:
+            self.n_candidates = msg.n_candidates
+        if msg.quality is not None:
+            self.quality = msg.quality
+
+    def to_dict(self) -> dict[str, Any]:
+        """The camera's entry in the rig summary (``schemas.CameraOut``)."""
+        out = dataclasses.asdict(self)
+        out["image_size"] = list(self.image_size)
+        return out
+
+
+_ONE_WALKER = "the papers assume one walker per rig: the tracked one is kept"
+
+
+def _crowd_notes(frames: list[FrameSet]) -> dict[str, str]:
+    """Per camera whose agent saw several people in view in some of ``frames``, a note
+    for the window's estimate (the agent sends the walker it tracks)."""
+    crowded: dict[str, list[int]] = collections.defaultdict(list)
+    for fs in frames:
+        for cam, msg in fs.parts.items():
+            if msg.n_candidates is not None and msg.n_candidates > 1:
+                crowded[cam].append(msg.n_candidates)
+    return {cam: f"several people in view in {len(n)} of {len(frames)} frames (up to {max(n)}): "
+                 f"{_ONE_WALKER}" for cam, n in crowded.items()}
 
 
 @dataclass
@@ -314,6 +345,7 @@ class LiveService:
             cam.frames += 1
             cam.last_index, cam.last_seen_ns = msg.frame_index, item.receive_ns
             cam.epoch_ns, cam.sync, cam.image_size = msg.epoch_ns, msg.sync, msg.image_size
+            cam.report(msg)
             before = (rig.assembler.late, rig.assembler.duplicate, rig.assembler.missing)
             closed = rig.assembler.add(msg, item.receive_ns, now)
             self._count_drops(rig, before)
@@ -435,6 +467,9 @@ class LiveService:
             publisher = rig.publisher
             if publisher is None:
                 publisher = rig.publisher = self.session.declare_publisher(estimate_key(w.rig))
+        for cam, note in _crowd_notes(w.frames).items():
+            if cam in result["cameras"]:
+                result["cameras"][cam].setdefault("notes", []).append(note)
         done_ns = time.time_ns()
         latency = max(0.0, (done_ns - w.closed_ns) / 1e9)
         result.update({
@@ -568,9 +603,7 @@ class LiveService:
             latest = rig.recent[-1] if rig.recent else None
             return {
                 "rig": rig.name,
-                "cameras": {c: {"frames": s.frames, "last_index": s.last_index,
-                                "last_seen_ns": s.last_seen_ns, "epoch_ns": s.epoch_ns, "sync": s.sync,
-                                "image_size": list(s.image_size)} for c, s in sorted(rig.cameras.items())},
+                "cameras": {c: s.to_dict() for c, s in sorted(rig.cameras.items())},
                 "windows": {"seq": rig.window_seq, "estimated": rig.estimated, "skipped": rig.skipped,
                             "failed": rig.failed, "dropped": rig.dropped},
                 "feedback": {"enabled": self.feedback_pool is not None, "priors_sent": rig.priors_sent},

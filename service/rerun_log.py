@@ -22,7 +22,14 @@ coordinate spaces, under a prefix per rig (``rigs/<rig>``) or job
     <P>/feedback/<cam>/raw                jobs with refine: the raw silhouette, ...
     <P>/feedback/<cam>/refined            ... and the refined one, cut to the same box as the prior
 
-Fed only by plain arrays (:class:`service.worker.StageBundle`).
+A capture agent run with ``posecal capture --rerun`` logs its camera's view
+(:meth:`RerunLog.log_capture`, every ``rerun_every``-th frame) side by side::
+
+    capture/<cam>/raw                     the frame (BGR)
+    capture/<cam>/background              the segmenter's background model
+    capture/<cam>/silhouette              the silhouette it published (full frame, 0/255)
+
+Fed only by plain arrays (:class:`service.worker.StageBundle`, the agent's frames).
 """
 
 from __future__ import annotations
@@ -39,7 +46,7 @@ from estimator.viewpoint import azimuth_difference_deg
 
 from .worker import StageBundle
 
-__all__ = ["RerunLog", "STAGE_PATHS"]
+__all__ = ["CAPTURE_PATHS", "RerunLog", "STAGE_PATHS"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +56,8 @@ STAGE_PATHS = ("inputs/{cam}", "registration/{cam}/silhouette", "registration/{c
                "viewpoints/{cam}/cloud", "viewpoints/{cam}/ellipse", "phase/observed/{cam}",
                "phase/hmm", "world/skeleton", "world/cameras/{cam}", "world/cameras/{cam}/joints")
 """Entity paths (under a prefix) that every estimated window writes."""
+CAPTURE_PATHS = ("capture/{cam}/raw", "capture/{cam}/background", "capture/{cam}/silhouette")
+"""Entity paths of a capture agent's view (:meth:`RerunLog.log_capture`)."""
 
 _WALKER = 0
 
@@ -166,6 +175,18 @@ class RerunLog:
                 for index, _box, mask in items:
                     self.stream.set_time(TIMELINE, sequence=int(index))
                     self.stream.log(f"{prefix}/feedback/{cam}/prior", rr.Image(mask))
+
+    def log_capture(self, camera: str, index: int, frame: np.ndarray,
+                    background: np.ndarray | None, silhouette: np.ndarray) -> None:
+        """A capture agent's view of frame ``index``: the BGR frame, the background
+        model (BGR; None = not known yet) and the full-frame silhouette (0/255)."""
+        raw, bg, sil = (p.format(cam=camera) for p in CAPTURE_PATHS)
+        with self._lock:
+            self.stream.set_time(TIMELINE, sequence=int(index))
+            self.stream.log(raw, rr.Image(frame, color_model="BGR"))
+            if background is not None:
+                self.stream.log(bg, rr.Image(background, color_model="BGR"))
+            self.stream.log(sil, rr.Image(silhouette))
 
     def close(self) -> None:
         with self._lock:

@@ -49,6 +49,15 @@ class JobList(BaseModel):
     counts: dict[str, int]
 
 
+class CameraQuality(BaseModel):
+    """The agent's segmentation quality over its recent frames (``capture.wire.Quality``)."""
+
+    walker_fraction: float = Field(description="share of frames in which a walker was found, 0..1")
+    area_median: float = Field(description="median silhouette area, full-frame pixels")
+    stability: float | None = Field(description="median box IoU of consecutive silhouettes, 0..1 "
+                                    "(low = flickering or jumping); null before two in a row")
+
+
 class CameraOut(BaseModel):
     frames: int
     last_index: int
@@ -56,6 +65,11 @@ class CameraOut(BaseModel):
     epoch_ns: int
     sync: str
     image_size: list[int]
+    n_candidates: int | None = Field(None, description="person-sized components in the camera's "
+                                     "last frame; > 1: several people in view, the agent sends "
+                                     "the walker it tracks (null: the agent does not report it)")
+    quality: CameraQuality | None = Field(None, description="the agent's latest quality figures "
+                                          "(null until it reports them)")
 
 
 class WindowCounts(BaseModel):

@@ -3,15 +3,17 @@ loopback Zenoh streaming to a real uvicorn server that estimates every window.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
 
+import cv2
 import numpy as np
 import pytest
 import zenoh
 
-from capture.agent import AgentSettings
+from capture.agent import AgentSettings, AgentStats
 from capture.agent import main as agent_main
 from capture.segment import SegmentSettings
 from capture.sources import FrameSource
@@ -161,6 +163,26 @@ def rendered():
     return out
 
 
+def _run_agents(endpoint: str, cameras: dict[str, list], **settings) -> dict[str, AgentStats]:
+    """Stream each camera's pre-rendered frames through a real agent (one thread each) at
+    ``FPS``; returns the agents' stats once every source has run out."""
+    stats: dict[str, AgentStats] = {}
+
+    def run(cam: str, frames) -> None:
+        stats[cam] = agent_main(
+            build_config(connect=[endpoint]),
+            AgentSettings(rig=RIG, camera=cam, source="synthetic:", fps=FPS, stats_interval_s=60,
+                          segment=SegmentSettings(warmup_frames=WARMUP), **settings),
+            source=_Replay(frames, FPS))
+
+    agents = [threading.Thread(target=run, args=item) for item in cameras.items()]
+    for a in agents:
+        a.start()
+    for a in agents:
+        a.join(timeout=30)
+    return stats
+
+
 @pytest.mark.parametrize("feedback", [True, False])
 def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered, feedback):
     """With feedback (§7.1) the service's priors reach the agents and are used; without,
@@ -173,21 +195,8 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
         sub = session.declare_subscriber(estimate_key(RIG), lambda s: published.append(json.loads(s.payload.to_bytes())))
         # A malformed message on the key space is rejected and counted; nothing else is disturbed.
         session.put(f"posecal/{RIG}/c0/silhouette", b"not a posecal message")
-        stop, stats = threading.Event(), {}
-
-        def run(cam: str, frames) -> None:
-            stats[cam] = agent_main(
-                build_config(connect=[endpoint]),
-                AgentSettings(rig=RIG, camera=cam, source="synthetic:", fps=FPS, stats_interval_s=60,
-                              segment=SegmentSettings(warmup_frames=WARMUP)),
-                source=_Replay(frames, FPS), stop=stop)
-
-        agents = [threading.Thread(target=run, args=item) for item in rendered.items()]
         time.sleep(0.5)  # let the agents' sessions find the service
-        for a in agents:
-            a.start()
-        for a in agents:
-            a.join(timeout=30)
+        stats = _run_agents(endpoint, rendered)
         rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["windows"]["estimated"] >= 3 and r,
                        timeout=20, what="three estimated windows")
         sent = EMPTY + WALK - WARMUP
@@ -240,3 +249,42 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
         assert f'posecal_frames_in_total{{camera="c0",rig="{RIG}"}} {float(sent)}' in metrics
         assert "posecal_window_latency_seconds_count" in metrics
         sub.undeclare()
+
+
+BYSTANDER = EMPTY + 8  # from this frame on, c0 sees a second person standing at its right edge
+
+
+def _with_bystander(frame):
+    """The frame with a person-sized figure standing away from the walker's path."""
+    if frame.index < BYSTANDER:
+        return frame
+    image = frame.image.copy()
+    cv2.ellipse(image, (600, 120), (14, 45), 0, 0, 360, (30, 150, 40), -1)
+    return type(frame)(image, frame.index, frame.timestamp_ns, frame.mask)
+
+
+def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, rendered):
+    """Agents report person-sized candidates per frame and their quality figures; the rig
+    summary shows each camera's latest, and windows in which c0 saw two people say so
+    (the tracked walker is still the one estimated)."""
+    cameras = {**rendered, "c0": [_with_bystander(f) for f in rendered["c0"]]}
+    settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
+                             feedback=False)
+    with ServerThread(settings) as srv:
+        stats = _run_agents(settings.zenoh_listen[0], cameras, quality_every=1)
+        rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["windows"]["estimated"] >= 3 and r,
+                       timeout=20, what="three estimated windows")
+        est = srv.client.get(f"/v1/rigs/{RIG}/estimates", params={"since": 0}).json()["estimates"]
+    assert rig["cameras"]["c0"]["n_candidates"] == 2 and rig["cameras"]["c1"]["n_candidates"] == 1
+    for cam, st in stats.items():  # the last message's figures, exactly as the agent computed them
+        assert rig["cameras"][cam]["quality"] == dataclasses.asdict(st.quality()), cam
+        assert rig["cameras"][cam]["quality"]["walker_fraction"] > 0.9
+    several = "several people in view in"
+    for e in est:
+        crowded = sum(i >= BYSTANDER for i in range(e["window"]["first_index"], e["window"]["last_index"] + 1))
+        notes = [n for n in e["cameras"]["c0"]["notes"] if n.startswith(several)]
+        assert notes == [f"{several} {crowded} of 20 frames (up to 2): the papers assume one walker "
+                         "per rig: the tracked one is kept"], (e["window"], e["cameras"]["c0"]["notes"])
+        assert not any(several in n for n in e["cameras"]["c1"]["notes"])
+    az, _ = TRUTH["c0"]  # the bystander did not take the walker's place
+    assert abs((est[-1]["smoothed"]["c0"]["azimuth_deg"] - az + 180) % 360 - 180) < 45

@@ -12,6 +12,7 @@ from capture.wire import (
     WIRE_VERSION,
     Box,
     FeedbackMessage,
+    Quality,
     SilhouetteMessage,
     WireError,
     decode,
@@ -72,8 +73,8 @@ def _envelope(header: dict, png: bytes = b"", *, version: int = WIRE_VERSION,
     return struct.pack(">4sBBI", b"PCAL", version, kind, len(head)) + head + png
 
 
-def _header_and_png() -> tuple[dict, bytes]:
-    payload = encode(_silhouette())
+def _header_and_png(msg: SilhouetteMessage | None = None) -> tuple[dict, bytes]:
+    payload = encode(msg or _silhouette())
     n = struct.unpack_from(">I", payload, 6)[0]
     return json.loads(payload[10:10 + n]), payload[10 + n:]
 
@@ -116,3 +117,55 @@ def test_keys():
             parse_key(bad)
     with pytest.raises(WireError):
         silhouette_key("a b", "c1")
+
+
+# ------------------------------------------------------------ quality fields (issue 17)
+
+
+def test_candidates_and_quality_round_trip():
+    quality = Quality(walker_fraction=0.75, area_median=1234.5, stability=0.9)
+    out = decode(encode(_silhouette(n_candidates=3, quality=quality)))
+    assert out.n_candidates == 3 and out.quality == quality
+    unsteady = decode(encode(_silhouette(n_candidates=0, quality=Quality(0.0, 0.0))))
+    assert unsteady.n_candidates == 0 and unsteady.quality.stability is None
+
+
+def test_a_message_without_them_leaves_them_out_and_old_headers_decode():
+    header, png = _header_and_png()
+    assert "n_candidates" not in header and "quality" not in header  # None is not sent
+    old = decode(_envelope(header, png))  # what an agent before these fields sent
+    assert old == _silhouette() and old.n_candidates is None and old.quality is None
+    header, _ = _header_and_png(_silhouette(quality=Quality(0.5, 10.0)))
+    assert header["quality"] == {"walker_fraction": 0.5, "area_median": 10.0}  # no stability yet
+
+
+@pytest.mark.parametrize("fields, reason", [
+    ({"n_candidates": -1}, r"n_candidates must be an integer in \[0, 65536\]"),
+    ({"n_candidates": 70000}, r"n_candidates must be an integer in \[0, 65536\]"),
+    ({"n_candidates": "2"}, "'n_candidates' must be an integer"),
+    ({"n_candidates": True}, "'n_candidates' must be an integer"),
+    ({"n_candidates": None}, "'n_candidates' must be an integer"),  # absent is fine, null is not
+    ({"quality": [0.5, 10, 1]}, "'quality' must be an object"),
+    ({"quality": {"area_median": 10}}, r"quality.walker_fraction must be a number in \[0, 1\], got None"),
+    ({"quality": {"walker_fraction": 1.5, "area_median": 10}}, r"walker_fraction must be a number in \[0, 1\]"),
+    ({"quality": {"walker_fraction": "all", "area_median": 10}}, "walker_fraction must be a number"),
+    ({"quality": {"walker_fraction": 0.5, "area_median": -1}}, "area_median must be a number"),
+    ({"quality": {"walker_fraction": 0.5, "area_median": 10, "stability": 2}}, r"stability must be a number in \[0, 1\]"),
+    ({"quality": {"walker_fraction": 0.5, "area_median": 640 * 480 + 1}}, "exceeds the image"),
+])
+def test_bad_candidates_or_quality_are_rejected_with_a_reason(fields, reason):
+    header, png = _header_and_png()
+    with pytest.raises(WireError, match=reason):
+        decode(_envelope({**header, **fields}, png))
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity"])
+def test_non_finite_quality_is_rejected(token):
+    """json.loads reads NaN and Infinity; the wire does not carry them."""
+    header, png = _header_and_png()
+    head = json.dumps({**header, "quality": {"walker_fraction": 0.5, "area_median": 1.0}})
+    head = head.replace('"area_median": 1.0', f'"area_median": {token}').encode()
+    with pytest.raises(WireError, match="area_median must be a number"):
+        decode(struct.pack(">4sBBI", b"PCAL", WIRE_VERSION, 1, len(head)) + head + png)
+    with pytest.raises(WireError, match="stability must be a number"):
+        Quality(0.5, 1.0, stability=float(token.replace("Infinity", "inf")))

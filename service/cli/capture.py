@@ -1,7 +1,8 @@
 """``posecal capture``: run one capture agent; ``posecal router``: a Zenoh router.
 
 Thin: parse arguments, build the Zenoh config with
-:func:`capture.zconfig.config_from_args`, run :func:`capture.agent.main`.
+:func:`capture.zconfig.config_from_args` (and the Rerun view for ``--rerun``),
+run :func:`capture.agent.main`.
 Settings not given on the command line come from ``POSECAL_CAPTURE_*``
 environment variables, then the defaults of :class:`capture.agent.AgentSettings`.
 """
@@ -9,8 +10,11 @@ environment variables, then the defaults of :class:`capture.agent.AgentSettings`
 from __future__ import annotations
 
 import argparse
+import logging
 
-from . import CliError
+from . import CliError, positive_int
+
+log = logging.getLogger(__name__)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,9 +32,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--source", required=True, metavar="SPEC", help="frame source")
     p.add_argument("--fps", type=float, help="replay rate of recorded sources")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    p.add_argument("--background", choices=("bootstrap", "warmup"),
+                   help="how the background is learned: 'bootstrap' (default) = temporal median "
+                        "of frames sampled over the first seconds of a file (live cameras: of "
+                        "the first --warmup frames, preferring still pixels), the scene need "
+                        "not be empty; 'warmup' = the paper's running average over the first "
+                        "--warmup frames, which must be empty")
     p.add_argument("--warmup", type=int, metavar="N",
-                   help="empty frames to learn the background from (default: 100)")
+                   help="start-up frames to learn the background from on live cameras, or "
+                        "with --background warmup (default: 100)")
     p.add_argument("--stats-interval", type=float, metavar="S", help="seconds between stats lines")
+    p.add_argument("--rerun", metavar="SINK",
+                   help="show the camera in Rerun: raw frame, background model and silhouette "
+                        "side by side (capture/<camera>/...): save:PATH, serve[:PORT] or "
+                        "connect[:URL] (default: off)")
+    p.add_argument("--rerun-every", type=positive_int, metavar="K",
+                   help="log every K-th frame to Rerun (default: 10)")
     add_zenoh_arguments(p)
     p.set_defaults(func=run_capture)
 
@@ -47,16 +64,19 @@ def _settings(args: argparse.Namespace):
     from capture.agent import AgentSettings
     from capture.segment import SegmentSettings
 
-    given = {name: value for name, value in (
-        ("rig", args.rig), ("camera", args.camera), ("source", args.source), ("fps", args.fps),
-        ("max_frames", args.max_frames), ("stats_interval_s", args.stats_interval))
-        if value is not None}
+    def given(*pairs: tuple[str, object]) -> dict[str, object]:
+        return {name: value for name, value in pairs if value is not None}
+
+    agent = given(("rig", args.rig), ("camera", args.camera), ("source", args.source),
+                  ("fps", args.fps), ("max_frames", args.max_frames),
+                  ("stats_interval_s", args.stats_interval), ("rerun", args.rerun),
+                  ("rerun_every", args.rerun_every))
+    segment = given(("warmup_frames", args.warmup), ("background", args.background))
     try:
-        settings = AgentSettings(**given)
-        if args.warmup is not None:
-            segment = SegmentSettings(**{**settings.segment.model_dump(),
-                                         "warmup_frames": args.warmup})
-            settings = settings.model_copy(update={"segment": segment})
+        settings = AgentSettings(**agent)
+        if segment:
+            merged = SegmentSettings(**{**settings.segment.model_dump(), **segment})
+            settings = settings.model_copy(update={"segment": merged})
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise CliError(f"invalid settings: {problems}") from None
@@ -72,6 +92,24 @@ def _config(args: argparse.Namespace):
         raise CliError(str(exc)) from None
 
 
+def _view(spec: str | None):
+    """The Rerun log for ``--rerun`` (None when off); imported only when asked for."""
+    from service.settings import parse_rerun_sink
+
+    try:
+        sink = parse_rerun_sink(spec)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    if sink is None:
+        return None
+    from service.rerun_log import RerunLog
+
+    view = RerunLog(sink)
+    if view.uri:
+        log.info("Rerun: connect a viewer with `rerun %s`", view.uri)
+    return view
+
+
 def run_capture(args: argparse.Namespace) -> int:
     import zenoh
 
@@ -80,12 +118,16 @@ def run_capture(args: argparse.Namespace) -> int:
 
     settings = _settings(args)
     conf = _config(args)
+    view = _view(settings.rerun)
     try:
-        agent.main(conf, settings)
+        agent.main(conf, settings, view=view)
     except SourceError as exc:
         raise CliError(str(exc)) from None
     except zenoh.ZError as exc:
         raise CliError(f"zenoh: {exc}") from None
+    finally:
+        if view is not None:
+            view.close()
     return 0
 
 
