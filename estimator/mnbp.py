@@ -1,0 +1,437 @@
+"""2D posture from a silhouette by modified nonparametric belief propagation (Wang–Leow §2–3).
+
+The body is a tree of parts (Wang–Leow §2, Fig. 1d): the torso at the root,
+the head, upper arms and thighs attached to it, forearms and shins to those.
+Each part's pose ``x_i`` is a 2D position, an orientation and a projected
+length (its size, person-specific and foreshortened, is free within bounds);
+the torso carries its centre, axis, length and signed shoulder and hip
+half-widths. Beliefs are weighted particle sets (nonparametric), messages
+are kernel sums over the sender's particles (eq. 2), beliefs their product
+with the observation function (eq. 3).
+
+What makes it the paper's *modified* NBP:
+
+- **Occlusion** (eq. 1–3): the observation function ``phi_i(x_i, X_-i, z)``
+  scores part *i* drawn together with the other parts' previous estimates
+  ``X_-i^(n-1)``: pixels the others already cover count for nothing, so a
+  part behind another is scored on what is really visible, and an arm over
+  the torso is neither rewarded nor punished (the prior decides) rather than
+  pulled onto the torso's edge.
+- **Scale**: every part's projected length is sampled (0.3–1.1 times its
+  model length at the walker's image height), so a walker nearer or farther,
+  or taller or shorter, than the model is followed part by part.
+- **Annealing**: the observation enters as ``phi^(1/tau_n)`` with a
+  temperature ``tau_n`` decreasing over the iterations (the paper's
+  decreasing factor lambda), and the particle perturbations shrink with it.
+
+Choices where the paper defers to its reference [13] (not available):
+
+- observation: with ``G = 0`` where another part is drawn, ``+1`` on the
+  silhouette, ``-1`` off it, ``phi_i = exp(sum of G over part i / T)``, the
+  change part *i* makes to the symmetric difference between the drawn body
+  and the silhouette (its overlap and its edges together); parts are
+  capsules (thick segments, the fast OpenCV drawing of DESIGN.md), scored
+  on a grid of points inside them (vectorised, no drawing per candidate);
+- articulation ``psi_ij``: a Gaussian on the gap between a child's proximal
+  end and the parent's attachment point, its width (``joint_sigma``, of the
+  walker's height) shrinking over the iterations with the temperature: the
+  paper's lambda modifies the potential functions, and a loose joint early
+  lets a limb swing before the part hanging from it has followed;
+- a weak unary prior (``prior_sigma`` of the height) around the starting
+  posture (Izo–Grimson's model placement): a silhouette cannot tell where
+  an arm in front of the torso is, the gait model can;
+- messages are computed at the receiver's particles, with the sender's
+  belief weights divided by the message the receiver last sent it (the
+  usual particle-BP estimate of eq. 2's product over ``Gamma(i) \\ j``);
+  particles are proposed from the perturbed current belief and, for a
+  child, half of them at the parent's attachment point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from .joints import JOINT_INDEX, N_JOINTS
+
+__all__ = ["MNBPConfig", "Posture2D", "PARTS_2D", "estimate_posture2d", "posture_sequence"]
+
+_J = JOINT_INDEX
+
+
+@dataclass(frozen=True)
+class _Part:
+    name: str
+    parent: str | None
+    distal: str  # the joint at its far end (the head joint for the head)
+    length: float  # model length, fraction of stature
+    width: float  # capsule diameter, fraction of stature
+    extend: float = 1.0  # the capsule runs past the distal joint (hand, foot) by this factor
+
+
+PARTS_2D: tuple[_Part, ...] = (
+    _Part("torso", None, "", 0.29, 0.11),
+    _Part("head", "torso", "head", 0.12, 0.12),
+    _Part("left_upper_arm", "torso", "left_elbow", 0.172, 0.06),
+    _Part("right_upper_arm", "torso", "right_elbow", 0.172, 0.06),
+    _Part("left_forearm", "left_upper_arm", "left_wrist", 0.157, 0.045, 1.45),
+    _Part("right_forearm", "right_upper_arm", "right_wrist", 0.157, 0.045, 1.45),
+    _Part("left_thigh", "torso", "left_knee", 0.245, 0.09),
+    _Part("right_thigh", "torso", "right_knee", 0.245, 0.09),
+    _Part("left_shin", "left_thigh", "left_ankle", 0.246, 0.06, 1.12),
+    _Part("right_shin", "right_thigh", "right_ankle", 0.246, 0.06, 1.12),
+)
+"""The body parts of the 2D graph (Wang–Leow Fig. 1d), root first; lengths and
+widths as fractions of stature (skeleton.py's ratios, body.py's girths)."""
+
+_INDEX = {p.name: i for i, p in enumerate(PARTS_2D)}
+_EDGES = tuple((_INDEX[p.parent], i) for i, p in enumerate(PARTS_2D) if p.parent)
+_NEIGHBOURS = {i: [k for e in _EDGES for k in e if i in e and k != i] for i in range(len(PARTS_2D))}
+# The joint of the parent a child hangs from: "neck" = the shoulders' midpoint.
+_ATTACH = {"head": "neck", "left_upper_arm": "left_shoulder", "right_upper_arm": "right_shoulder",
+           "left_thigh": "left_hip", "right_thigh": "right_hip"}
+
+
+@dataclass(frozen=True)
+class MNBPConfig:
+    """mNBP parameters; lengths are fractions of the walker's image height."""
+
+    n_particles: int = 64
+    n_iterations: int = 6
+    temperature: tuple[float, float] = (0.004, 0.002)  # first / last, times height^2
+    joint_sigma: tuple[float, float] = (0.08, 0.015)  # first / last iteration
+    prior_sigma: float = 0.12
+    torso_prior_sigma: float = 0.003  # see _prior_energy
+    step_position: tuple[float, float] = (0.03, 0.006)
+    step_angle_deg: tuple[float, float] = (20.0, 4.0)
+    step_length: tuple[float, float] = (0.12, 0.03)  # fraction of the part's model length
+    length_range: tuple[float, float] = (0.3, 1.1)
+    explore: float = 0.5  # share of a limb's proposals with a fresh angle ...
+    explore_deg: float = 90.0  # ... within this of the current best (shrinking to 0 by the end)
+    seed: int = 0
+
+
+@dataclass
+class Posture2D:
+    """The measured 2D posture on one silhouette: 13 joints in its crop's pixels."""
+
+    joints: np.ndarray  # (13, 2)
+    score: float  # sum of G over the whole drawn body / silhouette area (1 = perfect)
+    states: list[np.ndarray] = field(repr=False, default_factory=list)  # per part, its pose
+
+
+# --------------------------------------------------------------------- geometry
+
+
+def _unit(angle: np.ndarray) -> np.ndarray:
+    return np.stack([np.cos(angle), np.sin(angle)], -1)
+
+
+def _torso_points(x: np.ndarray) -> dict[str, np.ndarray]:
+    """Torso state(s) ``(cx, cy, angle, length, s_n, s_u, h_n, h_u)`` -> its joints.
+
+    ``angle`` is the direction hip-mid -> shoulder-mid, ``length`` their
+    distance; the left shoulder is ``shoulder-mid + s_n * normal + s_u * axis``
+    and the right one its opposite (likewise the hips with ``h``): any four
+    points with those midpoints, since a projected shoulder line need not be
+    square to the spine.
+    """
+    c, ang, ln = x[..., :2], x[..., 2], x[..., 3]
+    u = _unit(ang)
+    n = np.stack([u[..., 1], -u[..., 0]], -1)
+    sm, hm = c + 0.5 * ln[..., None] * u, c - 0.5 * ln[..., None] * u
+    s_off = x[..., 4:5] * n + x[..., 5:6] * u
+    h_off = x[..., 6:7] * n + x[..., 7:8] * u
+    return {"neck": sm, "hips_mid": hm, "left_shoulder": sm + s_off, "right_shoulder": sm - s_off,
+            "left_hip": hm + h_off, "right_hip": hm - h_off}
+
+
+def _limb_end(x: np.ndarray, factor: float = 1.0) -> np.ndarray:
+    """Limb state(s) ``(px, py, angle, length)`` -> the distal point (times ``factor``)."""
+    return x[..., :2] + factor * x[..., 3:4] * _unit(x[..., 2])
+
+
+def _attach(parent: int, child: int, x: np.ndarray) -> np.ndarray:
+    """Where ``child`` hangs from ``parent`` in state(s) ``x`` of the parent."""
+    name = PARTS_2D[child].name
+    if parent == 0:
+        return _torso_points(x)[_ATTACH[name]]
+    return _limb_end(x)
+
+
+def _grid(n_u: int, n_v: int) -> tuple[np.ndarray, np.ndarray]:
+    u, v = np.meshgrid(np.linspace(0.0, 1.0, n_u), np.linspace(-0.5, 0.5, n_v), indexing="ij")
+    return u.ravel(), v.ravel()
+
+
+_GU, _GV = _grid(9, 5)
+
+
+def _sample_points(i: int, x: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points inside part ``i`` for each state in ``x`` (M, K, 2) and each part's area (M,)."""
+    part = PARTS_2D[i]
+    w = part.width * height
+    if i == 0:  # the quad of shoulders and hips, widened by half the torso's depth
+        t = _torso_points(x)
+        half = 0.5 * w
+        def widen(a, b):  # noqa: E306 - the segment a-b lengthened by `half` at both ends
+            d = b - a
+            d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-6)
+            return a - half * d, b + half * d
+        ls, rs = widen(t["right_shoulder"], t["left_shoulder"])[::-1]
+        lh, rh = widen(t["right_hip"], t["left_hip"])[::-1]
+        top = rs[:, None] + (_GV[None, :, None] + 0.5) * (ls - rs)[:, None]
+        bot = rh[:, None] + (_GV[None, :, None] + 0.5) * (lh - rh)[:, None]
+        pts = bot + _GU[None, :, None] * (top - bot)
+        width = 0.5 * (np.linalg.norm(ls - rs, axis=-1) + np.linalg.norm(lh - rh, axis=-1))
+        return pts, x[:, 3] * width
+    if part.name == "head":  # a disc of the head's width around the head joint
+        centre = _limb_end(x)
+        r = np.sqrt(_GU) * 0.5 * w
+        a = (_GV + 0.5) * 2 * np.pi + _GU * 2.4  # spread the grid over the disc
+        pts = centre[:, None] + (r[:, None] * _unit(a))[None]
+        return pts, np.full(len(x), np.pi * (0.5 * w) ** 2)
+    d = _unit(x[:, 2])
+    n = np.stack([d[:, 1], -d[:, 0]], -1)
+    length = part.extend * x[:, 3]
+    pts = (x[:, None, :2] + (_GU[None, :, None] * length[:, None, None]) * d[:, None]
+           + (_GV[None, :, None] * w) * n[:, None])
+    return pts, length * w
+
+
+def _draw(mask: np.ndarray, i: int, x: np.ndarray, height: float) -> None:
+    """Draw part ``i`` in state ``x`` (one state) into ``mask`` (255), OpenCV capsules."""
+    part = PARTS_2D[i]
+    w = max(1, int(round(part.width * height)))
+    s = 16.0  # 4 bits of sub-pixel precision
+
+    def p(v: np.ndarray) -> tuple[int, int]:
+        return int(round(v[0] * s)), int(round(v[1] * s))
+
+    if i == 0:
+        t = _torso_points(x)
+        quad = np.array([t["left_shoulder"], t["right_shoulder"], t["right_hip"], t["left_hip"]])
+        cv2.fillConvexPoly(mask, np.round(quad * s).astype(np.int32), 255, cv2.LINE_8, 4)
+        cv2.polylines(mask, [np.round(quad * s).astype(np.int32)], True, 255, w, cv2.LINE_8, 4)
+    elif part.name == "head":
+        cv2.circle(mask, p(_limb_end(x)), int(round(0.5 * w * s)), 255, -1, cv2.LINE_8, 4)
+    else:
+        cv2.line(mask, p(x[:2]), p(_limb_end(x, part.extend)), 255, w, cv2.LINE_8, 4)
+
+
+def joints_from_states(states: list[np.ndarray]) -> np.ndarray:
+    """The 13 joints (13, 2) of one posture given each part's state."""
+    out = np.full((N_JOINTS, 2), np.nan)
+    t = _torso_points(states[0])
+    for name in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"):
+        out[_J[name]] = t[name]
+    for i, part in enumerate(PARTS_2D[1:], start=1):
+        out[_J[part.distal]] = _limb_end(states[i])
+    return out
+
+
+def states_from_joints(joints: np.ndarray, height: float) -> list[np.ndarray]:
+    """Each part's state from 13 joints (the inverse of :func:`joints_from_states`)."""
+    j = {name: joints[k] for name, k in _J.items()}
+    sm = 0.5 * (j["left_shoulder"] + j["right_shoulder"])
+    hm = 0.5 * (j["left_hip"] + j["right_hip"])
+    axis = sm - hm
+    ln = max(float(np.hypot(*axis)), 1e-3 * height)
+    ang = float(np.arctan2(axis[1], axis[0]))
+    u = axis / ln
+    n = np.array([u[1], -u[0]])
+    ds, dh = j["left_shoulder"] - sm, j["left_hip"] - hm
+    torso = np.array([*(0.5 * (sm + hm)), ang, ln, ds @ n, ds @ u, dh @ n, dh @ u])
+    states = [torso]
+    points = {"neck": sm, **j}
+    for part in PARTS_2D[1:]:
+        prox = points[_ATTACH.get(part.name) or _proximal_joint(part)]
+        d = j[part.distal] - prox
+        states.append(np.array([*prox, float(np.arctan2(d[1], d[0])),
+                                max(float(np.hypot(*d)), 1e-3 * height)]))
+    return states
+
+
+def _proximal_joint(part: _Part) -> str:
+    return PARTS_2D[_INDEX[part.parent]].distal
+
+
+# --------------------------------------------------------------------- inference
+
+
+def _observation(silhouette: np.ndarray) -> np.ndarray:
+    """``+1`` on the silhouette, ``-1`` off it (float32), before other parts are drawn."""
+    return np.where(silhouette > 0, 1.0, -1.0).astype(np.float32)
+
+
+def _score(G: np.ndarray, pts: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """Mean of ``G`` at each candidate's points times its area; off the image = -1."""
+    h, w = G.shape
+    ij = np.round(pts).astype(np.int64)
+    inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
+    vals = np.where(inside, G[np.clip(ij[..., 1], 0, h - 1), np.clip(ij[..., 0], 0, w - 1)], -1.0)
+    return vals.mean(axis=1) * area
+
+
+def _gauss2(d: np.ndarray, sigma: float) -> np.ndarray:
+    return np.exp(-0.5 * (d ** 2).sum(-1) / sigma ** 2)
+
+
+class _Beliefs:
+    """Particles, weights and the messages each part last received, for one frame."""
+
+    def __init__(self, start: list[np.ndarray], height: float, config: MNBPConfig,
+                 rng: np.random.Generator) -> None:
+        m = config.n_particles
+        self.x = [np.repeat(s[None], m, axis=0) for s in start]
+        self.w = [np.full(m, 1.0 / m) for _ in start]
+        self.received = [{k: np.ones(m) for k in _NEIGHBOURS[i]} for i in range(len(start))]
+        self.height, self.config, self.rng = height, config, rng
+        self.joint_sigma = config.joint_sigma[0] * height  # annealed with the temperature
+
+    def best(self, i: int) -> np.ndarray:
+        return self.x[i][int(np.argmax(self.w[i]))]
+
+    def message(self, k: int, i: int, xi: np.ndarray) -> np.ndarray:
+        """m_ki at the candidate states ``xi`` of part ``i`` (eq. 2, particle estimate)."""
+        weights = self.w[k] / np.maximum(self.received[k][i], 1e-300)
+        weights = weights / weights.sum()
+        sigma = self.joint_sigma
+        if PARTS_2D[i].parent is not None and _INDEX[PARTS_2D[i].parent] == k:  # k is i's parent
+            gap = _attach(k, i, self.x[k])[None, :, :] - xi[:, None, :2]
+        else:  # k is i's child
+            gap = self.x[k][None, :, :2] - _attach(i, k, xi)[:, None, :]
+        return _gauss2(gap, sigma) @ weights + 1e-12
+
+    def propose(self, i: int, frac: float) -> np.ndarray:
+        """Resample part ``i``'s belief and perturb it (annealed by ``frac`` in [0, 1])."""
+        c, m, h = self.config, self.config.n_particles, self.height
+        lerp = lambda a: a[0] + (a[1] - a[0]) * frac  # noqa: E731
+        idx = self.rng.choice(m, size=m, p=self.w[i])
+        x = self.x[i][idx].copy()
+        model = PARTS_2D[i].length * h
+        x[:, :2] += self.rng.normal(0.0, lerp(c.step_position) * h, (m, 2))
+        x[:, 2] += np.deg2rad(self.rng.normal(0.0, lerp(c.step_angle_deg), m))
+        length = np.clip(x[:, 3] + self.rng.normal(0.0, lerp(c.step_length) * model, m),
+                         c.length_range[0] * model, c.length_range[1] * model)
+        if i == 0:  # the torso moves as a whole: its shape is the start's (see module docstring)
+            x[:, 4:8] *= (length / x[:, 3])[:, None]
+        x[:, 3] = length
+        if i > 0:  # half of a child's particles start at its parent's attachment point
+            parent = _INDEX[PARTS_2D[i].parent]
+            half = self.rng.random(m) < 0.5
+            pick = self.rng.choice(m, size=int(half.sum()), p=self.w[parent])
+            x[half, :2] = _attach(parent, i, self.x[parent][pick]) + self.rng.normal(
+                0.0, self.joint_sigma, (int(half.sum()), 2))
+            wide = self.rng.random(m) < c.explore * (1.0 - frac)  # annealed global moves
+            x[wide, 2] = self.best(i)[2] + np.deg2rad(self.rng.uniform(-1, 1, int(wide.sum())) * c.explore_deg)
+        x[0] = self.best(i)  # keep the current best
+        return x
+
+
+def estimate_posture2d(silhouette: np.ndarray, start: np.ndarray, *, height: float | None = None,
+                       prior: np.ndarray | None = None, config: MNBPConfig = MNBPConfig()) -> Posture2D:
+    """The 2D posture on one silhouette by mNBP, started from ``start`` (13, 2).
+
+    Parameters
+    ----------
+    silhouette : ndarray of shape (H, W), uint8 (non-zero = walker)
+    start : ndarray of shape (13, 2)
+        Starting joints in the silhouette's pixels (Izo–Grimson's model
+        placement, or the previous frame's posture).
+    height : float, optional
+        The walker's image height in pixels (default: the silhouette's rows).
+    prior : ndarray of shape (13, 2), optional
+        Centre of the weak unary prior (default: ``start``).
+    """
+    rows = np.flatnonzero(silhouette.any(axis=1))
+    if height is None:
+        height = float(rows[-1] - rows[0] + 1) if rows.size else float(silhouette.shape[0])
+    c = config
+    rng = np.random.default_rng(c.seed)
+    beliefs = _Beliefs(states_from_joints(np.asarray(start, float), height), height, c, rng)
+    prior_states = states_from_joints(np.asarray(start if prior is None else prior, float), height)
+    base = _observation(silhouette)
+    n_parts = len(PARTS_2D)
+    drawn = [np.zeros(silhouette.shape, np.uint8) for _ in range(n_parts)]
+    for i in range(n_parts):
+        _draw(drawn[i], i, beliefs.best(i), height)
+    order = list(range(n_parts)) + list(range(n_parts - 1, -1, -1))  # root to leaves and back
+    temps = np.geomspace(c.temperature[0], c.temperature[1], c.n_iterations) * height ** 2
+    sigmas = np.geomspace(c.joint_sigma[0], c.joint_sigma[1], c.n_iterations) * height
+    for n, temp in enumerate(temps):
+        frac = n / max(1, c.n_iterations - 1)
+        beliefs.joint_sigma = sigmas[n]
+        for i in order:
+            others = np.zeros_like(drawn[0])
+            for k in range(n_parts):
+                if k != i:
+                    others |= drawn[k]
+            G = np.where(others > 0, 0.0, base).astype(np.float32)  # X_-i^(n-1) explains these
+            x = beliefs.propose(i, frac)
+            pts, area = _sample_points(i, x, height)
+            log_w = _score(G, pts, area) / temp
+            log_w -= _prior_energy(i, x, prior_states[i], height, c)
+            incoming = {k: beliefs.message(k, i, x) for k in _NEIGHBOURS[i]}
+            for msg in incoming.values():
+                log_w += np.log(msg)
+            w = np.exp(log_w - log_w.max())
+            beliefs.x[i], beliefs.w[i], beliefs.received[i] = x, w / w.sum(), incoming
+            drawn[i][:] = 0
+            _draw(drawn[i], i, beliefs.best(i), height)
+    states = [beliefs.best(i) for i in range(n_parts)]
+    body = np.zeros_like(drawn[0])
+    for d in drawn:
+        body |= d
+    score = float((np.where(body > 0, base, 0.0).sum() - (base > 0)[body == 0].sum()) / max(1, (base > 0).sum()))
+    return Posture2D(joints_from_states(states), score, states)
+
+
+def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: float, c: MNBPConfig) -> np.ndarray:
+    """Unary prior: squared distance of the part's points from the starting posture's.
+
+    Weak for the limbs (``prior_sigma``), tight for the torso
+    (``torso_prior_sigma``): its quad-and-edges outline is too crude for its
+    silhouette to place the shoulder and hip centres, which lie inside it
+    (measured, ``bench/eval_mnbp.py``: letting it move within 1 % of the
+    height made shoulders and hips 0.02-0.03 worse in median error than the
+    model placement, 0.6 % better with it held within 0.3 %).
+    """
+    sigma2 = ((c.torso_prior_sigma if i == 0 else c.prior_sigma) * height) ** 2
+    if i == 0:
+        t, t0 = _torso_points(x), _torso_points(centre[None])
+        d = sum(((t[k] - t0[k]) ** 2).sum(-1) for k in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"))
+        return 0.5 * d / 4 / sigma2
+    d = ((_limb_end(x) - _limb_end(centre[None])) ** 2).sum(-1) + ((x[:, :2] - centre[None, :2]) ** 2).sum(-1)
+    return 0.5 * d / 2 / sigma2
+
+
+def posture_sequence(silhouettes: list[np.ndarray | None], boxes: np.ndarray, starts: np.ndarray, *,
+                     config: MNBPConfig = MNBPConfig(), carry: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """2D postures over one camera's frames, in full-frame pixels.
+
+    ``silhouettes`` are crops at ``boxes`` (T, 4: x, y, w, h) and ``starts``
+    (T, 13, 2) the starting joints in the full frame (Izo–Grimson's model
+    placement, which also centres each frame's prior). Each frame starts from
+    its own start plus ``carry`` x the previous frame's correction (its
+    posture minus its start): the previous posture carries over relative to
+    the model, which moves with the walker, so the walker's travel between
+    frames does not drag it back.
+    Returns joints (T, 13, 2), NaN where no silhouette, and scores (T,).
+    """
+    T = len(silhouettes)
+    out, scores = np.full((T, N_JOINTS, 2), np.nan), np.full(T, np.nan)
+    correction = np.zeros((N_JOINTS, 2))
+    for t, sil in enumerate(silhouettes):
+        if sil is None or not np.all(np.isfinite(starts[t])) or not np.all(np.isfinite(boxes[t])):
+            correction[:] = 0.0
+            continue
+        origin = boxes[t, :2]
+        start = starts[t] + carry * correction
+        post = estimate_posture2d(sil, start - origin, prior=starts[t] - origin,
+                                  config=replace(config, seed=config.seed + t))
+        out[t], scores[t] = post.joints + origin, post.score
+        correction = out[t] - starts[t]
+    return out, scores
