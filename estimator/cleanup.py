@@ -5,34 +5,41 @@ Registration (Izo–Grimson §5) scales, centres and rotates a silhouette by
 to the whole frame, a bystander or a shadow moves the centroid and the
 principal axis, and the matched viewpoint goes with them (docs/ROBUSTNESS.md:
 0.2 % salt noise took the median azimuth error from 2 to 86 deg). Real
-segmenters leave exactly such damage, so every window is cleaned first:
+segmenters leave exactly such damage, so every window is cleaned first, one
+function per stage (:func:`estimator.pipeline.clean_tracks` runs them in
+this order):
 
-1. **Components.** Each frame's 8-connected components; every component at
-   least ``candidate`` of the frame's largest seeds a candidate walker, to
-   which the components within ``reach`` of its height (a foot cut off at the
-   ankle, a forearm split from the body) and larger than ``min_part`` of it
-   are joined. Specks and blobs farther away belong to no candidate.
-2. **Continuity.** One candidate per frame, chosen by dynamic programming
-   over the window: a switch between candidates costs their displacement in
-   walker heights and their change of size, so a bystander or a blob larger
-   than the walker in one frame does not take over; size breaks the tie.
-3. **Plausibility.** A frame is skipped (treated as missing, so it cannot
-   drag the viewpoint) when its walker touches the image border (cut by it),
-   when its height differs from the median of its neighbours by more than
-   ``size_tolerance`` (merged with clutter, or torn), or when it is wider
-   than ``max_aspect`` times its height.
+1. **Components** (:func:`select_walker`). Each frame's 8-connected
+   components larger than ``min_part`` of its largest are grouped, largest
+   first: a group takes the components within ``reach`` of its height from
+   its box (``stack_reach`` for those above or below it: the pieces of a
+   walker torn by a hole at the hip or a cut shin are stacked), at least the
+   window's walker height, and grows until none is in reach. Groups of at
+   least ``candidate`` of the largest are candidate walkers; specks and
+   blobs farther away belong to none.
+2. **Continuity** (same function). One candidate per frame, chosen by
+   dynamic programming over the window: a switch between candidates costs
+   their displacement in walker heights and their change of size, so a
+   bystander or a blob larger than the walker in one frame does not take
+   over; size breaks the tie.
+3. **Below the feet** (:func:`trim_below_feet`, with the appearance model's
+   score). A shadow or
+   floor reflection joined to the feet is part of the walker's component
+   and of its box, and no test above sees it. The body model does: the
+   silhouettes cut at fractions of their height from the top are scored
+   against the appearance examples, and a window whose frames, cut near one
+   steadily changing length, score clearly better is cut, each frame where
+   its own score is best near that length.
+4. **Plausibility** (:func:`check_plausible`, after the cut). A frame is
+   skipped (treated as missing, so it cannot drag the viewpoint) when its
+   walker touches the image border (cut by it), when its height differs
+   from the median of its neighbours by more than ``size_tolerance``
+   (merged with clutter, or torn), or when it is wider than ``max_aspect``
+   times its height.
 
-4. **Below the feet** (:func:`trim_below_feet`, needs the appearance model's
-   score). A shadow or floor reflection joined to the feet is part of the
-   walker's component and of its box, and no test above sees it. The body
-   model does: the silhouettes cut at a fraction of their height from the
-   top are scored against the appearance clusters, and the camera's window
-   is cut where the score is clearly best. A clean walker scores best uncut
-   (every clean window measured), so the cut costs nothing there.
-
-The choices and their thresholds are measured in docs/ROBUSTNESS.md; what was
-discarded is reported per camera (:class:`CleanupReport`) and in a window's
-``notes``.
+:func:`isolate_walker` is stages 1, 2 and 4 (no model). The choices and
+their thresholds are measured in docs/ROBUSTNESS.md; what was discarded is
+reported per camera (:class:`CleanupReport`) and in a window's ``notes``.
 """
 
 from __future__ import annotations
@@ -43,7 +50,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-__all__ = ["CleanupConfig", "CleanupReport", "isolate_walker", "trim_below_feet"]
+__all__ = ["CleanupConfig", "CleanupReport", "check_plausible", "isolate_walker", "select_walker",
+           "trim_below_feet"]
 
 
 @dataclass(frozen=True)
@@ -53,13 +61,16 @@ class CleanupConfig:
     Parameters
     ----------
     candidate : float
-        A component at least this fraction of the frame's largest (by area)
-        seeds a candidate walker.
+        A group of components at least this fraction of the frame's largest
+        group (by area) is a candidate walker.
     reach : float
-        Components whose box lies within this fraction of the candidate's
-        height from its box join it.
+        Components whose box lies within this fraction of a group's height
+        (at least the window's median walker height) from its box join it ...
+    stack_reach : float
+        ... or within this fraction above or below it (overlapping it
+        horizontally): the pieces of a torn walker.
     min_part : float
-        ... if their area is at least this fraction of the candidate's seed.
+        Components smaller than this fraction of the frame's largest join no group.
     switch_cost : float
         Weight of a candidate's displacement (in walker heights per frame)
         and size change (log ratio) between frames in the continuity choice.
@@ -83,15 +94,23 @@ class CleanupConfig:
     cuts : tuple of float
         :func:`trim_below_feet`: fractions of the height, from the top, at
         which the silhouettes are cut and scored (1 = uncut).
-    cut_gain : float
-        ... a cut is made only if it lowers the median score by this fraction.
     cut_frames : int
-        ... scored on at most this many frames of the window, evenly spaced.
+        ... on at most this many frames of the window, evenly spaced.
+    cut_near : float
+        ... each of them cut at its best within this fraction of its height
+        of a straight line (over time) through their best cuts, or uncut;
+    cut_gain : float
+        ... the window is cut only if that lowers their summed score by this
+        fraction of the uncut silhouettes'.
+    cut_steps : tuple of float
+        ... then every frame is cut at the best of these relative changes of
+        the walker's length on that line (or not at all).
     """
 
     candidate: float = 0.3
     reach: float = 0.12
     min_part: float = 0.005
+    stack_reach: float = 0.25
     switch_cost: float = 2.0
     size_weight: float = 0.2
     size_tolerance: float = 0.25
@@ -100,13 +119,15 @@ class CleanupConfig:
     skip_border: bool = True
     min_kept: float = 0.3
     cuts: tuple[float, ...] = (1.0, 0.92, 0.85, 0.79, 0.74, 0.69, 0.65, 0.61, 0.57)
-    cut_gain: float = 0.1
+    cut_gain: float = 0.2
+    cut_near: float = 0.08
     cut_frames: int = 8
+    cut_steps: tuple[float, ...] = (-0.06, -0.03, 0.0, 0.03, 0.06)
 
 
 @dataclass
 class CleanupReport:
-    """What :func:`isolate_walker` did to one camera's window."""
+    """What the clean-up did to one camera's window."""
 
     frames: int = 0  # frames with any foreground
     kept: int = 0
@@ -114,7 +135,8 @@ class CleanupReport:
     several: int = 0  # frames with more than one candidate walker
     skipped: dict[str, int] = field(default_factory=dict)  # reason -> frames
     waived: list[str] = field(default_factory=list)  # tests not applied: they would skip too many
-    cut: float = 1.0  # fraction of the height kept by trim_below_feet
+    cut: int = 0  # frames cut by trim_below_feet
+    cut_kept: float = 1.0  # median fraction of their height kept
     kept_mask: np.ndarray | None = None  # (T,) bool
 
     def note(self) -> str | None:
@@ -128,9 +150,9 @@ class CleanupReport:
             parts.append(f"{n} frames skipped ({reason})")
         for reason in self.waived:
             parts.append(f"most frames {reason}: kept all the same")
-        if self.cut < 1.0:
-            parts.append(f"cut at {self.cut:.0%} of its height: the rest below the feet did not fit a walker "
-                         "(a shadow or reflection)")
+        if self.cut:
+            parts.append(f"cut below the feet on {self.cut} frames (median {self.cut_kept:.0%} of the height kept): "
+                         "the rest did not fit a walker (a shadow or reflection)")
         return "; ".join(parts) if parts else None
 
 
@@ -142,11 +164,11 @@ class _Candidate:
     at: np.ndarray  # (x, y) of the silhouette in the full frame: box + at is where it is
 
 
-def _gaps(boxes: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Chebyshev distance of each (x, y, w, h) box to box ``b`` (0 where they overlap)."""
+def _gaps(boxes: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal and vertical gap of each (x, y, w, h) box to box ``b`` (0 where they overlap)."""
     dx = np.maximum(np.maximum(boxes[:, 0] - (b[0] + b[2]), b[0] - (boxes[:, 0] + boxes[:, 2])), 0)
     dy = np.maximum(np.maximum(boxes[:, 1] - (b[1] + b[3]), b[1] - (boxes[:, 1] + boxes[:, 3])), 0)
-    return np.maximum(dx, dy)
+    return dx, dy
 
 
 def _union(boxes: np.ndarray) -> np.ndarray:
@@ -155,22 +177,45 @@ def _union(boxes: np.ndarray) -> np.ndarray:
     return np.array([x0, y0, x1 - x0, y1 - y0], float)
 
 
-def _candidates(stats: np.ndarray, at: np.ndarray, config: CleanupConfig) -> list[_Candidate]:
+def _candidates(stats: np.ndarray, at: np.ndarray, config: CleanupConfig,
+                height: float = 0.0) -> list[_Candidate]:
     """Candidate walkers of one frame from its component statistics (row 0 = background)
-    of a silhouette whose top-left corner is at ``at`` in the full frame."""
+    of a silhouette whose top-left corner is at ``at`` in the full frame.
+
+    The components of at least ``min_part`` of the largest are grouped, largest
+    first: a group takes every free component within ``reach`` of its height
+    (at least ``height``, the walker's in the window) from its box, or within
+    ``stack_reach`` of it above or below it, and grows until none is left in
+    reach (a walker torn into several pieces by holes or a cut limb is put
+    back together, whichever piece is largest). Groups of at least
+    ``candidate`` of the largest group's area are the candidates.
+    """
     boxes = stats[1:, :4].astype(float)
-    areas = stats[1:, cv2.CC_STAT_AREA]
+    areas = stats[1:, cv2.CC_STAT_AREA].astype(float)
     if areas.size == 0:
         return []
-    seeds = np.flatnonzero(areas >= config.candidate * areas.max())
-    seeds = seeds[np.argsort(-areas[seeds])]
-    out = []
-    for s in seeds:
-        near = (areas >= config.min_part * areas[s]) & (_gaps(boxes, boxes[s]) <= config.reach * boxes[s, 3])
-        near[s] = True
-        ids = np.flatnonzero(near)
-        out.append(_Candidate(_union(boxes[ids]), int(areas[ids].sum()), (ids + 1).tolist(), at))
-    return out
+    free = areas >= config.min_part * areas.max()
+    groups = []
+    for s in np.argsort(-areas, kind="stable"):
+        if not free[s]:
+            if areas[s] < config.min_part * areas.max():
+                break  # sorted: only specks are left
+            continue
+        free[s] = False
+        ids, box = [int(s)], boxes[s]
+        while True:
+            dx, dy = _gaps(boxes, box)
+            scale = max(box[3], height)
+            near = free & ((np.maximum(dx, dy) <= config.reach * scale)
+                           | ((dx <= 0) & (dy <= config.stack_reach * scale)))
+            if not near.any():
+                break
+            free &= ~near
+            ids += np.flatnonzero(near).tolist()
+            box = _union(boxes[ids])
+        groups.append(_Candidate(box, int(areas[ids].sum()), [i + 1 for i in ids], at))
+    largest = max(g.area for g in groups)
+    return [g for g in groups if g.area >= config.candidate * largest]
 
 
 def _centres(cands: list[_Candidate]) -> np.ndarray:
@@ -224,34 +269,18 @@ def _neighbour_median(values: np.ndarray, present: np.ndarray, n: int) -> np.nda
     return out
 
 
-def isolate_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
-                   image_size: tuple[int, int] | None = None,
-                   config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, CleanupReport]:
-    """The walker alone in each frame of one camera's window.
+def select_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
+                  config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, CleanupReport]:
+    """Stages 1 and 2: each frame's candidate walkers, and one of them per frame.
 
-    Parameters
-    ----------
-    silhouettes : list of (ndarray of shape (h, w), uint8, or None)
-        Per frame the silhouette crop (any non-zero pixel is foreground).
-    boxes : ndarray of shape (T, 4)
-        Each crop's ``(x, y, w, h)`` in the full frame (or in its own pixels).
-    image_size : (int, int), optional
-        ``(width, height)`` of the full frame; enables the border test.
-    config : CleanupConfig, optional
-
-    Returns
-    -------
-    silhouettes : list
-        Tight crops of the walker's components, None for frames without one
-        or skipped.
-    boxes : ndarray of shape (T, 4)
-        Their boxes in the same coordinates as the input's, NaN where None.
-    report : CleanupReport
+    Parameters and returns as :func:`isolate_walker`; no frame is skipped.
     """
     config = config or CleanupConfig()
     T = len(silhouettes)
     boxes = np.asarray(boxes, float)
-    labelled: list[tuple[np.ndarray, np.ndarray] | None] = []
+    if boxes.shape != (T, 4):
+        raise ValueError(f"boxes must have shape ({T}, 4), got {boxes.shape}")
+    labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
     cands: list[list[_Candidate]] = []
     for t, sil in enumerate(silhouettes):
         if sil is None or sil.size == 0:
@@ -259,9 +288,15 @@ def isolate_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
             cands.append([])
             continue
         n, labels, stats, _ = cv2.connectedComponentsWithStats((sil > 0).view(np.uint8), connectivity=8)
-        labelled.append((labels, stats))
         at = boxes[t, :2] if np.all(np.isfinite(boxes[t, :2])) else np.zeros(2)
+        labelled.append((labels, stats, at))
         cands.append(_candidates(stats, at, config))
+    # A walker torn on one frame is whole on others: group again with the window's height
+    # (the median of each frame's tallest candidate) as the least reach.
+    tallest = [max(k.box[3] for k in c) for c in cands if c]
+    if tallest:
+        height = float(np.median(tallest))
+        cands = [[] if lab is None else _candidates(lab[1], lab[2], config, height) for lab in labelled]
     choice = _choose(cands, config)
     report = CleanupReport(frames=sum(1 for c in cands if c))
     out_sils: list[np.ndarray | None] = [None] * T
@@ -269,16 +304,32 @@ def isolate_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     for t, k in enumerate(choice):
         if k < 0:
             continue
-        labels, stats = labelled[t]
+        labels, stats, _ = labelled[t]
         c = cands[t][k]
         report.several += len(cands[t]) > 1
         x, y, w, h = (int(v) for v in c.box)
-        sub = labels[y:y + h, x:x + w]
-        keep = np.isin(sub, c.ids)
+        keep = np.isin(labels[y:y + h, x:x + w], c.ids)
         report.cleaned += int(len(stats) - 1 > len(c.ids))
         out_sils[t] = np.where(keep, np.uint8(255), np.uint8(0))
         out_boxes[t] = [boxes[t, 0] + x, boxes[t, 1] + y, w, h]
-    present = np.isfinite(out_boxes[:, 0])
+    report.kept_mask = np.isfinite(out_boxes[:, 0])
+    report.kept = int(report.kept_mask.sum())
+    return out_sils, out_boxes, report
+
+
+def check_plausible(silhouettes: list[np.ndarray | None], boxes: np.ndarray, report: CleanupReport, *,
+                    image_size: tuple[int, int] | None = None,
+                    config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, CleanupReport]:
+    """Stage 4: skip the frames whose walker is cut by the image border, wider than a
+    walker, or of a size unlike its neighbours'; ``report`` is updated in place.
+
+    Run it on the walker alone (after :func:`trim_below_feet`): a shadow that
+    reaches the border does not cut the walker.
+    """
+    config = config or CleanupConfig()
+    T = len(silhouettes)
+    out_sils, out_boxes = list(silhouettes), np.array(boxes, float)
+    present = np.isfinite(out_boxes[:, 0]) & np.array([s is not None for s in silhouettes], bool)
     reasons = np.full(T, "", dtype=object)
     need = config.min_kept * present.sum()
 
@@ -309,40 +360,134 @@ def isolate_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     return out_sils, out_boxes, report
 
 
+def isolate_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
+                   image_size: tuple[int, int] | None = None,
+                   config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, CleanupReport]:
+    """The walker alone in each frame of one camera's window (stages 1-3, no model).
+
+    Parameters
+    ----------
+    silhouettes : list of (ndarray of shape (h, w), uint8, or None)
+        Per frame the silhouette crop (any non-zero pixel is foreground).
+    boxes : ndarray of shape (T, 4)
+        Each crop's ``(x, y, w, h)`` in the full frame (or in its own pixels).
+    image_size : (int, int), optional
+        ``(width, height)`` of the full frame; enables the border test.
+    config : CleanupConfig, optional
+
+    Returns
+    -------
+    silhouettes : list
+        Tight crops of the walker's components, None for frames without one
+        or skipped.
+    boxes : ndarray of shape (T, 4)
+        Their boxes in the same coordinates as the input's, NaN where None.
+    report : CleanupReport
+    """
+    sils, out, report = select_walker(silhouettes, boxes, config=config)
+    return check_plausible(sils, out, report, image_size=image_size, config=config)
+
+
+def _top_rows(sil: np.ndarray, rows: int) -> tuple[np.ndarray, int] | None:
+    """The tight crop of a silhouette's first ``rows`` rows and its first column; None if empty."""
+    top = sil[:max(1, rows)]
+    r = np.flatnonzero(top.any(axis=1))
+    if r.size == 0:
+        return None
+    c = np.flatnonzero(top[:r[-1] + 1].any(axis=0))
+    return top[:r[-1] + 1, c[0]:c[-1] + 1], int(c[0])
+
+
+def _line(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Theil-Sen line ``y ~ a + b t`` (median of the pairwise slopes; a few wrong points do not move it)."""
+    if t.size < 2:
+        return float(np.median(y)), 0.0
+    i, j = np.triu_indices(t.size, 1)
+    b = float(np.median((y[j] - y[i]) / (t[j] - t[i])))
+    return float(np.median(y - b * t)), b
+
+
 def trim_below_feet(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
                     score: Callable[[list[np.ndarray]], np.ndarray], *,
-                    config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, float]:
-    """Cut a shadow or reflection joined to the feet off one camera's window.
+                    config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, np.ndarray]:
+    """Stage 3: cut a shadow or reflection joined to the feet off one camera's window.
 
-    Every frame's silhouette is cut at each fraction of ``config.cuts`` of its
-    height (from the top), ``score`` (lower = more like a walker, e.g. the
-    eq. 8 distance to the nearest appearance cluster) rates the cut
-    silhouettes of up to ``cut_frames`` frames, and the fraction with the
-    lowest median score wins if it beats the uncut silhouettes by
-    ``cut_gain``. One fraction serves the window: a shadow keeps its length
-    relative to the walker over the second or two a window lasts (a window's
-    median height would not do: a walker nearing a camera grows).
+    ``score`` rates silhouettes (lower = more like a walker: the eq. 8
+    distance to the nearest appearance example, :func:`estimator.pipeline.walker_score`).
 
-    Returns the silhouettes (tight crops), their boxes and the fraction kept.
+    1. **Where are the feet?** Up to ``cut_frames`` frames of the window,
+       evenly spaced, are cut at each fraction ``cuts`` of their height (from
+       the top) and scored; the walker's length from its top at those frames
+       (their best cut) is a straight line over the window (Theil-Sen): the
+       walker's size changes steadily, while the silhouette's own height does
+       not when the shadow leaves the frame.
+    2. **Is there anything below them?** Each of those frames is cut at its
+       best within ``cut_near`` of the line (or not cut); the window is cut
+       only if that lowers their summed score by ``cut_gain`` of the uncut
+       silhouettes' (a clean or merely damaged walker scores best uncut on
+       most frames, so its line is its own height and nothing is gained).
+    3. **Per frame**, the best of the cuts at ``cut_steps`` around the line
+       (and of the uncut silhouette): the lowest foot moves with the stride.
+
+    Returns
+    -------
+    silhouettes, boxes
+        The cut silhouettes (tight crops) and their boxes.
+    kept : ndarray of shape (T,)
+        Fraction of each frame's height kept (1 = uncut), NaN where no silhouette.
     """
     config = config or CleanupConfig()
-    present = [t for t, s in enumerate(silhouettes) if s is not None]
-    if not present:
-        return silhouettes, boxes, 1.0
-    sample = [silhouettes[t] for t in np.array(present)[np.linspace(0, len(present) - 1,
-                                                                  min(config.cut_frames, len(present))).astype(int)]]
-    cuts = np.asarray(config.cuts, float)
-    medians = np.array([np.median(score([s[:max(1, round(f * s.shape[0]))] for s in sample])) for f in cuts])
-    uncut = medians[cuts == 1.0].min() if (cuts == 1.0).any() else np.inf
-    best = int(np.argmin(medians))
-    if not medians[best] < (1.0 - config.cut_gain) * uncut:
-        return silhouettes, boxes, 1.0
-    f = float(cuts[best])
-    out, out_boxes = list(silhouettes), np.array(boxes, float)
-    for t in present:
-        s = silhouettes[t]
-        rows = np.flatnonzero(s[:max(1, round(f * s.shape[0]))].any(axis=1))
-        cols = np.flatnonzero(s[:rows[-1] + 1].any(axis=0))
-        out[t] = s[:rows[-1] + 1, cols[0]:cols[-1] + 1]
-        out_boxes[t] = [boxes[t, 0] + cols[0], boxes[t, 1], cols[-1] + 1 - cols[0], rows[-1] + 1]
-    return out, out_boxes, f
+    T = len(silhouettes)
+    boxes = np.array(boxes, float)
+    kept = np.full(T, np.nan)
+    present = np.array([t for t, s in enumerate(silhouettes) if s is not None], int)
+    if present.size == 0:
+        return list(silhouettes), boxes, kept
+    kept[present] = 1.0
+    height = np.array([s.shape[0] if s is not None else 0 for s in silhouettes], float)
+    sample = present[np.unique(np.linspace(0, present.size - 1, min(config.cut_frames, present.size)).astype(int))]
+    cuts = np.unique(np.concatenate([[1.0], np.clip(config.cuts, 0.05, 1.0)]))[::-1]  # uncut first
+    trials = [[_top_rows(silhouettes[t], round(f * height[t])) for f in cuts] for t in sample]
+    scores = _scores(score, trials)
+    ok = np.isfinite(scores[:, 0])
+    if not ok.any():
+        return list(silhouettes), boxes, kept
+    scores, sample = scores[ok], sample[ok]
+    # The walker's length from its top on those frames (their best cut), a straight line over the window.
+    a, b = _line(sample.astype(float), cuts[np.argmin(scores, axis=1)] * height[sample])
+    # The window is cut if its frames, each cut near the line (or not at all), score better by cut_gain.
+    near = np.abs(cuts[None, :] - ((a + b * sample) / height[sample])[:, None]) <= config.cut_near
+    along = np.minimum(np.where(near, scores, np.inf).min(axis=1), scores[:, 0])
+    if not 1.0 - along.sum() / scores[:, 0].sum() >= config.cut_gain:
+        return list(silhouettes), boxes, kept
+    line = a + b * present
+    rows = np.round(line[:, None] * (1.0 + np.asarray(config.cut_steps, float))[None, :])
+    rows = np.concatenate([rows, height[present, None]], axis=1)  # and the uncut silhouette
+    rows = np.clip(rows, 1, height[present, None]).astype(int)
+    trials = [[_top_rows(silhouettes[t], r) for r in rr] for t, rr in zip(present, rows)]
+    scores = _scores(score, trials)
+    best = np.argmin(np.where(np.isfinite(scores), scores, np.inf), axis=1)
+    out = list(silhouettes)
+    for t, k, trial in zip(present, best, trials):
+        if trial[k] is None or rows[present == t, k][0] >= height[t]:
+            continue
+        crop, dx = trial[k]
+        out[t] = crop
+        boxes[t] = [boxes[t, 0] + dx, boxes[t, 1], crop.shape[1], crop.shape[0]]
+        kept[t] = crop.shape[0] / height[t]
+    return out, boxes, kept
+
+
+def _scores(score: Callable[[list[np.ndarray]], np.ndarray],
+            trials: list[list[tuple[np.ndarray, int] | None]]) -> np.ndarray:
+    """``score`` of every trial crop in one call: (frames, trials), inf where a trial is empty."""
+    flat = [c[0] for row in trials for c in row if c is not None]
+    values = np.asarray(score(flat), float) if flat else np.zeros(0)
+    out = np.full((len(trials), max((len(r) for r in trials), default=0)), np.inf)
+    k = 0
+    for i, row in enumerate(trials):
+        for j, c in enumerate(row):
+            if c is not None:
+                out[i, j] = values[k]
+                k += 1
+    return out

@@ -54,15 +54,18 @@ def salt(sil: np.ndarray, rng: np.random.Generator, *, fraction: float = 0.002) 
     return out
 
 
-def blobs(sil: np.ndarray, rng: np.random.Generator, *, n: int = 2, size: float = 0.06) -> np.ndarray:
-    """Add ``n`` filled ellipses of about ``size`` of the walker's height, away from the walker."""
+def blobs(sil: np.ndarray, rng: np.random.Generator, *, n: int = 2, size: float = 0.06,
+          box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """Add ``n`` filled ellipses of about ``size`` of the walker's height, at least half its
+    height from the walker's box (``box``, default: the silhouette's); a blob for which 20
+    random centres find no such place is not drawn."""
     out = sil.copy()
-    box = _box(sil)
+    box = _box(sil) if box is None else box
     H, W = sil.shape
     h = box[3] if box else H // 4
     r = max(2, int(round(size * h)))
     for _ in range(n):
-        for _try in range(20):  # a centre at least one walker-height from the walker's box
+        for _try in range(20):  # a centre at least half a walker-height from the walker's box
             cx, cy = int(rng.integers(r, W - r)), int(rng.integers(r, H - r))
             if box is None:
                 break
@@ -71,18 +74,22 @@ def blobs(sil: np.ndarray, rng: np.random.Generator, *, n: int = 2, size: float 
             dy = max(y - cy, 0, cy - (y + bh))
             if max(dx, dy) > 0.5 * h:
                 break
+        else:
+            continue  # nowhere away from the walker
         axes = (r, max(2, int(round(r * rng.uniform(0.5, 1.5)))))
         cv2.ellipse(out, (cx, cy), axes, float(rng.uniform(0, 180)), 0, 360, 255, -1)
     return out
 
 
-def holes(sil: np.ndarray, rng: np.random.Generator, *, n: int = 3, size: float = 0.05) -> np.ndarray:
-    """Cut ``n`` discs of radius ``size`` of the walker's height out of the body."""
+def holes(sil: np.ndarray, rng: np.random.Generator, *, n: int = 3, size: float = 0.05,
+          box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """Cut ``n`` discs of radius ``size`` of the walker's height (``box``, default: the
+    silhouette's) out of the foreground."""
     out = sil.copy()
     ys, xs = np.nonzero(sil)
     if ys.size == 0:
         return out
-    h = ys.max() - ys.min() + 1
+    h = box[3] if box is not None else ys.max() - ys.min() + 1
     r = max(1, int(round(size * h)))
     for k in rng.choice(ys.size, size=n):
         cv2.circle(out, (int(xs[k]), int(ys[k])), r, 0, -1)
@@ -90,14 +97,16 @@ def holes(sil: np.ndarray, rng: np.random.Generator, *, n: int = 3, size: float 
 
 
 def cut_limb(sil: np.ndarray, rng: np.random.Generator, joints2d: np.ndarray | None = None, *,
-             width: float = 0.09) -> np.ndarray:
-    """Erase one forearm or shin (a thick line from elbow/knee to wrist/ankle and beyond).
+             width: float = 0.09, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """Erase one forearm or shin (a thick line, ``width`` of the walker's height, from
+    elbow/knee to wrist/ankle and beyond).
 
     Needs the frame's 13 ``joints2d`` (the truth); without them the lower
-    quarter of one side of the body is erased instead.
+    quarter of one side of the walker's box (``box``, default: the
+    silhouette's) is erased instead.
     """
     out = sil.copy()
-    box = _box(sil)
+    box = _box(sil) if box is None else box
     if box is None:
         return out
     x, y, w, h = box
@@ -173,6 +182,7 @@ DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
 
 
 _STEADY = ("shadow", "second_person")  # placement-like: one draw per camera over a sequence
+_SCALED = ("holes", "blobs")  # sized by the walker's box (and cut_limb, which also takes the joints)
 
 
 def parse_damage(kind: str) -> tuple[str, ...]:
@@ -192,14 +202,23 @@ def damage(sil: np.ndarray, kind: str, rng: np.random.Generator, joints2d: np.nd
 
     ``joints2d`` (13, 2), the frame's true joints, is used by ``cut_limb``;
     ``steady_rng`` (default ``rng``) draws the shadow and the second person.
+    Holes, the cut and blobs are sized (and blobs kept away) by the walker's
+    box in ``sil``, not by the silhouette as damaged so far (a shadow or a
+    bystander would make them larger and push blobs onto the walker).
     Order for ``"all"``: the walker's own faults first (shadow, holes, a cut
     limb), then what lies around it (a second person, blobs, salt).
     """
     kinds = parse_damage(kind)
+    walker = _box(sil)  # sizes and distances are the walker's, not those of the damage drawn before
     out = sil
     for k in kinds:
         r = steady_rng if (k in _STEADY and steady_rng is not None) else rng
-        out = _KINDS[k](out, r, joints2d) if k == "cut_limb" else _KINDS[k](out, r)
+        if k == "cut_limb":
+            out = cut_limb(out, r, joints2d, box=walker)
+        elif k in _SCALED:
+            out = _KINDS[k](out, r, box=walker)
+        else:
+            out = _KINDS[k](out, r)
     return out
 
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from .appearance import AppearanceModel
 from .body import PARTS
-from .cleanup import CleanupConfig, CleanupReport, isolate_walker, trim_below_feet
+from .cleanup import CleanupConfig, CleanupReport, check_plausible, select_walker, trim_below_feet
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, hamming, pack
 from .gait import GaitModel, load_gait
@@ -76,6 +76,19 @@ class EstimateConfig:
     cleanup : CleanupConfig or None
         Reduce each silhouette to the walker first (:mod:`estimator.cleanup`);
         None feeds the silhouettes to registration as they are.
+    frame_outlier_mads : float
+        Exemplar path: a frame whose distance to its nearest example exceeds
+        the window's median by this many scaled MADs has no vote in the
+        viewpoint (Tukey's biweight below); ``inf`` turns it off.
+    vote_outlier_deg : float
+        Exemplar path: a frame whose examples lie this far (on average) from
+        the camera's viewpoint has no vote in it (biweight, iterated); ``inf``
+        turns it off.
+    phase_refine : bool
+        Exemplar path: after the HMM, each camera's viewpoint again from the
+        examples at the decoded phases, and the phases again.
+    phase_shift_px : int
+        ... comparing each input shifted by up to this many canvas pixels.
     """
 
     method: str = "exemplars"
@@ -87,10 +100,17 @@ class EstimateConfig:
     resolve_half_cycle: bool = True
     body: BodyShape = field(default_factory=BodyShape)
     cleanup: CleanupConfig | None = field(default_factory=CleanupConfig)
+    frame_outlier_mads: float = 3.0
+    vote_outlier_deg: float = 45.0
+    phase_refine: bool = True
+    phase_shift_px: int = 1
 
     def __post_init__(self) -> None:
         if self.method not in ("exemplars", "paper"):
             raise ValueError(f"method must be 'exemplars' or 'paper', got {self.method!r}")
+        if not (self.frame_outlier_mads > 0 and self.vote_outlier_deg > 0 and self.phase_shift_px >= 0):
+            raise ValueError("frame_outlier_mads and vote_outlier_deg must be > 0 and phase_shift_px >= 0, got "
+                             f"{self.frame_outlier_mads}, {self.vote_outlier_deg}, {self.phase_shift_px}")
 
 
 @dataclass
@@ -173,6 +193,7 @@ class CameraEstimate:
     joints2d: np.ndarray  # (T, 13, 2), NaN where no silhouette
     notes: list[str]
     cleanup: CleanupReport | None = None
+    model_joints2d: np.ndarray | None = None  # the model's placement, when joints2d was measured
 
 
 @dataclass
@@ -203,6 +224,11 @@ class WalkEstimate:
                 for name, c in self.cameras.items()
                 if np.all(np.isfinite(c.joints2d[t]))
             }
+            placed = {
+                name: np.round(c.model_joints2d[t], 2).tolist()
+                for name, c in self.cameras.items()
+                if c.model_joints2d is not None and np.all(np.isfinite(c.model_joints2d[t]))
+            }
             frames.append({
                 "index": first_index + t,
                 "phase": round(float(self.phase[t]), 4),
@@ -212,6 +238,7 @@ class WalkEstimate:
                     name: (None if np.isnan(c.observations[t]) else round(float(c.observations[t]), 4))
                     for name, c in self.cameras.items()
                 },
+                **({"model_joints2d": placed} if placed else {}),
             })
         return {
             "joint_names": list(JOINT_NAMES),
@@ -282,38 +309,162 @@ def _cloud_paper(model: AppearanceModel, labels: np.ndarray) -> tuple[np.ndarray
     return model.member_azimuth_deg[rows], model.member_elevation_deg[rows], w
 
 
-def _cloud_exemplars(
-    model: AppearanceModel, index: ExemplarIndex, bits: np.ndarray, dist: np.ndarray, config: EstimateConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+@dataclass
+class _Cloud:
+    """Example viewpoints voted for by a camera's frames (§3 step 4).
+
+    ``w`` sums to 1 over each frame's members; ``frame`` is each member's
+    frame (index into the registered inputs); ``best`` each frame's distance
+    to its nearest example.
+    """
+
+    az: np.ndarray
+    el: np.ndarray
+    w: np.ndarray
+    frame: np.ndarray
+    best: np.ndarray
+
+
+def _hamming(queries: np.ndarray, bank: np.ndarray) -> np.ndarray:
+    """:func:`estimator.exemplars.hamming` ((Q, B) x (R, B) -> (Q, R)) on 64-bit words when B allows."""
+    if queries.shape[-1] % 8:
+        return hamming(queries, bank)
+    q = np.ascontiguousarray(queries).view(np.uint64)
+    b = np.ascontiguousarray(bank).view(np.uint64)
+    return np.bitwise_count(q[:, None, :] ^ b[None, :, :]).sum(axis=-1, dtype=np.int64)
+
+
+def _cloud(index: ExemplarIndex, frame_rows: list[np.ndarray], distances: list[np.ndarray],
+           config: EstimateConfig) -> _Cloud:
+    """The cloud of each frame's candidate examples (rows of ``index``) weighted by ``exp(-d / tau_view)``.
+
+    Members whose weight is below ``exp(-10)`` of their frame's best are left out.
+    """
+    az, el, w, frame, best = [], [], [], [], np.empty(len(frame_rows))
+    for t, (rows, d) in enumerate(zip(frame_rows, distances)):
+        best[t] = d.min()
+        keep = d - best[t] <= 10.0 * config.tau_view
+        wt = np.exp(-(d[keep] - best[t]) / config.tau_view)
+        az.append(index.azimuth_deg[rows[keep]])
+        el.append(index.elevation_deg[rows[keep]])
+        w.append(wt / wt.sum())
+        frame.append(np.full(int(keep.sum()), t))
+    return _Cloud(np.concatenate(az), np.concatenate(el), np.concatenate(w), np.concatenate(frame), best)
+
+
+def _cloud_exemplars(model: AppearanceModel, index: ExemplarIndex, bits: np.ndarray, dist: np.ndarray,
+                     config: EstimateConfig) -> _Cloud:
     """Members of each frame's best clusters weighted by their own distance to the input."""
     offsets = model.member_offsets
     top = np.argsort(dist, axis=1)[:, : config.top_clusters]
-    az, el, w = [], [], []
-    for t in range(len(bits)):
-        rows = np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in top[t]])
-        d = hamming(bits[t : t + 1], index.bits[rows])[0]
-        wt = np.exp(-(d - d.min()) / config.tau_view)
-        az.append(index.azimuth_deg[rows])
-        el.append(index.elevation_deg[rows])
-        w.append(wt / wt.sum())
-    return np.concatenate(az), np.concatenate(el), np.concatenate(w)
+    rows = [np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in top[t]]) for t in range(len(bits))]
+    return _cloud(index, rows, [_hamming(bits[t : t + 1], index.bits[r])[0] for t, r in enumerate(rows)], config)
+
+
+def _rows_by_phase(index: ExemplarIndex) -> list[np.ndarray]:
+    """Rows of ``index`` at each of its phases (every viewpoint and body)."""
+    p = np.round(index.phase * index.n_phases).astype(int) % index.n_phases
+    return [np.flatnonzero(p == k) for k in range(index.n_phases)]
+
+
+def _cloud_at_phases(index: ExemplarIndex, by_phase: list[np.ndarray], registered: np.ndarray, states: np.ndarray,
+                     config: EstimateConfig) -> _Cloud:
+    """Each frame's examples at its decoded phase, from every viewpoint, weighted by their distance.
+
+    The §5 registration puts the centroid of a silhouette at the canvas
+    centre; a hole or a missing forearm moves the centroid, so the distance
+    to an example is the least over shifts of the input by up to
+    ``config.phase_shift_px`` canvas pixels along either axis.
+    """
+    r = config.phase_shift_px
+    shifts = [(0, 0)] + [(d, 0) for d in range(-r, r + 1) if d] + [(0, d) for d in range(-r, r + 1) if d]
+    rows, dists = [], []
+    for t in range(len(registered)):
+        moved = np.stack([np.roll(registered[t], sh, axis=(0, 1)) for sh in shifts])
+        rr = by_phase[int(states[t])]
+        rows.append(rr)
+        dists.append(_hamming(pack(moved), index.bits[rr]).min(axis=0))
+    return _cloud(index, rows, dists, config)
+
+
+def _fold_distance(az: np.ndarray, centre: float) -> np.ndarray:
+    """Angle from ``centre`` to the nearer of ``az`` and its ahead/behind mirror ``180 - az`` (degrees):
+    the viewpoint fit folds the cloud onto one side, so a vote on the other is not an outlier for that."""
+    return np.minimum(_abs_az_diff(az, centre), _abs_az_diff(180.0 - az, centre))
+
+
+def _biweight(u: np.ndarray) -> np.ndarray:
+    """Tukey's biweight ``(1 - u^2)^2`` for ``|u| < 1``, else 0."""
+    return np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
+
+
+def _vote(cloud: _Cloud, n_frames: int, cue: MotionCue | None, config: EstimateConfig,
+          iterations: int = 3) -> tuple[Viewpoint, np.ndarray]:
+    """The viewpoint of a camera's cloud with outlying frames voting less; and each frame's weight.
+
+    Each frame votes with weight 1 in the paper's fit (§3 step 4), so a few
+    frames whose silhouette is damaged (a cut limb, holes: their nearest
+    examples are seen from elsewhere) pull the mean as far as they like. Two
+    robust weights (Tukey's biweight, an M-estimator of the cloud's centre):
+
+    - **match**: a frame whose distance to its nearest example exceeds the
+      window's median by ``frame_outlier_mads`` scaled MADs counts for nothing;
+    - **vote**: a frame whose members lie on average ``vote_outlier_deg`` from
+      the estimate (either side of the ahead/behind fold) counts for nothing;
+      iterated from the fit with the match weights.
+    """
+    weight = np.ones(n_frames)
+    if np.isfinite(config.frame_outlier_mads):
+        med = np.median(cloud.best)
+        mad = 1.4826 * np.median(np.abs(cloud.best - med))
+        weight = _biweight(np.maximum(cloud.best - med, 0.0) / max(config.frame_outlier_mads * mad, 1e-9))
+        if weight.sum() <= 0:
+            weight = np.ones(n_frames)
+    vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue)
+    if np.isfinite(config.vote_outlier_deg):
+        match = weight
+        for _ in range(iterations):
+            off = np.bincount(cloud.frame, cloud.w * _fold_distance(cloud.az, vp.azimuth_deg), minlength=n_frames)
+            w = match * _biweight(off / config.vote_outlier_deg)
+            if w.sum() <= 0:
+                break
+            weight = w
+            vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue)
+    return vp, weight
 
 
 def _phase_distances(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint) -> np.ndarray:
     """Distance of each input to the nearest example of each phase at the viewpoint: (T, n_phases)."""
     rows = index.rows_at(vp.azimuth_deg, vp.elevation_deg)
     valid = rows >= 0
-    d = hamming(bits, index.bits[np.maximum(rows, 0).ravel()]).reshape(len(bits), *rows.shape).astype(float)
+    d = _hamming(bits, index.bits[np.maximum(rows, 0).ravel()]).reshape(len(bits), *rows.shape).astype(float)
     d[:, ~valid] = np.inf
     return d.min(axis=2)
 
 
-def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray]) -> np.ndarray:
-    """How unlike a walker each silhouette is: eq. 8 distance to its nearest cluster mean."""
+def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_clusters: int = 3) -> np.ndarray:
+    """How unlike a walker each silhouette is: eq. 8 (Hamming) distance to the nearest example
+    among the members of its ``top_clusters`` nearest cluster means; inf where it cannot be registered.
+
+    The members rather than the means: a silhouette cut through the legs is
+    about as far from the nearest (blurred) mean as a whole one, but much
+    farther from every sharp example (docs/ROBUSTNESS.md).
+    """
     registered, tf = model.register(silhouettes)
-    d = distance(registered, model.means).min(axis=1).astype(float)
-    d[~tf.valid] = np.inf
-    return d
+    out = np.full(len(silhouettes), np.inf)
+    if not tf.valid.any():
+        return out
+    index = model.exemplars()
+    d = distance(registered[tf.valid], model.means)
+    top = np.argsort(d, axis=1)[:, :top_clusters]
+    bits = pack(registered[tf.valid])
+    offsets = model.member_offsets
+    best = np.empty(len(bits))
+    for i in range(len(bits)):
+        rows = np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in top[i]])
+        best[i] = _hamming(bits[i:i + 1], index.bits[rows]).min()
+    out[tf.valid] = best
+    return out
 
 
 def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = None, *,
@@ -321,15 +472,23 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
                  ) -> tuple[dict[str, CameraTrack], dict[str, CleanupReport]]:
     """Every camera's track reduced to the walker (:mod:`estimator.cleanup`).
 
-    With a ``score`` (see :func:`walker_score`) a shadow or reflection joined
-    to the feet is cut off too (:func:`estimator.cleanup.trim_below_feet`).
+    The walker is selected (:func:`estimator.cleanup.select_walker`); with a
+    ``score`` (see :func:`walker_score`) a shadow or reflection joined to the
+    feet is cut off (:func:`estimator.cleanup.trim_below_feet`); then frames
+    whose walker is implausible are skipped (:func:`estimator.cleanup.check_plausible`:
+    after the cut, so that a shadow reaching the image border does not count
+    as the walker cut by it).
     """
+    config = config or CleanupConfig()
     out, reports = {}, {}
     for name, t in tracks.items():
-        sils, boxes, reports[name] = isolate_walker(
-            t.silhouettes, t.boxes, image_size=t.image_size if t.full_frame else None, config=config)
+        sils, boxes, report = select_walker(t.silhouettes, t.boxes, config=config)
         if score is not None:
-            sils, boxes, reports[name].cut = trim_below_feet(sils, boxes, score, config=config)
+            sils, boxes, kept = trim_below_feet(sils, boxes, score, config=config)
+            cut = kept < 1.0
+            report.cut, report.cut_kept = int(cut.sum()), float(np.median(kept[cut])) if cut.any() else 1.0
+        sils, boxes, reports[name] = check_plausible(sils, boxes, report,
+                                                     image_size=t.image_size if t.full_frame else None, config=config)
         out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size)
     return out, reports
 
@@ -383,6 +542,7 @@ def estimate_walk(
     cams: dict[str, CameraEstimate] = {}
     distances: dict[str, np.ndarray] = {}
     log_emission = np.zeros((T, n_phases))
+    inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # per camera: frames, registered, packed
     for name, track in tracks.items():
         present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
         labels = np.full(T, -1, np.int64)
@@ -423,10 +583,9 @@ def estimate_walk(
                 obs[k] = _circular_mean(model.member_phase[sl][near] if near.any() else model.member_phase[sl])
         else:
             bits = pack(registered)
-            vp = estimate_viewpoint(*_cloud_exemplars(model, exemplars, bits, d, config), cue=cue)
-            pd = _phase_distances(exemplars, bits, vp)
-            log_emission[present] -= (pd - pd.min(axis=1, keepdims=True)) / config.tau_phase
-            obs[present] = np.argmin(pd, axis=1) / n_phases
+            vp, _ = _vote(_cloud_exemplars(model, exemplars, bits, d, config), len(bits), cue, config)
+            log_emission[present] -= _phase_evidence(exemplars, bits, vp, obs, present, config)
+            inputs[name] = (present, registered, bits)
         cams[name] = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes,
                                     reports.get(name))
 
@@ -438,6 +597,8 @@ def estimate_walk(
     else:
         with np.errstate(divide="ignore"):
             log_prob, states = viterbi(np.log(hmm.startprob_), np.log(hmm.transmat_), log_emission)
+        if config.phase_refine and inputs:
+            log_prob, states = _refine_at_phases(exemplars, inputs, states, cams, T, config)
 
     margin = 0.0
     if exemplars is None and config.resolve_half_cycle:
@@ -460,6 +621,44 @@ def estimate_walk(
         notes=[] if exemplars is not None else ["paper's path: cluster means only"],
         tracks=tracks,
     )
+
+
+def _phase_evidence(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint, obs: np.ndarray, present: np.ndarray,
+                    config: EstimateConfig) -> np.ndarray:
+    """Phase log-emission cost of one camera's frames at its viewpoint, (frames, n_phases);
+    the nearest phase is written into ``obs``."""
+    pd = _phase_distances(index, bits, vp)
+    obs[present] = np.argmin(pd, axis=1) / index.n_phases
+    return (pd - pd.min(axis=1, keepdims=True)) / config.tau_phase
+
+
+def _refine_at_phases(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                      states: np.ndarray, cams: dict[str, CameraEstimate], T: int,
+                      config: EstimateConfig) -> tuple[float, np.ndarray]:
+    """Each camera's viewpoint again from the examples at the decoded phases, then the phases again.
+
+    The phase is one for all cameras (they are synchronized) and the HMM
+    decodes it from all of them over the window (§6); given it, a frame's
+    silhouette is compared only with the examples of its phase, from every
+    viewpoint, so a frame that looks like another phase seen from elsewhere
+    (a cut limb, a hole) no longer votes for elsewhere. One round of this
+    alternation (viewpoints given phases, phases given viewpoints).
+    """
+    by_phase = _rows_by_phase(index)
+    log_emission = np.zeros((T, index.n_phases))
+    for name, (present, registered, bits) in inputs.items():
+        c = cams[name]
+        c.viewpoint, weight = _vote(_cloud_at_phases(index, by_phase, registered, states[present], config),
+                                    len(present), c.cue, config)
+        c.observations = np.full(T, np.nan)
+        log_emission[present] -= _phase_evidence(index, bits, c.viewpoint, c.observations, present, config)
+        outliers = int(np.sum(weight < 0.5))
+        if outliers:
+            c.notes.append(f"viewpoint: {outliers} of {len(present)} frames count less (their match to the model, "
+                           "or the viewpoint they point to, is an outlier of the window)")
+    hmm = config.hmm
+    with np.errstate(divide="ignore"):
+        return viterbi(np.log(hmm.startprob_), np.log(hmm.transmat_), log_emission)
 
 
 def _resolve_half_cycle(

@@ -17,6 +17,10 @@ For live use :func:`predict_phases` continues the decoded HMM path at its mean
 speed and :func:`predict_priors` renders priors for frames not seen yet, so a
 prior can reach a capture agent before its frame.
 
+A window's priors can also carry the walker's own silhouettes at the same
+decoded phase a gait cycle away (``PriorConfig.same_phase``), where the model
+body is not the walker's.
+
 :func:`refine_silhouette` fuses a prior with a given binary silhouette when no
 image is left to re-segment: holes the model explains are filled, blobs away
 from the body are dropped. Fusion with raw frames lives in the capture
@@ -144,6 +148,17 @@ class PriorConfig:
         missing from the walker that are thicker than ``2 * limb`` x height
         (a cut limb, a hole) and the holes it encloses are filled, no band
         along the outline (``bench/eval_refine_damage.py``, docs/FEEDBACK.md).
+    same_phase : bool
+        :func:`priors_for_window`: raise each trusted prior to 255 where the
+        walker's own silhouettes on the window's other frames at the same
+        phase (within ``same_phase_cycle`` of a cycle: a gait cycle away)
+        cover the pixel, at least ``same_phase_share`` of them and at least
+        ``same_phase_frames`` frames, inside the model's support (prior at
+        least ``same_phase_level``). The model body is not the walker's
+        (another build, another stride); the walker a cycle earlier or later
+        is, and a limb the segmenter lost on one frame is seldom lost at the
+        same place a cycle later. Each silhouette is scaled by the ratio of
+        the boxes' heights and placed by the box's top and centre.
     """
 
     pixels_per_metre: float = 120.0
@@ -166,8 +181,13 @@ class PriorConfig:
     min_view_margin: float = 0.1
     trust_window: int = 4
     fill_reach: float = 0.0
-    limb: float = 0.02
+    limb: float = 0.025
     limb_level: int = 160
+    same_phase: bool = False
+    same_phase_cycle: float = 0.05
+    same_phase_share: float = 0.5
+    same_phase_frames: int = 2
+    same_phase_level: int = 64
 
     def __post_init__(self) -> None:
         if self.pixels_per_metre <= 0 or self.band <= 0:
@@ -180,8 +200,9 @@ class PriorConfig:
             raise ValueError(f"need 0 <= reach_min <= reach_max, got {self.reach_min}, {self.reach_max}")
 
 
-FEEDBACK = PriorConfig(trust=True)
-"""The configuration of every feedback path: priors only from estimates that pass :func:`trust_test`."""
+FEEDBACK = PriorConfig(trust=True, same_phase=True)
+"""The configuration of every feedback path: priors only from estimates that pass :func:`trust_test`,
+raised where the walker's own silhouettes at the same phase agree (``same_phase``)."""
 
 
 @dataclass(frozen=True)
@@ -613,7 +634,31 @@ def priors_for_window(
             sample = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, config.trust_window).astype(int))]
             rival = _rival_agreement(estimate, cam, track, sample, size, renderer=renderer, config=config, gait=gait)
             out[name] = trusted_priors(out[name], cam.viewpoint, config, rival=rival)[0]
+        if config.same_phase:
+            out[name] = [_with_same_phase(p, p.frame_index - first_index, np.asarray(estimate.phase, float), track,
+                                          config) for p in out[name]]
     return out
+
+
+def _with_same_phase(prior: Prior, t: int, phase: np.ndarray, track: CameraTrack, config: PriorConfig) -> Prior:
+    """``prior`` raised to 255 where the walker's silhouettes at the same phase agree (``config.same_phase``)."""
+    d = np.abs((phase - phase[t] + 0.5) % 1.0 - 0.5)
+    same = [s for s in _known_frames(track) if s != t and d[s] <= config.same_phase_cycle + 1e-9]
+    if len(same) < config.same_phase_frames or not np.isfinite(track.boxes[t]).all():
+        return prior
+    x0, y0, w, h = prior.box
+    bt = track.boxes[t]
+    cover = np.zeros((h, w), np.float32)
+    for s in same:
+        bs = track.boxes[s]
+        k = bt[3] / bs[3]
+        # silhouette s's pixel (u, v) -> frame t: scaled about its box's top centre onto t's box's top centre
+        m = np.array([[k, 0.0, bt[0] + bt[2] / 2 - k * bs[2] / 2 - x0], [0.0, k, bt[1] - y0]], np.float32)
+        cover += cv2.warpAffine(track.silhouettes[s], m, (w, h), flags=cv2.INTER_LINEAR) > 127
+    raise_ = (cover >= config.same_phase_share * len(same)) & (prior.mask >= config.same_phase_level)
+    if not raise_.any():
+        return prior
+    return dataclasses.replace(prior, mask=np.where(raise_, np.uint8(255), prior.mask))
 
 
 def _known_frames(track: CameraTrack) -> list[int]:

@@ -72,11 +72,15 @@ def test_a_turn_splits_the_recording_where_the_viewpoints_change(small_model, tu
     assert [f["index"] for f in result["frames"]] == list(range(80))
     assert all(f["segment"] == (0 if f["index"] <= segs[0]["last_index"] else 1) for f in result["frames"])
     assert any("2 segments" in n for n in result["notes"])
-    # One window over the whole recording mixes both headings: its phase suffers.
+    # One window over the whole recording mixes both headings: no single heading explains
+    # its cameras' viewpoints (the robust viewpoint weighting lets each camera take the
+    # half it sees best, so its phase no longer suffers: measured 0.94 for both).
     truth_phase = [f["phase"] for f in turn.truth["frames"]]
     whole = estimate_walk(tracks, small_model)
+    assert not any(all(az_error(whole.cameras[c].viewpoint.azimuth_deg, az) < 25 for c, az in zip(("c0", "c1"), half))
+                   for half in (BEFORE, AFTER))
     segmented = phase_hits([f["phase"] for f in result["frames"]], truth_phase)
-    assert segmented > 0.85 and segmented > phase_hits(whole.phase, truth_phase) + 0.2
+    assert segmented > 0.85 and segmented >= phase_hits(whole.phase, truth_phase) - 0.05
 
 
 def test_frames_without_the_walker_are_reported_empty_not_dropped(small_model, turn):
