@@ -49,14 +49,19 @@ Choices where the paper defers to its reference [13] (not available):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from .joints import JOINT_INDEX, N_JOINTS
 
-__all__ = ["MNBPConfig", "Posture2D", "PARTS_2D", "estimate_posture2d", "posture_sequence"]
+if TYPE_CHECKING:
+    from .pipeline import WalkEstimate
+
+__all__ = ["MNBPConfig", "Posture2D", "PARTS_2D", "estimate_posture2d", "measure_postures", "posture_sequence"]
 
 _J = JOINT_INDEX
 
@@ -435,3 +440,30 @@ def posture_sequence(silhouettes: list[np.ndarray | None], boxes: np.ndarray, st
         out[t], scores[t] = post.joints + origin, post.score
         correction = out[t] - starts[t]
     return out, scores
+
+
+def measure_postures(estimate: "WalkEstimate", config: MNBPConfig = MNBPConfig(),
+                     progress: Callable[[float], None] | None = None) -> "WalkEstimate":
+    """The estimate with each camera's ``joints2d`` measured by mNBP (this stage's entry).
+
+    Runs :func:`posture_sequence` on the silhouettes the estimate was made
+    from (``estimate.tracks``, after clean-up), started from its model
+    placement, which is kept as ``model_joints2d``. A track without
+    full-frame boxes (crops alone) is left as placed, and said in its notes.
+    """
+    if estimate.tracks is None:
+        return estimate
+    cameras = {}
+    for k, (name, cam) in enumerate(estimate.cameras.items()):
+        track = estimate.tracks.get(name)
+        if track is None or not track.full_frame:
+            cameras[name] = replace(cam, notes=cam.notes + ["joints2d: the model's placement (no full-frame boxes)"])
+            continue
+        joints, _ = posture_sequence(track.silhouettes, track.boxes, cam.joints2d,
+                                     config=replace(config, seed=config.seed + 1000 * k))
+        cameras[name] = replace(cam, joints2d=joints, model_joints2d=cam.joints2d)
+        if progress is not None:
+            progress((k + 1) / len(estimate.cameras))
+    return replace(estimate, cameras=cameras,
+                   notes=estimate.notes + ["joints2d measured on each silhouette by mNBP (Wang-Leow §3); "
+                                           "model_joints2d: the gait model's placement"])

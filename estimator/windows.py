@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from .appearance import AppearanceModel
+from .mnbp import MNBPConfig, measure_postures
 from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, track_length
 from .viewpoint import azimuth_difference_deg, circular_mean_deg
 
@@ -209,6 +210,7 @@ def segment_walk(
     threshold_deg: float = 30.0,
     confirm: int = 3,
     config: EstimateConfig | None = None,
+    posture: MNBPConfig | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> SegmentedWalk:
     """Estimate a recording window by window, one segment per heading (module docstring).
@@ -224,6 +226,9 @@ def segment_walk(
         A viewpoint change: ``confirm`` consecutive windows agreeing on a
         viewpoint more than ``threshold_deg`` from the current one.
     config : EstimateConfig, optional
+    posture : MNBPConfig, optional
+        Measure each segment's 2D postures by mNBP (:func:`estimator.mnbp.measure_postures`,
+        once per frame); None keeps the model's placement.
     progress : callable, optional
         Called with the fraction done (windows, then segments).
 
@@ -269,6 +274,8 @@ def segment_walk(
         a, b = int(starts[i]), int(stops[j - 1])
         # A segment of one window is that window's estimate; a longer one is estimated whole.
         est, err = (estimates[i], errors[i]) if j - i == 1 else _estimate(tracks, a, b, model, config)
+        if est is not None and posture is not None:
+            est = measure_postures(est, posture)
         segments.append(Segment(a, b, first, last, est, j - i, err))
         for w in windows[i:j]:
             w["segment"] = s

@@ -137,3 +137,29 @@ def test_sequence_is_deterministic_and_skips_missing_frames(walk):
     assert np.isfinite(a[[0, 1, 3, 4, 5]]).all()
     # full-frame pixels: near the truth, not near the crop's origin
     assert np.nanmedian(np.linalg.norm(a - truth["c0"], axis=-1)) < 0.05 * tracks["c0"].boxes[0, 3]
+
+
+def test_cli_estimate_reports_the_measured_posture_and_keeps_the_model_placement(small_model_path, tmp_path):
+    import json
+
+    from estimator.sequence import write_sequence
+    from service.cli import main
+
+    write_sequence(tmp_path / "seq", synthesize(SynthSpec(n_cameras=2, n_frames=20, seed=3,
+                                                          elevations=(0.0, 15.0), image_size=(320, 240))))
+    results = {}
+    for posture in ("mnbp", "model"):
+        out = tmp_path / f"{posture}.json"
+        assert main(["estimate", str(tmp_path / "seq"), "--out", str(out), "--model", small_model_path,
+                     "--posture", posture]) == 0
+        results[posture] = json.loads(out.read_text())
+    measured, placed = results["mnbp"]["frames"], results["model"]["frames"]
+    assert all("model_joints2d" not in f for f in placed)
+    assert any("mNBP" in n for n in results["mnbp"]["notes"])
+    moved = []
+    for m, p in zip(measured, placed):
+        assert set(m["joints2d"]) == set(p["joints2d"])
+        for cam in m["joints2d"]:
+            assert np.allclose(m["model_joints2d"][cam], p["joints2d"][cam])  # same placement kept
+            moved.append(np.abs(np.subtract(m["joints2d"][cam], p["joints2d"][cam])).max())
+    assert len(moved) >= 30 and np.median(moved) > 1.0  # pixels: mNBP moved the limbs

@@ -25,12 +25,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--window", type=positive_int, default=20,
                    help="frames per window (default 20, about one gait cycle at 15 Hz)")
     p.add_argument("--hop", type=positive_int, default=10, help="frames between window starts (default 10)")
+    p.add_argument("--posture", choices=("mnbp", "model"), default="mnbp",
+                   help="frames[].joints2d: 'mnbp' (default) = the person's 2D posture measured on each "
+                        "silhouette (Wang-Leow §3; model_joints2d keeps the model's placement); "
+                        "'model' = the gait model placed on the silhouette (faster)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from estimator.pipeline import tracks_from_sequence
     from estimator.sequence import SequenceError, read_sequence
+    from estimator.mnbp import MNBPConfig
     from estimator.windows import segment_walk
 
     from .model import model_from_arg
@@ -41,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     model = model_from_arg(args.model)
     try:
-        walk = segment_walk(tracks_from_sequence(sequence), model, length=args.window, hop=args.hop)
+        walk = segment_walk(tracks_from_sequence(sequence), model, length=args.window, hop=args.hop,
+                            posture=MNBPConfig() if args.posture == "mnbp" else None)
     except ValueError as exc:
         raise CliError(f"{args.sequence}: {exc}") from None
     result = walk.to_result()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 import uuid
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, File, Form, HTTPException, Query, Response, UploadFile, status
 from fastapi.responses import FileResponse
@@ -35,6 +35,10 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
                refine: Annotated[bool, Form(description="also refine the silhouettes with model "
                                             "feedback (§7.1); download them from "
                                             "/v1/jobs/{id}/silhouettes")] = False,
+               posture: Annotated[Literal["mnbp", "model"], Form(
+                   description="frames[].joints2d: 'mnbp' = the person's 2D posture measured on "
+                   "each silhouette (Wang-Leow §3; model_joints2d keeps the model's placement); "
+                   "'model' = the gait model placed on the silhouette (faster)")] = "mnbp",
                ) -> JobOut:
     """Validate and stage the upload, queue the job; 4xx with the reason if the upload is bad."""
     job_id = uuid.uuid4().hex
@@ -47,7 +51,7 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
         metrics.uploads_rejected.labels(str(exc.status)).inc()
         raise HTTPException(exc.status, str(exc)) from None
     options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames,
-                               "windows": settings.segment_options()}
+                               "windows": settings.segment_options(), "posture": posture}
     if warmup is not None:
         options["warmup"] = warmup
     if refine:
