@@ -653,11 +653,12 @@ class Segmenter:
         var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
         level = max(self.settings.refine_threshold * var, self.settings.refine_floor ** 2)
         refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
-        if self.settings.edge_split:
-            refined = self._split_edges(refined, image[y0:y1, x0:x1], gain, d2)
-        if self.settings.shadows:
-            refined = self._drop_shadows(refined, image[y0:y1, x0:x1], self._full_bg[y0:y1, x0:x1],
-                                         gain, var, g)
+        if self.settings.edge_split or self.settings.shadows:
+            frame = image[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / gain)  # gain divided out
+            if self.settings.edge_split:
+                refined = self._split_edges(refined, frame, d2)
+            if self.settings.shadows:
+                refined = self._drop_shadows(refined, frame, self._full_bg[y0:y1, x0:x1], var, g)
         if prior is not None:
             # Inside a trusted prior weaker evidence will do, at full resolution too
             # (§7.1), and the refinement must not undo the model's fused evidence.
@@ -667,11 +668,11 @@ class Segmenter:
         fg[y0:y1, x0:x1] = refined
         return fg
 
-    def _split_edges(self, fg: np.ndarray, image: np.ndarray, gain: float,
-                     d2: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def _split_edges(fg: np.ndarray, frame: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """Keep an edge pixel of ``fg`` only where it is nearer the walker's colour than
-        the background's (a region, full resolution; ``d2`` = squared distance to the
-        background, offset removed).
+        the background's (a region, full resolution; ``frame`` float32 with the gain
+        divided out, ``d2`` = squared distance to the background, offset removed).
 
         Motion blur, defocus and compression (MJPG's 4:2:0 chroma) mix body
         and background over 1-3 px; a noise-level test takes every mixed
@@ -684,7 +685,6 @@ class Segmenter:
         interior = cv2.erode(fg, _kernel(5))
         if not cv2.countNonZero(interior):
             return fg
-        frame = image.astype(np.float32) * np.float32(1.0 / gain)
         weight = cv2.boxFilter(interior, cv2.CV_32F, (9, 9), normalize=False) / 255.0
         body = cv2.boxFilter(cv2.bitwise_and(frame, frame, mask=interior), cv2.CV_32F, (9, 9),
                              normalize=False)
@@ -695,9 +695,10 @@ class Segmenter:
         out[nearer_bg] = 0
         return out
 
-    def _drop_shadows(self, fg: np.ndarray, image: np.ndarray, background: np.ndarray,
-                      gain: float, var: float, g: _Geometry) -> np.ndarray:
-        """Remove shadow and reflection pixels from ``fg`` (a region, full resolution).
+    def _drop_shadows(self, fg: np.ndarray, frame: np.ndarray, background: np.ndarray,
+                      var: float, g: _Geometry) -> np.ndarray:
+        """Remove shadow and reflection pixels from ``fg`` (a region, full resolution;
+        ``frame`` float32 with the gain divided out).
 
         A pixel is shadow if its colour is the background's scaled by a ratio
         ``r`` in ``shadow_ratio`` (or up to ``reflection_ratio`` brighter), with
@@ -713,7 +714,6 @@ class Segmenter:
         nothing is removed: never worse than no suppression.
         """
         s = self.settings
-        frame = image.astype(np.float32) * np.float32(1.0 / gain)
         bb = cv2.transform(cv2.multiply(background, background), np.ones((1, 3), np.float32)) + 1.0
         r = cv2.transform(cv2.multiply(frame, background), np.ones((1, 3), np.float32)) / bb
         dist = cv2.subtract(frame, cv2.multiply(background, cv2.merge([r, r, r])))

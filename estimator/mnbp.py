@@ -49,7 +49,6 @@ Choices where the paper defers to its reference [13] (not available):
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -442,8 +441,7 @@ def posture_sequence(silhouettes: list[np.ndarray | None], boxes: np.ndarray, st
     return out, scores
 
 
-def measure_postures(estimate: "WalkEstimate", config: MNBPConfig = MNBPConfig(),
-                     progress: Callable[[float], None] | None = None) -> "WalkEstimate":
+def measure_postures(estimate: WalkEstimate, config: MNBPConfig = MNBPConfig()) -> WalkEstimate:
     """The estimate with each camera's ``joints2d`` measured by mNBP (this stage's entry).
 
     Runs :func:`posture_sequence` on the silhouettes the estimate was made
@@ -462,8 +460,6 @@ def measure_postures(estimate: "WalkEstimate", config: MNBPConfig = MNBPConfig()
         joints, _ = posture_sequence(track.silhouettes, track.boxes, cam.joints2d,
                                      config=replace(config, seed=config.seed + 1000 * k))
         cameras[name] = replace(cam, joints2d=joints, model_joints2d=cam.joints2d)
-        if progress is not None:
-            progress((k + 1) / len(estimate.cameras))
     return replace(estimate, cameras=cameras,
                    notes=estimate.notes + ["joints2d measured on each silhouette by mNBP (Wang-Leow §3); "
                                            "model_joints2d: the gait model's placement"])

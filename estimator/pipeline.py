@@ -300,11 +300,25 @@ def _place_joints(person: np.ndarray, body: BodyShape, vp: Viewpoint, boxes: np.
     return out
 
 
+def _member_rows(model: AppearanceModel, clusters: np.ndarray) -> np.ndarray:
+    """Rows (in the exemplar index) of the members of ``clusters``, in that order."""
+    offsets = model.member_offsets
+    return np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in clusters])
+
+
+def _member_distances(model: AppearanceModel, index: ExemplarIndex, bits: np.ndarray, dist: np.ndarray,
+                      top_clusters: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per input: the rows of the members of its ``top_clusters`` nearest cluster means
+    (``dist`` to the means) and the eq. 8 distance of the input to each of them."""
+    top = np.argsort(dist, axis=1)[:, :top_clusters]
+    rows = [_member_rows(model, top[t]) for t in range(len(bits))]
+    return rows, [_hamming(bits[t : t + 1], index.bits[r])[0] for t, r in enumerate(rows)]
+
+
 def _cloud_paper(model: AppearanceModel, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All members of the matched clusters, each frame weighing the same (§3 step 4)."""
-    offsets = model.member_offsets
-    sizes = np.diff(offsets)[labels]
-    rows = np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in labels])
+    sizes = np.diff(model.member_offsets)[labels]
+    rows = _member_rows(model, labels)
     w = np.repeat(1.0 / sizes, sizes)
     return model.member_azimuth_deg[rows], model.member_elevation_deg[rows], w
 
@@ -355,10 +369,7 @@ def _cloud(index: ExemplarIndex, frame_rows: list[np.ndarray], distances: list[n
 def _cloud_exemplars(model: AppearanceModel, index: ExemplarIndex, bits: np.ndarray, dist: np.ndarray,
                      config: EstimateConfig) -> _Cloud:
     """Members of each frame's best clusters weighted by their own distance to the input."""
-    offsets = model.member_offsets
-    top = np.argsort(dist, axis=1)[:, : config.top_clusters]
-    rows = [np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in top[t]]) for t in range(len(bits))]
-    return _cloud(index, rows, [_hamming(bits[t : t + 1], index.bits[r])[0] for t, r in enumerate(rows)], config)
+    return _cloud(index, *_member_distances(model, index, bits, dist, config.top_clusters), config)
 
 
 def _rows_by_phase(index: ExemplarIndex) -> list[np.ndarray]:
@@ -454,16 +465,9 @@ def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_c
     out = np.full(len(silhouettes), np.inf)
     if not tf.valid.any():
         return out
-    index = model.exemplars()
-    d = distance(registered[tf.valid], model.means)
-    top = np.argsort(d, axis=1)[:, :top_clusters]
-    bits = pack(registered[tf.valid])
-    offsets = model.member_offsets
-    best = np.empty(len(bits))
-    for i in range(len(bits)):
-        rows = np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in top[i]])
-        best[i] = _hamming(bits[i:i + 1], index.bits[rows]).min()
-    out[tf.valid] = best
+    _, dists = _member_distances(model, model.exemplars(), pack(registered[tf.valid]),
+                                 distance(registered[tf.valid], model.means), top_clusters)
+    out[tf.valid] = [d.min() for d in dists]
     return out
 
 

@@ -19,15 +19,19 @@ pytestmark = pytest.mark.skipif(not real.VIDEO.is_file(), reason="vtest.avi not 
 
 
 @pytest.fixture(scope="module")
-def lawn():
-    video = real.load_video()
+def video():
+    """vtest.avi, read once for the module."""
+    return real.load_video()
+
+
+@pytest.fixture(scope="module")
+def lawn(video):
     frames = real.crop(video, real.CLIPS["lawn"])
     masks, _ = real.run(frames, SegmentSettings())
     return frames, masks
 
 
-def test_a_walker_in_view_from_frame_0_gets_silhouettes():
-    video = real.load_video()
+def test_a_walker_in_view_from_frame_0_gets_silhouettes(video):
     inview = real.crop(real.offline_masks(video), real.CLIPS["path"]).reshape(len(video), -1)
     inview = (inview > 0).sum(axis=1)[:60] >= 150  # the eval's definition (24 of 60)
     masks, _ = real.run(real.crop(video[:60], real.CLIPS["path"]), SegmentSettings())
@@ -42,8 +46,7 @@ def test_empty_frames_give_empty_silhouettes(lawn):
 
 
 @pytest.fixture(scope="module")
-def path_clip():
-    video = real.load_video()
+def path_clip(video):
     masks, _ = real.run(real.crop(video, real.CLIPS["path"]), SegmentSettings())
     return masks
 
