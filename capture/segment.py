@@ -91,6 +91,10 @@ class SegmentSettings(BaseModel):
                                  "|I - rB| / |B| of a shadow pixel")
     shadow_texture: float = Field(0.4, gt=0, description="largest gradient change (relative to "
                                   "the gradients present) of a shadow pixel")
+    shadow_feet: float = Field(0.15, ge=0, le=0.5, description="in this lowest fraction of "
+                               "each foreground blob's height the texture test is waived and "
+                               "no shadow is re-admitted as enclosed: a contact shadow under "
+                               "the feet is too small to show the ground's texture (0 = off)")
     ghost_frames: int = Field(10, ge=0, description="a foreground component that stays put "
                               "this many frames is tested for being a ghost (its edges are the "
                               "background model's, not the frame's) and absorbed; 0 = off")
@@ -711,7 +715,8 @@ class Segmenter:
         texture test (it hides the background's texture); a walker who shows
         the background through (thin, semi-transparent, or a reflection) may
         pass all three, so when the tests would remove most of the foreground
-        nothing is removed: never worse than no suppression.
+        nothing is removed: never worse than no suppression. At the feet
+        (:meth:`_feet_band`) colour alone decides.
         """
         s = self.settings
         bb = cv2.transform(cv2.multiply(background, background), np.ones((1, 3), np.float32)) + 1.0
@@ -734,13 +739,32 @@ class Segmenter:
         k = (5, 5)
         floor = 8.0 * np.sqrt(var / 3.0)  # the gradient operator's response to noise alone
         same_texture = cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
+        feet = self._feet_band(fg) if s.shadow_feet > 0 else None
+        if feet is not None:
+            same_texture |= feet
         shadow = (shadow & same_texture).astype(np.uint8) * 255
         body = cv2.bitwise_and(fg, cv2.bitwise_not(shadow))
         if 2 * cv2.countNonZero(body) < cv2.countNonZero(fg):
             return fg  # most of it "shadow": a walker that looks like one (see docstring)
         enclosed = cv2.morphologyEx(body, cv2.MORPH_CLOSE, _kernel(2 * g.close_px + 1)) \
             if g.close_px else body
+        if feet is not None:
+            enclosed[feet] = 0
         return cv2.bitwise_or(body, cv2.bitwise_and(fg, enclosed))
+
+    def _feet_band(self, fg: np.ndarray) -> np.ndarray:
+        """The lowest ``shadow_feet`` of each foreground blob's height (bool mask).
+
+        Where a walker meets the ground, the contact shadow is a few pixels
+        around and between the feet: every pixel of it is near its own edge or
+        a shoe's, so the texture test (background gradients still present)
+        fails there, and the closing that keeps dark clothing re-admits it
+        (vtest's path, 50 px walkers: most of what the silhouette had too much).
+        """
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+        start = stats[:, cv2.CC_STAT_TOP] + stats[:, cv2.CC_STAT_HEIGHT] * (1.0 - self.settings.shadow_feet)
+        start[0] = np.inf  # the background label
+        return np.arange(fg.shape[0])[:, None] >= start[labels]
 
     def _fuse(self, fg: np.ndarray, image: np.ndarray, background: np.ndarray,
               prior: np.ndarray) -> np.ndarray:

@@ -42,7 +42,7 @@ from .joints import JOINT_NAMES, N_JOINTS
 from .registration import distance
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
-from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, motion_cue
+from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, head_points, motion_cue
 
 __all__ = ["CameraTrack", "EstimateConfig", "clean_tracks", "WalkEstimate", "estimate_walk", "track_length", "tracks_from_sequence"]
 
@@ -214,7 +214,12 @@ class WalkEstimate:
         cams = {}
         for name, c in self.cameras.items():
             d = c.viewpoint.to_dict()
-            d["motion_cue"] = None if c.cue is None else {"growth_per_frame": round(c.cue.growth, 5), "travel_heights_per_frame": round(c.cue.travel, 5)}
+            d["motion_cue"] = None if c.cue is None else {
+                "growth_per_frame": round(c.cue.growth, 5),
+                "growth_se": round(c.cue.growth_se, 5) if np.isfinite(c.cue.growth_se) else None,
+                "growth_from": c.cue.source,
+                "travel_heights_per_frame": round(c.cue.travel, 5),
+            }
             d["notes"] = c.notes
             cams[name] = d
         frames = []
@@ -552,7 +557,8 @@ def estimate_walk(
         labels = np.full(T, -1, np.int64)
         dist = np.full((T, model.n_clusters), np.inf, np.float32)
         cam_notes = []
-        cue = motion_cue(track.boxes) if track.full_frame else None
+        cue = motion_cue(track.boxes, head_points(track.silhouettes, track.boxes),
+                         feet_cut=name in reports and reports[name].cut > 0) if track.full_frame else None
         note = reports[name].note() if name in reports else None
         if note:
             cam_notes.append(note)

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "circular_mean_deg", "estimate_viewpoint", "motion_cue"]
+__all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "circular_mean_deg", "estimate_viewpoint", "head_points",
+           "motion_cue"]
 
 
 def azimuth_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
@@ -35,33 +36,114 @@ class MotionCue:
     Attributes
     ----------
     growth : float
-        Relative change of the silhouette's height per frame (> 0: approaching).
+        Relative change of the walker's image size per frame (> 0: approaching).
     travel : float
-        Horizontal motion of the box centre per frame, in body heights
-        (> 0: towards the image's right).
+        Horizontal motion per frame, in body heights (> 0: towards the image's right).
     n_frames : int
         Frames with a box.
+    growth_se : float
+        Standard error of ``growth`` (0: taken as exact).
+    source : str
+        What ``growth`` was measured from: ``"head"`` (the perspective curvature
+        of the head's image path), ``"height"`` (the silhouette's height), or
+        ``"head+height"`` (both, weighted by their errors).
     """
 
     growth: float
     travel: float
     n_frames: int
+    growth_se: float = 0.0
+    source: str = "height"
 
-    def signs(self, *, min_growth: float = 0.002, min_travel: float = 0.01) -> tuple[int, int]:
-        """(sign of cos azimuth, sign of sin azimuth) the motion implies; 0 = no evidence."""
-        cos_sign = int(np.sign(self.growth)) if abs(self.growth) >= min_growth else 0
+    def signs(self, *, z: float = 3.0, min_travel: float = 0.01) -> tuple[int, int]:
+        """(sign of cos azimuth, sign of sin azimuth) the motion implies; 0 = no evidence.
+
+        Growth is evidence when it is ``z`` standard errors from zero.
+        """
+        cos_sign = int(np.sign(self.growth)) if abs(self.growth) > z * self.growth_se else 0
         sin_sign = int(-np.sign(self.travel)) if abs(self.travel) >= min_travel else 0
         return cos_sign, sin_sign
 
 
-def motion_cue(boxes: np.ndarray) -> MotionCue | None:
-    """Fit the walker's motion from full-frame boxes.
+def head_points(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *, depth: float = 0.08) -> np.ndarray:
+    """The top of the head per frame in the full frame: (T, 2), NaN where no silhouette.
+
+    The centroid of the silhouette's top ``depth`` of the window's median
+    height. Shadows, reflections and cut limbs, all at the feet, leave it alone.
+    ``silhouettes`` are tight crops whose boxes ``(x, y, w, h)`` are ``boxes``.
+    """
+    boxes = np.asarray(boxes, dtype=float)
+    out = np.full((len(silhouettes), 2), np.nan)
+    ok = [t for t, s in enumerate(silhouettes) if s is not None and np.isfinite(boxes[t, 3])]
+    if not ok:
+        return out
+    rows = max(2, int(round(depth * np.median(boxes[ok, 3]))))
+    for t in ok:
+        v, u = np.nonzero(silhouettes[t][:rows])
+        if u.size:
+            out[t] = boxes[t, 0] + u.mean(), boxes[t, 1] + v.mean()
+    return out
+
+
+def _perspective_growth(t: np.ndarray, points: np.ndarray) -> tuple[float, float]:
+    """Growth per frame (and its standard error) from the image path of a point moving
+    steadily along a straight line: in homogeneous coordinates the path is linear in
+    time, so ``x(t) = (a + b t) / (1 + c t)`` in both image axes with one ``c``, and
+    the walker's image size goes as ``1 / (1 + c t)``: growth ``-c`` at the window's
+    middle. Linear least squares in ``(a_x, b_x, a_y, b_y, c)`` from
+    ``x = a + b t - c t x``; frames 3 robust sigmas off are dropped once.
+    """
+    tc = t - t.mean()
+    n = len(tc)
+    one, zero = np.ones(n), np.zeros(n)
+    A = np.block([[np.stack([one, tc, zero, zero, -tc * points[:, 0]], 1)],
+                  [np.stack([zero, zero, one, tc, -tc * points[:, 1]], 1)]])
+    b = points.T.ravel()
+    keep = np.ones(2 * n, bool)
+    for _ in range(2):
+        sol = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+        resid = b - A @ sol
+        sigma = 1.4826 * np.median(np.abs(resid[keep])) + 1e-9
+        keep = np.tile(np.all(np.abs(resid.reshape(2, n)) <= 3 * sigma, axis=0), 2)
+        if keep.sum() < 8:
+            return 0.0, np.inf
+    sol, res, *_ = np.linalg.lstsq(A[keep], b[keep], rcond=None)
+    dof = keep.sum() - A.shape[1]
+    s2 = float(np.sum((b[keep] - A[keep] @ sol) ** 2)) / max(dof, 1)
+    cov = s2 * np.linalg.pinv(A[keep].T @ A[keep])
+    return float(-sol[4]), float(np.sqrt(max(cov[4, 4], 0.0)))
+
+
+def _theil_sen(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Median of pairwise slopes, and its standard error from the residuals' MAD."""
+    i, j = np.triu_indices(len(t), 1)
+    slope = float(np.median((y[j] - y[i]) / (t[j] - t[i])))
+    resid = y - slope * t
+    sigma = 1.4826 * np.median(np.abs(resid - np.median(resid)))
+    return slope, float(sigma / np.sqrt(np.sum((t - t.mean()) ** 2)))
+
+
+def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: bool = False,
+               conflict: float = 3.0) -> MotionCue | None:
+    """Fit the walker's motion from full-frame boxes (and head points).
 
     Parameters
     ----------
     boxes : ndarray of shape (T, 4)
         ``(x, y, width, height)`` of the silhouette in the full frame per frame;
         NaN rows where the camera has no silhouette.
+    heads : ndarray of shape (T, 2), optional
+        The head's image position per frame (:func:`head_points`). Its path's
+        perspective curvature gives the growth independently of the feet,
+        which shadows, reflections and cut limbs corrupt; the silhouette's
+        height gives it too. Both are combined by their standard errors.
+    feet_cut : bool
+        The clean-up cut something off below the feet (a shadow or a
+        reflection): the heights then carry the cut's error, which drifts over
+        the window. When the two growths disagree by more than ``conflict``
+        errors, the head alone counts if the feet were cut, the height alone
+        otherwise (a walker who speeds up or slows down bends the head's path
+        as approaching would: CMU 07_05).
 
     Returns
     -------
@@ -76,14 +158,28 @@ def motion_cue(boxes: np.ndarray) -> MotionCue | None:
         return None
     t = np.flatnonzero(ok).astype(float)
     x, y, w, h = boxes[ok].T
-    # Robust slopes (Theil-Sen style: median of pairwise slopes) resist a bad frame.
-    log_h = np.log(h)
-    cx = (x + w / 2) / np.median(h)
-    i, j = np.triu_indices(len(t), 1)
-    dt = t[j] - t[i]
-    growth = float(np.median((log_h[j] - log_h[i]) / dt))
-    travel = float(np.median((cx[j] - cx[i]) / dt))
-    return MotionCue(growth=growth, travel=travel, n_frames=int(ok.sum()))
+    # Robust slopes (Theil-Sen: median of pairwise slopes) resist a bad frame.
+    growth, se = _theil_sen(t, np.log(h))
+    travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
+    source = "height"
+    if heads is not None:
+        heads = np.asarray(heads, dtype=float)
+        if heads.shape != (len(boxes), 2):
+            raise ValueError(f"heads must have shape ({len(boxes)}, 2), got {heads.shape}")
+        hk = ok & np.all(np.isfinite(heads), axis=1)
+        if hk.sum() >= 6:
+            th = np.flatnonzero(hk).astype(float)
+            g_head, se_head = _perspective_growth(th, heads[hk])
+            travel, _ = _theil_sen(th, heads[hk, 0] / np.median(h))
+            if np.isfinite(se_head):
+                if abs(growth - g_head) > conflict * np.hypot(se, se_head):
+                    if feet_cut:
+                        growth, se, source = g_head, se_head, "head"
+                elif se_head > 0 and se > 0:
+                    wa, wb = 1 / se**2, 1 / se_head**2
+                    growth, se, source = (wa * growth + wb * g_head) / (wa + wb), float(np.sqrt(1 / (wa + wb))), \
+                        "head+height"
+    return MotionCue(growth=growth, travel=travel, n_frames=int(ok.sum()), growth_se=se, source=source)
 
 
 @dataclass(frozen=True)

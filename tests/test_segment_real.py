@@ -53,9 +53,10 @@ def path_clip(video):
 
 def test_reference_masks(lawn, path_clip):
     ious = real.fixture_ious("lawn", lawn[1])
-    assert len(ious) == 3 and min(ious) > 0.8, ious  # measured 0.83-0.90 (0.74-0.79 before edge split)
+    assert len(ious) == 3 and min(ious) > 0.83 and np.mean(ious) >= 0.85, ious  # measured 0.86-0.91
     ious = real.fixture_ious("path", path_clip)
-    assert len(ious) == 4 and np.mean(ious) > 0.78, ious  # measured 0.83 (0.69 before)
+    # measured 0.83-0.94, mean 0.88 (0.83 without the feet band, 0.69 before the edge split)
+    assert len(ious) == 4 and np.mean(ious) >= 0.85, ious
 
 
 def test_a_fluttering_tape_is_nobody(path_clip):
@@ -85,14 +86,17 @@ def test_thin_moving_things_are_not_walkers():
     assert seen == {"nobody": 15, "walker": 15}
 
 
-def _shadowed(spec: SceneSpec, shadow: float):
+def _shadowed(spec: SceneSpec, shadow: float, *, contact: bool = False):
     """The scripted scene with a shadow (the background darkened by ``shadow``) cast beside
-    the walker, its texture kept."""
+    the walker, its texture kept; ``contact``: a small one around and under the feet instead."""
     for f in scene_frames(spec):
         if f.mask.any():
             ys, xs = np.nonzero(f.mask)
             cast = np.zeros_like(f.mask)
-            cv2.ellipse(cast, (int(xs.mean()) + 30, int(ys.max()) - 5), (40, 10), 0, 0, 360, 255, -1)
+            if contact:
+                cv2.ellipse(cast, (int(xs.mean()), int(ys.max())), (int(np.ptp(xs)) // 2 + 6, 4), 0, 0, 360, 255, -1)
+            else:
+                cv2.ellipse(cast, (int(xs.mean()) + 30, int(ys.max()) - 5), (40, 10), 0, 0, 360, 255, -1)
             cast[f.mask > 0] = 0
             image = f.image.astype(np.float32)
             image[cast > 0] *= shadow
@@ -112,6 +116,21 @@ def test_shadows_are_suppressed_without_losing_dark_clothing(dark):
     # measured 0.944 (coloured) and 0.934 (dark) with, 0.68 without
     assert np.mean(out[True]) > 0.92, out[True]
     assert np.mean(out[True]) > np.mean(out[False]) + 0.2
+
+
+@pytest.mark.parametrize("dark", [False, True])
+def test_a_contact_shadow_under_the_feet_is_dropped(dark):
+    """A few pixels of shadow around the feet: too small for the texture test, and
+    closed into the body without the feet band (``shadow_feet``)."""
+    spec = SceneSpec(width=320, height=240, frames=130, empty=100, walker_alpha=1.0,
+                     walker_bgr=(30, 30, 30) if dark else SceneSpec.walker_bgr)
+    out = {}
+    for feet in (0.0, SegmentSettings().shadow_feet):
+        seg = Segmenter(SegmentSettings(warmup_frames=100, shadow_feet=feet))
+        out[feet] = [iou(s.full_mask(), f.mask) for f in _shadowed(spec, 0.6, contact=True)
+                     if (s := seg.apply(f.image, f.index)) is not None and f.mask.any()]
+    off, on = np.mean(out[0.0]), np.mean(out[SegmentSettings().shadow_feet])  # measured 0.92 -> 1.00
+    assert on > off + 0.02 and on > 0.93, (off, on)
 
 
 def test_a_walker_that_looks_like_a_shadow_is_kept_whole():
