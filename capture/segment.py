@@ -739,7 +739,7 @@ class Segmenter:
         k = (5, 5)
         floor = 8.0 * np.sqrt(var / 3.0)  # the gradient operator's response to noise alone
         same_texture = cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
-        feet = self._feet_band(fg) if s.shadow_feet > 0 else None
+        feet = self._feet_band(fg, g) if s.shadow_feet > 0 else None
         if feet is not None:
             same_texture |= feet
         shadow = (shadow & same_texture).astype(np.uint8) * 255
@@ -752,8 +752,12 @@ class Segmenter:
             enclosed[feet] = 0
         return cv2.bitwise_or(body, cv2.bitwise_and(fg, enclosed))
 
-    def _feet_band(self, fg: np.ndarray) -> np.ndarray:
+    def _feet_band(self, fg: np.ndarray, g: _Geometry) -> np.ndarray:
         """The lowest ``shadow_feet`` of each foreground blob's height (bool mask).
+
+        Blobs are those of ``fg`` closed vertically (``4 close_px + 1`` rows),
+        so a walker split across the waist (a belt the colour of the
+        background) is one blob with one band, at the feet.
 
         Where a walker meets the ground, the contact shadow is a few pixels
         around and between the feet: every pixel of it is near its own edge or
@@ -761,7 +765,9 @@ class Segmenter:
         fails there, and the closing that keeps dark clothing re-admits it
         (vtest's path, 50 px walkers: most of what the silhouette had too much).
         """
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+        joined = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, np.ones((4 * g.close_px + 1, 1), np.uint8)) \
+            if g.close_px else fg
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
         start = stats[:, cv2.CC_STAT_TOP] + stats[:, cv2.CC_STAT_HEIGHT] * (1.0 - self.settings.shadow_feet)
         start[0] = np.inf  # the background label
         return np.arange(fg.shape[0])[:, None] >= start[labels]

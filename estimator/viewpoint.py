@@ -69,7 +69,9 @@ def head_points(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *, dept
     """The top of the head per frame in the full frame: (T, 2), NaN where no silhouette.
 
     The centroid of the silhouette's top ``depth`` of the window's median
-    height. Shadows, reflections and cut limbs, all at the feet, leave it alone.
+    height. Shadows, reflections and cut limbs, all at the feet, leave it alone;
+    a raised arm or something carried overhead moves it (those frames are the
+    robust fit's outliers, :func:`motion_cue`).
     ``silhouettes`` are tight crops whose boxes ``(x, y, w, h)`` are ``boxes``.
     """
     boxes = np.asarray(boxes, dtype=float)
@@ -85,41 +87,49 @@ def head_points(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *, dept
     return out
 
 
-def _perspective_growth(t: np.ndarray, points: np.ndarray) -> tuple[float, float]:
+def _perspective_growth(t: np.ndarray, points: np.ndarray, *, floor_px: float = 0.3) -> tuple[float, float]:
     """Growth per frame (and its standard error) from the image path of a point moving
     steadily along a straight line: in homogeneous coordinates the path is linear in
     time, so ``x(t) = (a + b t) / (1 + c t)`` in both image axes with one ``c``, and
     the walker's image size goes as ``1 / (1 + c t)``: growth ``-c`` at the window's
     middle. Linear least squares in ``(a_x, b_x, a_y, b_y, c)`` from
-    ``x = a + b t - c t x``; frames 3 robust sigmas off are dropped once.
+    ``x = a + b t - c t x`` (each axis shifted by its median first, which keeps
+    ``c``, and weighted by its own robust noise, at least ``floor_px``: whole-pixel
+    positions); frames 3 sigmas off on either axis are dropped, then it is refitted.
     """
     tc = t - t.mean()
     n = len(tc)
+    p = points - np.median(points, axis=0)
     one, zero = np.ones(n), np.zeros(n)
-    A = np.block([[np.stack([one, tc, zero, zero, -tc * points[:, 0]], 1)],
-                  [np.stack([zero, zero, one, tc, -tc * points[:, 1]], 1)]])
-    b = points.T.ravel()
-    keep = np.ones(2 * n, bool)
-    for _ in range(2):
-        sol = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
-        resid = b - A @ sol
-        sigma = 1.4826 * np.median(np.abs(resid[keep])) + 1e-9
-        keep = np.tile(np.all(np.abs(resid.reshape(2, n)) <= 3 * sigma, axis=0), 2)
-        if keep.sum() < 8:
+    A = np.concatenate([np.stack([one, tc, zero, zero, -tc * p[:, 0]], 1),
+                        np.stack([zero, zero, one, tc, -tc * p[:, 1]], 1)])
+    b = p.T.ravel()
+    keep = np.ones(n, bool)
+    for last in (False, True):
+        sol = np.linalg.lstsq(A[np.tile(keep, 2)], b[np.tile(keep, 2)], rcond=None)[0]
+        resid = (b - A @ sol).reshape(2, n)
+        sigma = np.maximum(1.4826 * np.median(np.abs(resid[:, keep]), axis=1), floor_px)  # per axis
+        if last:
+            break
+        keep = np.all(np.abs(resid) <= 3 * sigma[:, None], axis=0)
+        if keep.sum() < 6:
             return 0.0, np.inf
-    sol, res, *_ = np.linalg.lstsq(A[keep], b[keep], rcond=None)
-    dof = keep.sum() - A.shape[1]
-    s2 = float(np.sum((b[keep] - A[keep] @ sol) ** 2)) / max(dof, 1)
-    cov = s2 * np.linalg.pinv(A[keep].T @ A[keep])
-    return float(-sol[4]), float(np.sqrt(max(cov[4, 4], 0.0)))
+    rows = np.tile(keep, 2)
+    w = np.repeat(1.0 / sigma, n)[rows]
+    aw, bw = A[rows] * w[:, None], b[rows] * w
+    sol = np.linalg.lstsq(aw, bw, rcond=None)[0]
+    dof = max(aw.shape[0] - aw.shape[1], 1)
+    s2 = float(np.sum((bw - aw @ sol) ** 2)) / dof  # the axes' weights are relative; their scale is fitted
+    r_inv = np.linalg.pinv(np.linalg.qr(aw, mode="r"))
+    return float(-sol[4]), float(np.sqrt(s2 * (r_inv[4] @ r_inv[4])))
 
 
-def _theil_sen(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """Median of pairwise slopes, and its standard error from the residuals' MAD."""
+def _theil_sen(t: np.ndarray, y: np.ndarray, *, floor: float = 0.0) -> tuple[float, float]:
+    """Median of pairwise slopes, and its standard error from the residuals' MAD (at least ``floor``)."""
     i, j = np.triu_indices(len(t), 1)
     slope = float(np.median((y[j] - y[i]) / (t[j] - t[i])))
     resid = y - slope * t
-    sigma = 1.4826 * np.median(np.abs(resid - np.median(resid)))
+    sigma = max(1.4826 * np.median(np.abs(resid - np.median(resid))), floor)
     return slope, float(sigma / np.sqrt(np.sum((t - t.mean()) ** 2)))
 
 
@@ -159,7 +169,8 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     t = np.flatnonzero(ok).astype(float)
     x, y, w, h = boxes[ok].T
     # Robust slopes (Theil-Sen: median of pairwise slopes) resist a bad frame.
-    growth, se = _theil_sen(t, np.log(h))
+    # Heights are whole pixels: their log is known to 1 / (sqrt(12) h) at best.
+    growth, se = _theil_sen(t, np.log(h), floor=1.0 / (np.sqrt(12.0) * np.median(h)))
     travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
     source = "height"
     if heads is not None:
@@ -175,7 +186,7 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
                 if abs(growth - g_head) > conflict * np.hypot(se, se_head):
                     if feet_cut:
                         growth, se, source = g_head, se_head, "head"
-                elif se_head > 0 and se > 0:
+                else:
                     wa, wb = 1 / se**2, 1 / se_head**2
                     growth, se, source = (wa * growth + wb * g_head) / (wa + wb), float(np.sqrt(1 / (wa + wb))), \
                         "head+height"

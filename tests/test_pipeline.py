@@ -162,3 +162,25 @@ def test_padded_crops_keep_their_scale(small_model, sequences):
     heights = np.ptp(j[:, :, 1], axis=1)
     sil_h = np.array([s.shape[0] - 40 for s in padded])
     assert np.all(heights < sil_h)  # the joints lie within the silhouette's height, not the padded PNG's
+
+
+def test_a_shadow_cut_off_the_feet_leaves_the_motion_cue_to_the_head(small_model):
+    """The clean-up's cut (a shadow at the feet) reaches the motion cue: the heights then
+    carry the cut's error, so on conflict the head's path decides; the sign stays right."""
+    from estimator.damage import damage_sequence
+    from estimator.sequence import Sequence
+
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=21, azimuths=(30.0, 100.0, 210.0),
+                               elevations=(5.0, 15.0, 10.0), image_size=(320, 240)))
+    sils = damage_sequence(seq.silhouettes, "shadow", seed=3, truth=seq.truth)
+    est = estimate_walk(tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size, sils, seq.truth)),
+                        small_model)
+    result = est.to_result()
+    for cam in seq.cameras:
+        c = est.cameras[cam]
+        assert c.cleanup.cut > 0  # the shadow was cut
+        assert c.cue.source in ("head", "head+height")
+        assert result["cameras"][cam]["motion_cue"]["growth_from"] == c.cue.source
+        cos = np.cos(np.radians(seq.truth["cameras"][cam]["azimuth_deg"]))
+        if abs(cos) > 0.3:
+            assert c.cue.signs()[0] == np.sign(cos)
