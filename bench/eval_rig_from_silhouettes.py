@@ -8,9 +8,17 @@ relative rotation ``R_c R_0^T`` of every camera to camera 0 comes from
 - ``selfcal(model)``: Wang–Leow §4 self-calibration (``self_calibrate``,
   ``refine=True, upright=True``) on the model's joints placed on each silhouette;
 - ``selfcal(mNBP)``: the same on the 2D postures measured by mNBP
-  (``estimator.mnbp.measure_postures``): the first round of Wang–Leow's loop.
+  (``estimator.mnbp.measure_postures``): the first round of Wang–Leow's loop;
+- ``rig (default)``: :func:`estimator.rig.calibrate_rig` on the mNBP postures:
+  the bundle adjustment started from the closed form and from the viewpoints'
+  rig, the lower cost kept (what ``posecal estimate`` reports).
 
-Geodesic error in degrees over all camera pairs (c, 0).
+Geodesic error in degrees over all camera pairs (c, 0); per walk, how much
+worse than the viewpoints' rig the default is (its worst pair). The default
+rig's 3D posture against the truth: per frame after a similarity alignment
+(Procrustes with scale), mean over the 13 joints, divided by the true
+stature; the model's posture (``joints3d`` of the gait model at the decoded
+phase) the same way. Segment lengths relative to stature against the truth's.
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_rig_from_silhouettes.py [--sequences 12]
 """
@@ -30,34 +38,61 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from eval_mnbp import MOCAP, body  # noqa: E402
+from estimator.gait import GaitStyle  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
 from estimator.camera import world_to_camera_rotation  # noqa: E402
 from estimator.mnbp import measure_postures  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
+from estimator.rig import calibrate_rig, segment_lengths  # noqa: E402
 from estimator.selfcal import self_calibrate  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
+
+
+STYLISED = GaitStyle(stride=0.7, leg_lift=1.3, arm_swing=1.8, cadence=1.0)  # as bench/eval_mnbp.py
 
 
 def relative(rotations: list[np.ndarray]) -> list[np.ndarray]:
     return [r @ rotations[0].T for r in rotations[1:]]
 
 
+def procrustes_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Per frame: mean joint distance after the similarity transform taking ``est`` nearest ``true``."""
+    out = np.full(len(est), np.nan)
+    for t, (a, b) in enumerate(zip(est, true)):
+        ok = np.isfinite(a).all(axis=1)
+        if ok.sum() < 4:
+            continue
+        a0, b0 = a[ok] - a[ok].mean(0), b[ok] - b[ok].mean(0)
+        u, sv, vt = np.linalg.svd(a0.T @ b0)
+        d = np.sign(np.linalg.det(u @ vt))
+        r = u @ np.diag([1, 1, d]) @ vt
+        scale = (sv * [1, 1, d]).sum() / (a0 ** 2).sum()
+        out[t] = np.linalg.norm(scale * a0 @ r - b0, axis=1).mean()
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequences", type=int, default=12)
     parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--gait", choices=("cmu", "stylised"), default="cmu",
+                        help="the CMU walks (default) or the model's gait stylised (arm swing x1.8, "
+                             "short steps, high knees), on random bodies either way")
     args = parser.parse_args()
     from service.cli.model import get_default_model
 
     model = get_default_model(progress=True)
     motions = [read_motion(MOCAP / "16_15.bvh"), read_motion(MOCAP / "07_05.amc")]
     rng = np.random.default_rng(args.seed)
-    errors: dict[str, list[float]] = {"viewpoints": [], "selfcal(model)": [], "selfcal(mNBP)": []}
+    errors: dict[str, list[float]] = {"viewpoints": [], "selfcal(model)": [], "selfcal(mNBP)": [],
+                                      "rig (default)": []}
     failed = {k: 0 for k in errors}
+    worse, e3d, e3d_model, seg_err, sources = [], [], [], [], []
     for i in tqdm(range(args.sequences), desc="sequences"):
-        spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=30, seed=1000 * args.seed + i, shape=body(rng))
-        seq = synthesize(spec, motion=motions[i % 2])
+        spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=30, seed=1000 * args.seed + i, shape=body(rng),
+                         style=STYLISED if args.gait == "stylised" else None)
+        seq = synthesize(spec, motion=motions[i % 2] if args.gait == "cmu" else None)
         est = estimate_walk(tracks_from_sequence(seq), model)
         measured = measure_postures(est)
         cams = seq.cameras
@@ -73,12 +108,38 @@ def main() -> None:
                 found[name] = list(cal.rotations[1:])
             else:
                 failed[name] += 1
+        rig = calibrate_rig(measured)
+        sources.append(rig.source)
+        found["rig (default)"] = list(rig.rotations[1:])
+        pair = {}
         for name, rots in found.items():
-            errors[name] += [float(geodesic_deg(r, t)) for r, t in zip(rots, truth)]
+            pair[name] = [float(geodesic_deg(r, t)) for r, t in zip(rots, truth)]
+            errors[name] += pair[name]
+        worse.append(max(pair["rig (default)"]) - max(pair["viewpoints"]))
+        stature = seq.truth["body"]["height"]
+        true3d = np.array([f["joints3d"] for f in seq.truth["frames"]])
+        if rig.joints3d is not None:
+            e3d += list(procrustes_error(rig.joints3d, true3d) / stature)
+            true_len = {k: np.median(v) / stature for k, v in segment_lengths(true3d).items()}
+            seg_err += [abs(rig.segments_m[k] / rig.height_m - true_len[k]) / true_len[k] for k in true_len]
+        e3d_model += list(procrustes_error(est.joints3d, true3d) / stature)
     print(f"\n{args.sequences} walks, {len(errors['viewpoints'])} camera pairs\n")
     print("| rotations from | median | p90 | max | failed walks |\n|---|---|---|---|---|")
     for name, e in errors.items():
         print(f"| {name} | {np.median(e):.2f} | {np.percentile(e, 90):.2f} | {np.max(e):.2f} | {failed[name]} |")
+    worse = np.array(worse)
+    print(f"\ndefault rig from self-calibration on {sources.count('self-calibration')} of {len(sources)} walks; "
+          f"worst pair worse than the viewpoints' by > 2 deg on {int((worse > 2).sum())} walks "
+          f"(max {worse.max():+.1f} deg)")
+    for name, e in (("person (default rig)", e3d), ("model walk", e3d_model)):
+        e = np.array(e, float)
+        e = e[np.isfinite(e)]
+        if e.size:
+            print(f"3D posture error / stature, {name}: median {np.median(e):.4f}, p90 {np.percentile(e, 90):.4f} "
+                  f"({e.size} frames)")
+    if seg_err:
+        print(f"segment lengths relative to stature, error: median {100 * np.median(seg_err):.1f} %, "
+              f"p90 {100 * np.percentile(seg_err, 90):.1f} %")
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -208,6 +209,7 @@ class WalkEstimate:
     half_cycle_margin: float
     notes: list[str] = field(default_factory=list)
     tracks: dict[str, CameraTrack] | None = None  # the tracks estimated from (after clean-up)
+    rig: Any = None  # estimator.rig.Rig, once calibrated (estimator.rig.calibrate_rig)
 
     def to_result(self, *, first_index: int = 0) -> dict:
         """The result format of DESIGN.md (JSON-able)."""
@@ -234,10 +236,13 @@ class WalkEstimate:
                 for name, c in self.cameras.items()
                 if c.model_joints2d is not None and np.all(np.isfinite(c.model_joints2d[t]))
             }
+            person = None if self.rig is None or self.rig.joints3d is None else self.rig.joints3d[t]
             frames.append({
                 "index": first_index + t,
                 "phase": round(float(self.phase[t]), 4),
                 "joints3d": np.round(self.joints3d[t], 4).tolist(),
+                **({} if person is None else {"person_joints3d": [
+                    np.round(j, 4).tolist() if np.all(np.isfinite(j)) else None for j in person]}),
                 "joints2d": j2d,
                 "observed_phase": {
                     name: (None if np.isnan(c.observations[t]) else round(float(c.observations[t]), 4))
@@ -253,7 +258,8 @@ class WalkEstimate:
                 "log_prob": self.log_prob if np.isfinite(self.log_prob) else None,
                 "half_cycle_margin": round(self.half_cycle_margin, 4) if np.isfinite(self.half_cycle_margin) else None,
             },
-            "notes": self.notes,
+            "notes": self.notes + ([] if self.rig is None else self.rig.notes),
+            **({} if self.rig is None else {"rig": self.rig.to_dict(), "body": self.rig.body_dict()}),
         }
 
 

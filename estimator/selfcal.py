@@ -495,6 +495,7 @@ def self_calibrate(
     noise_model: bool | None = None,
     body_proportions: Sequence[LengthPrior] = (),
     upright: bool | float = False,
+    initial_rotations: np.ndarray | None = None,
 ) -> SelfCalibration:
     """Self-calibrate scaled orthographic cameras from 2D joint tracks.
 
@@ -555,6 +556,15 @@ def self_calibrate(
         ground orientation is needed). MAP residuals weighted by
         ``noise sigma / tolerance``, absent on noise-free tracks. A float
         scales the weight (``True`` = 1). Default off.
+    initial_rotations : ndarray of shape (C, 3, 3), optional
+        Another start for the bundle adjustment (``refine`` only): rotations
+        relative to camera 0 known roughly from elsewhere (e.g. the rig the
+        silhouettes' viewpoints give, :func:`estimator.rig.viewpoint_rotations`).
+        The joints are triangulated from them with the closed form's scales;
+        the result is the start whose adjustment ends at the lower cost
+        (``diagnostics["start"]``: ``"closed form"`` or ``"given"``). The
+        closed form on noisy tracks can land in the wrong basin (a mirrored or
+        tilted rig) that the adjustment alone does not leave.
 
     Returns
     -------
@@ -645,12 +655,21 @@ def self_calibrate(
     frame_scales, euler_cov, scale_std = None, None, None
     if refine:
         sigma = noise_sigma(fact)
-        ba = _bundle_adjust(y / fact.norm, fact.observed, rots, np.repeat(sc[:, None], t, axis=1),
-                            joints / fact.norm, fact.centroids / fact.norm, links_,
-                            per_frame_scales=False, max_nfev=max_nfev, prior_op=prior_op,
-                            length_prior=_length_prior(body_proportions, links_, sigma),
-                            angle_prior=_angle_prior(UPRIGHT_PRIORS, sigma, upright_w),
-                            noise_sigma=sigma)
+        starts = [("closed form", rots, joints / fact.norm)]
+        if initial_rotations is not None:
+            given = _check_rotations(initial_rotations, n_cam)
+            starts.append(("given", given, _triangulate(y / fact.norm, fact.observed, given, sc,
+                                                        fact.centroids / fact.norm)))
+        runs = [(name, _bundle_adjust(y / fact.norm, fact.observed, r0, np.repeat(sc[:, None], t, axis=1),
+                                      x0, fact.centroids / fact.norm, links_,
+                                      per_frame_scales=False, max_nfev=max_nfev, prior_op=prior_op,
+                                      length_prior=_length_prior(body_proportions, links_, sigma),
+                                      angle_prior=_angle_prior(UPRIGHT_PRIORS, sigma, upright_w),
+                                      noise_sigma=sigma))
+                for name, r0, x0 in starts]
+        start, ba = min(runs, key=lambda run: run[1][4]["cost_end"])
+        if len(runs) > 1:
+            diag.update(start=start, start_costs={name: run[4]["cost_end"] for name, run in runs})
         rots, sc_t, joints_n, cov, info = ba
         sc = sc_t[:, 0] / sc_t[0, 0]
         if cov is not None:
@@ -662,6 +681,31 @@ def self_calibrate(
         method += "+ba"
     return SelfCalibration(rots, sc, _mask_unseen(joints, fact.observed), frame_scales,
                            conf, method, "", diag, euler_cov, scale_std)
+
+
+def _check_rotations(rotations: np.ndarray, n_cam: int) -> np.ndarray:
+    """``initial_rotations`` as (C, 3, 3) proper rotations relative to camera 0."""
+    r = np.asarray(rotations, dtype=float)
+    if r.shape != (n_cam, 3, 3) or not np.all(np.isfinite(r)):
+        raise ValueError(f"initial_rotations must be finite, shape ({n_cam}, 3, 3), got {r.shape}")
+    if not np.allclose(r @ np.swapaxes(r, 1, 2), np.eye(3), atol=1e-6) or not np.allclose(np.linalg.det(r), 1.0,
+                                                                                          atol=1e-6):
+        raise ValueError("initial_rotations must be proper rotations")
+    return r @ r[0].T
+
+
+def _triangulate(y: np.ndarray, observed: np.ndarray, rots: np.ndarray, scales: np.ndarray,
+                 centroids: np.ndarray) -> np.ndarray:
+    """Joints (T, J, 3) in camera 0's frame that best reproject, by linear least squares,
+    through scaled orthographic cameras ``s_c (R_c X)_{uv} + centroid_ct``."""
+    a = scales[:, None, None] * rots[:, :2, :]  # (C, 2, 3)
+    w = observed[..., None].astype(float)  # (C, T, J, 1)
+    obs = np.where(observed[..., None], y - centroids[:, :, None, :], 0.0)  # (C, T, J, 2)
+    normal = np.einsum("ctjk,cka,ckb->tjab", np.repeat(w, 2, axis=-1), a, a)
+    rhs = np.einsum("ctjk,cka->tja", obs, a)
+    eps = 1e-9 * np.trace(normal, axis1=2, axis2=3)[..., None, None] + 1e-12
+    x = np.linalg.solve(normal + eps * np.eye(3), rhs[..., None])[..., 0]
+    return x - x.mean(axis=1, keepdims=True)
 
 
 # ------------------------------------------------------------------ §4.3 varying scales

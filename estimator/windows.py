@@ -17,7 +17,7 @@ whole recording, exactly as one window would.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -25,6 +25,7 @@ import numpy as np
 from .appearance import AppearanceModel
 from .mnbp import MNBPConfig, measure_postures
 from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, track_length
+from .rig import RigConfig, calibrate_rig
 from .viewpoint import azimuth_difference_deg, circular_mean_deg
 
 __all__ = ["Segment", "SegmentedWalk", "ViewpointTrack", "segment_walk", "window_starts", "window_tracks"]
@@ -176,7 +177,8 @@ class SegmentedWalk:
                 frames += [{"index": t, "phase": None, "joints3d": None, "joints2d": {}, "observed_phase": {},
                             "segment": k} for t in range(seg.first, seg.last + 1)]
             else:
-                out.update(cameras=res["cameras"], hmm=res["hmm"], notes=res["notes"])
+                out.update(cameras=res["cameras"], hmm=res["hmm"], notes=res["notes"],
+                           **{k: res[k] for k in ("rig", "body") if k in res})
                 frames += [dict(f, segment=k) for f in res["frames"][seg.first - seg.start:seg.last + 1 - seg.start]]
             segments.append(out)
         main = self.segments[self.main]
@@ -211,6 +213,7 @@ def segment_walk(
     confirm: int = 3,
     config: EstimateConfig | None = None,
     posture: MNBPConfig | None = None,
+    rig: RigConfig | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> SegmentedWalk:
     """Estimate a recording window by window, one segment per heading (module docstring).
@@ -229,6 +232,10 @@ def segment_walk(
     posture : MNBPConfig, optional
         Measure each segment's 2D postures by mNBP (:func:`estimator.mnbp.measure_postures`,
         once per frame); None keeps the model's placement.
+    rig : RigConfig, optional
+        Calibrate each segment's rig and the person's posture from them
+        (:func:`estimator.rig.calibrate_rig`; the viewpoints' rig without
+        ``posture``); None: no rig.
     progress : callable, optional
         Called with the fraction done (windows, then segments).
 
@@ -276,6 +283,8 @@ def segment_walk(
         est, err = (estimates[i], errors[i]) if j - i == 1 else _estimate(tracks, a, b, model, config)
         if est is not None and posture is not None:
             est = measure_postures(est, posture)
+        if est is not None and rig is not None:
+            est = replace(est, rig=calibrate_rig(est, rig))
         segments.append(Segment(a, b, first, last, est, j - i, err))
         for w in windows[i:j]:
             w["segment"] = s

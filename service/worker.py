@@ -40,6 +40,7 @@ import numpy as np
 from estimator.appearance import AppearanceModel, load_model
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.rig import RigConfig
 from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
@@ -461,7 +462,9 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
     the walker (:func:`estimator.windows.segment_walk`, with ``options["windows"]``:
     ``length``, ``hop``, ``threshold_deg``, ``confirm``), each segment's 2D
     postures measured by mNBP unless ``options["posture"]`` is ``"model"``
-    (:func:`estimator.mnbp.measure_postures`). Writes progress and the
+    (:func:`estimator.mnbp.measure_postures`), and the rig and the person's
+    posture calibrated from them at ``options["height_m"]``
+    (:func:`estimator.rig.calibrate_rig`). Writes progress and the
     result (or the failure) to the store itself; raises nothing for bad input.
     Returns the stage bundles (one per segment) for Rerun when asked and done.
     """
@@ -492,7 +495,8 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         model = _get_model()
         t0 = time.perf_counter()
         posture = MNBPConfig() if options.get("posture", "mnbp") == "mnbp" else None
-        walk = segment_walk(tracks, model, **options.get("windows", {}), posture=posture,
+        rig = RigConfig(height_m=float(options.get("height_m", 1.75)))
+        walk = segment_walk(tracks, model, **options.get("windows", {}), posture=posture, rig=rig,
                             progress=lambda f: store.report(job_id, 0.5 + 0.4 * f, "estimating"))
         store.report(job_id, 0.9, "writing result")
         result = json_safe(walk.to_result())

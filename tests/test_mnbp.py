@@ -163,3 +163,9 @@ def test_cli_estimate_reports_the_measured_posture_and_keeps_the_model_placement
             assert np.allclose(m["model_joints2d"][cam], p["joints2d"][cam])  # same placement kept
             moved.append(np.abs(np.subtract(m["joints2d"][cam], p["joints2d"][cam])).max())
     assert len(moved) >= 30 and np.median(moved) > 1.0  # pixels: mNBP moved the limbs
+    # The rig and the person's posture come from the measured postures only.
+    rig, body = results["mnbp"]["rig"], results["mnbp"]["body"]
+    assert rig["source"] == "self-calibration" and set(rig["cameras"]) == {"c0", "c1"} and body["stature_m"] == 1.75
+    assert all(len(f["person_joints3d"]) == 13 for f in measured)
+    assert results["model"]["rig"]["source"] == "viewpoints" and results["model"]["body"] is None
+    assert all("person_joints3d" not in f for f in placed)

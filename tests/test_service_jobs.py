@@ -55,6 +55,11 @@ def test_job_round_trip_and_lifecycle(tmp_path, good_zip):
         result = srv.client.get(f"/v1/jobs/{job['id']}/result").json()
         assert len(result["joint_names"]) == 13 and len(result["frames"]) == 40
         assert len(result["frames"][0]["joints3d"]) == 13
+        # The rig and the person's posture (mNBP postures, then self-calibration, by default).
+        assert result["rig"]["reference"] == "c0" and set(result["rig"]["cameras"]) == {"c0", "c1"}
+        assert result["rig"]["source"] in ("self-calibration", "viewpoints")
+        if result["rig"]["source"] == "self-calibration":
+            assert result["body"]["stature_m"] == 1.75 and "person_joints3d" in result["frames"][0]
         for cam, az in zip(("c0", "c1"), TRUTH):
             assert abs((result["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 25
         listed = srv.client.get("/v1/jobs").json()
@@ -240,6 +245,9 @@ def test_bad_uploads_get_clear_4xx_and_disturb_nothing(tmp_path, seq_dir, good_z
         assert r.status_code == 415
 
         assert srv.client.post("/v1/jobs").status_code == 422  # no files at all
+        r = srv.client.post("/v1/jobs", files={"files": ("walk.zip", good_zip, "application/zip")},
+                            data={"height_m": "17.5"})
+        assert r.status_code == 422 and "height_m" in r.text
         for path in ("/v1/jobs/nope", "/v1/jobs/nope/result"):
             assert srv.client.get(path).status_code == 404
         assert srv.client.post("/v1/jobs/nope/cancel").status_code == 404

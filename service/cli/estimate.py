@@ -29,6 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frames[].joints2d: 'mnbp' (default) = the person's 2D posture measured on each "
                         "silhouette (Wang-Leow §3; model_joints2d keeps the model's placement); "
                         "'model' = the gait model placed on the silhouette (faster)")
+    p.add_argument("--height", type=float, default=1.75, metavar="M",
+                   help="the walker's stature in metres (default 1.75): the scale of the person's posture "
+                        "(frames[].person_joints3d) and body segment lengths (body); silhouettes carry no "
+                        "absolute scale")
     p.set_defaults(func=run)
 
 
@@ -36,10 +40,15 @@ def run(args: argparse.Namespace) -> int:
     from estimator.pipeline import tracks_from_sequence
     from estimator.sequence import SequenceError, read_sequence
     from estimator.mnbp import MNBPConfig
+    from estimator.rig import RigConfig
     from estimator.windows import segment_walk
 
     from .model import model_from_arg
 
+    try:
+        rig = RigConfig(height_m=args.height)
+    except ValueError as exc:
+        raise CliError(f"--height: {exc}") from None
     try:
         sequence = read_sequence(args.sequence)
     except SequenceError as exc:
@@ -47,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     model = model_from_arg(args.model)
     try:
         walk = segment_walk(tracks_from_sequence(sequence), model, length=args.window, hop=args.hop,
-                            posture=MNBPConfig() if args.posture == "mnbp" else None)
+                            posture=MNBPConfig() if args.posture == "mnbp" else None, rig=rig)
     except ValueError as exc:
         raise CliError(f"{args.sequence}: {exc}") from None
     result = walk.to_result()
@@ -66,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
             t = truth["cameras"][name]
             line += f"   truth {t['azimuth_deg']:6.1f}, {t['elevation_deg']:5.1f}"
         print(line)
+    if result.get("rig"):
+        _print_rig(result["rig"], truth.get("cameras", {}))
     if len(result["segments"]) > 1:
         print(f"  the viewpoints changed: {len(result['segments'])} segments (cameras above: the longest)")
         for seg in result["segments"]:
@@ -73,3 +84,23 @@ def run(args: argparse.Namespace) -> int:
                               if c["azimuth_deg"] is not None)
             print(f"    frames {seg['first_index']}-{seg['last_index']}: {views or seg.get('error')}")
     return 0
+
+
+def _print_rig(rig: dict, truth: dict) -> None:
+    """Each camera's rotation from the reference (its angle, and its error when the folder has a truth)."""
+    import numpy as np
+
+    from estimator._selfcal_core import geodesic_deg
+    from estimator.camera import world_to_camera_rotation
+
+    ref = rig["reference"]
+    print(f"  rig ({rig['source']}), rotations from {ref}:")
+    for name, cam in rig["cameras"].items():
+        if name == ref:
+            continue
+        r = np.array(cam["rotation"])
+        line = f"    {name}: {geodesic_deg(r, np.eye(3)):6.1f} deg, scale {cam['scale']:.3f}"
+        if name in truth and ref in truth:
+            t = [world_to_camera_rotation(truth[c]["azimuth_deg"], truth[c]["elevation_deg"]) for c in (name, ref)]
+            line += f"   off the truth by {geodesic_deg(r, t[0] @ t[1].T):.1f} deg"
+        print(line)

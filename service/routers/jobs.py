@@ -39,6 +39,9 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
                    description="frames[].joints2d: 'mnbp' = the person's 2D posture measured on "
                    "each silhouette (Wang-Leow §3; model_joints2d keeps the model's placement); "
                    "'model' = the gait model placed on the silhouette (faster)")] = "mnbp",
+               height_m: Annotated[float, Form(ge=0.5, le=2.5, description="the walker's stature in "
+                                               "metres: the scale of frames[].person_joints3d and "
+                                               "body")] = 1.75,
                ) -> JobOut:
     """Validate and stage the upload, queue the job; 4xx with the reason if the upload is bad."""
     job_id = uuid.uuid4().hex
@@ -51,7 +54,8 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
         metrics.uploads_rejected.labels(str(exc.status)).inc()
         raise HTTPException(exc.status, str(exc)) from None
     options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames,
-                               "windows": settings.segment_options(), "posture": posture}
+                               "windows": settings.segment_options(), "posture": posture,
+                               "height_m": height_m}
     if warmup is not None:
         options["warmup"] = warmup
     if refine:

@@ -1,0 +1,271 @@
+"""The rig and the person's posture from the measured 2D postures (Wang–Leow §4 after §3).
+
+Izo–Grimson gives each camera's viewpoint relative to the walker, and so a
+rig: ``R_c R_0^T`` from the viewpoints (:func:`viewpoint_rotations`), a few
+degrees off per camera. The mNBP postures measured on each silhouette
+(:mod:`estimator.mnbp`) are 2D joint tracks of *this* walker, which Wang–Leow
+§4 turns into the rig and the 3D posture (:func:`estimator.selfcal.self_calibrate`,
+the refined path: bundle adjustment with the upright prior). The adjustment is
+started twice, from the closed form and from the viewpoints' rig, and keeps
+the lower cost; each camera's rotation is then fused with the viewpoints'
+by their errors (:class:`RigConfig`). When self-calibration cannot run or
+fails, the viewpoints' rig stands and ``notes`` say why. The 3D joints come out in camera 0's
+frame; :func:`person_frame` turns them to the walker's (x walking direction,
+y left, z up) by the mean hip line and trunk, and they are scaled to metres
+so that the chain ankle-knee-hip-shoulder-head has the length it has on the
+model's body at the given stature (:class:`RigConfig`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .camera import world_to_camera_rotation
+from .gait import load_gait
+from .joints import JOINT_INDEX, N_JOINTS
+from .pipeline import WalkEstimate
+from .selfcal import self_calibrate
+from .skeleton import BodyShape, forward_kinematics
+
+__all__ = ["Rig", "RigConfig", "SEGMENTS", "calibrate_rig", "person_frame", "segment_lengths",
+           "viewpoint_rotations"]
+
+_J = JOINT_INDEX
+SEGMENTS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
+    "left_shank": ((_J["left_knee"],), (_J["left_ankle"],)),
+    "right_shank": ((_J["right_knee"],), (_J["right_ankle"],)),
+    "left_thigh": ((_J["left_hip"],), (_J["left_knee"],)),
+    "right_thigh": ((_J["right_hip"],), (_J["right_knee"],)),
+    "left_upper_arm": ((_J["left_shoulder"],), (_J["left_elbow"],)),
+    "right_upper_arm": ((_J["right_shoulder"],), (_J["right_elbow"],)),
+    "left_forearm": ((_J["left_elbow"],), (_J["left_wrist"],)),
+    "right_forearm": ((_J["right_elbow"],), (_J["right_wrist"],)),
+    "hip_width": ((_J["left_hip"],), (_J["right_hip"],)),
+    "shoulder_width": ((_J["left_shoulder"],), (_J["right_shoulder"],)),
+    "trunk": ((_J["left_hip"], _J["right_hip"]), (_J["left_shoulder"], _J["right_shoulder"])),
+    "neck_head": ((_J["left_shoulder"], _J["right_shoulder"]), (_J["head"],)),
+}
+"""Segments between the 13 joints: (joints averaged at one end, at the other)."""
+
+_STATURE_CHAIN = ("shank", "thigh", "trunk", "neck_head")  # ankle to head: what stature scales
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """How the rig and the person's posture are computed.
+
+    Attributes
+    ----------
+    height_m : float
+        The walker's stature: the 3D posture and the segment lengths are in
+        metres at this stature (silhouettes carry no absolute scale).
+    upright : bool
+        The bundle adjustment's upright prior (:func:`estimator.selfcal.self_calibrate`).
+    min_frames : int
+        Fewer frames seen by at least two cameras: the viewpoints' rig stands.
+    viewpoint_sigma_deg : float
+        Typical error of a camera's rotation from the viewpoints' rig
+        (``bench/eval_rig_from_silhouettes.py``: median 6-7.6 deg per camera
+        pair). Each camera's self-calibrated rotation is fused with it, weighted
+        by the inverse squares of this and of the self-calibration's posterior
+        error; 0 keeps the self-calibration alone.
+    """
+
+    height_m: float = 1.75
+    upright: bool = True
+    min_frames: int = 8
+    viewpoint_sigma_deg: float = 7.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
+            raise ValueError(f"height_m must be a stature in metres (0.5-2.5), got {self.height_m!r}")
+
+
+@dataclass
+class Rig:
+    """Camera rotations relative to the reference camera, and the person's posture and body.
+
+    Attributes
+    ----------
+    cameras : tuple of str
+        Camera names; ``cameras[0]`` is the reference.
+    rotations : ndarray of shape (C, 3, 3)
+        ``R_c R_ref^T``, rows image u, image v, viewing direction (the
+        convention of ``posecal selfcal``).
+    scales : ndarray of shape (C,)
+        Image scale of each camera relative to the reference (scaled orthographic).
+    source : str
+        ``"self-calibration"`` or ``"viewpoints"`` (the fallback).
+    euler_std_deg, scale_std : ndarray or None
+        Posterior standard deviations from the bundle adjustment (Laplace).
+    joints3d : ndarray of shape (T, 13, 3) or None
+        The person's posture in the person frame, metres, centred on the 13
+        joints' centroid per frame; NaN where seen by fewer than two cameras.
+        None when the rig is the viewpoints'.
+    segments_m : dict of str to float
+        Median segment lengths (:data:`SEGMENTS`), metres; empty without joints3d.
+    height_m : float
+    notes : list of str
+    """
+
+    cameras: tuple[str, ...]
+    rotations: np.ndarray
+    scales: np.ndarray
+    source: str
+    euler_std_deg: np.ndarray | None = None
+    scale_std: np.ndarray | None = None
+    joints3d: np.ndarray | None = None
+    segments_m: dict[str, float] = field(default_factory=dict)
+    height_m: float = 1.75
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """The result's ``rig`` (JSON-able)."""
+        euler = Rotation.from_matrix(self.rotations).as_euler("xyz", degrees=True)
+        cams = {}
+        for k, name in enumerate(self.cameras):
+            d = {"rotation": np.round(self.rotations[k], 6).tolist(),
+                 "euler_xyz_deg": np.round(euler[k], 3).tolist(),
+                 "scale": round(float(self.scales[k]), 5)}
+            if self.euler_std_deg is not None:
+                d["euler_xyz_std_deg"] = [None if not np.isfinite(v) else round(float(v), 3)
+                                          for v in self.euler_std_deg[k]]
+            if self.scale_std is not None:
+                d["scale_std"] = None if not np.isfinite(self.scale_std[k]) else round(float(self.scale_std[k]), 5)
+            cams[name] = d
+        return {"reference": self.cameras[0], "source": self.source, "cameras": cams}
+
+    def body_dict(self) -> dict | None:
+        """The result's ``body``: segment lengths in metres and relative to stature; None without them."""
+        if not self.segments_m:
+            return None
+        return {"stature_m": self.height_m,
+                "segments": {k: {"metres": round(v, 4), "relative": round(v / self.height_m, 4)}
+                             for k, v in self.segments_m.items()}}
+
+
+def viewpoint_rotations(estimate: WalkEstimate) -> np.ndarray:
+    """``R_c R_0^T`` (C, 3, 3) from each camera's Izo–Grimson viewpoint; NaN for a camera without one."""
+    rots = []
+    for cam in estimate.cameras.values():
+        vp = cam.viewpoint
+        ok = np.isfinite(vp.azimuth_deg) and np.isfinite(vp.elevation_deg)
+        rots.append(world_to_camera_rotation(vp.azimuth_deg, vp.elevation_deg) if ok else np.full((3, 3), np.nan))
+    rots = np.stack(rots)
+    return rots @ rots[0].T
+
+
+def segment_lengths(joints3d: np.ndarray) -> dict[str, np.ndarray]:
+    """Length of every :data:`SEGMENTS` entry per frame: name -> (T,)."""
+    out = {}
+    for name, (a, b) in SEGMENTS.items():
+        pa, pb = joints3d[:, list(a)].mean(axis=1), joints3d[:, list(b)].mean(axis=1)
+        out[name] = np.linalg.norm(pa - pb, axis=-1)
+    return out
+
+
+def _stature_chain(lengths: dict[str, float]) -> float:
+    """Ankle to head: mean of left and right leg segments, then trunk and neck-head."""
+    def side(k: str) -> float:
+        return float(np.nanmean([lengths.get(f"left_{k}", np.nan), lengths.get(f"right_{k}", np.nan)]))
+
+    return side("shank") + side("thigh") + lengths["trunk"] + lengths["neck_head"]
+
+
+def _model_lengths(height_m: float) -> dict[str, float]:
+    """The model body's segment lengths at ``height_m`` (the shipped gait at phase 0)."""
+    joints = forward_kinematics(load_gait().angles(np.zeros(1)), BodyShape(height=height_m))[:, :N_JOINTS]
+    return {k: float(v[0]) for k, v in segment_lengths(joints).items()}
+
+
+def person_frame(joints3d: np.ndarray) -> np.ndarray:
+    """Joints (T, 13, 3) in any right-handed frame turned to the walker's: z along the mean
+    trunk (hips to shoulders), y along the mean hip line (right to left) made
+    perpendicular to it, x = y cross z (walking direction); centred per frame."""
+    j = np.asarray(joints3d, float)
+    hips = j[:, [_J["left_hip"], _J["right_hip"]]]
+    shoulders = j[:, [_J["left_shoulder"], _J["right_shoulder"]]]
+    up = np.nanmean(shoulders.mean(axis=1) - hips.mean(axis=1), axis=0)
+    up /= np.linalg.norm(up)
+    left = np.nanmean(hips[:, 0] - hips[:, 1], axis=0)
+    left -= up * (left @ up)
+    left /= np.linalg.norm(left)
+    basis = np.stack([np.cross(left, up), left, up])  # rows: x, y, z of the person frame
+    out = j @ basis.T
+    return out - np.nanmean(out, axis=1, keepdims=True)
+
+
+def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Rig:
+    """The rig, the person's posture and body from an estimate's ``joints2d`` (this stage's entry).
+
+    Needs ``joints2d`` measured on the silhouettes (:func:`estimator.mnbp.measure_postures`,
+    which keeps the placement as ``model_joints2d``): self-calibrating the
+    model's placement would calibrate the model's walk, so without them the
+    viewpoints' rig is returned. Never raises for the data: every fallback
+    is the viewpoints' rig with a note.
+    """
+    names = tuple(estimate.cameras)
+    from_views = viewpoint_rotations(estimate)
+    scales = _box_scales(estimate)
+    fallback = Rig(names, from_views, scales, "viewpoints", height_m=config.height_m)
+    if len(names) < 2:
+        fallback.notes.append("one camera: no rig to calibrate")
+        return fallback
+    if all(c.model_joints2d is None for c in estimate.cameras.values()):
+        fallback.notes.append("rig from the viewpoints: the 2D postures were not measured (posture 'model')")
+        return fallback
+    tracks = np.stack([estimate.cameras[n].joints2d for n in names])  # (C, T, 13, 2)
+    seen = np.isfinite(tracks).all(axis=(2, 3)).sum(axis=0) >= 2
+    if seen.sum() < config.min_frames:
+        fallback.notes.append(f"rig from the viewpoints: {int(seen.sum())} frames seen by two cameras or more "
+                              f"(self-calibration needs {config.min_frames})")
+        return fallback
+    start = from_views if np.all(np.isfinite(from_views)) else None
+    try:
+        cal = self_calibrate(tracks[:, seen], refine=True, upright=config.upright, initial_rotations=start)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        fallback.notes.append(f"rig from the viewpoints: self-calibration failed ({exc})")
+        return fallback
+    if not cal:
+        fallback.notes.append(f"rig from the viewpoints: self-calibration failed ({cal.reason})")
+        return fallback
+    joints = np.full((len(seen), N_JOINTS, 3), np.nan)
+    joints[seen] = person_frame(cal.joints3d)
+    measured = {k: float(np.nanmedian(v)) for k, v in segment_lengths(joints[seen]).items()}
+    k = _stature_chain(_model_lengths(config.height_m)) / _stature_chain(measured)
+    rotations, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, from_views, config.viewpoint_sigma_deg)
+    rig = Rig(names, rotations, cal.scales, "self-calibration", cal.euler_xyz_std_deg, cal.scale_std,
+              joints * k, {n: v * k for n, v in measured.items()}, config.height_m)
+    start_used = cal.diagnostics.get("start", "closed form")
+    rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4, bundle adjustment from the {start_used}) "
+                     f"on {int(seen.sum())} frames; metres at a stature of {config.height_m} m")
+    if weight is not None:
+        rig.notes.append("rotations fused with the viewpoints' rig by their errors (self-calibration's weight: "
+                         + ", ".join(f"{n} {w:.2f}" for n, w in zip(names[1:], weight[1:])) + ")")
+    return rig
+
+
+def _fuse(rotations: np.ndarray, std_deg: np.ndarray | None, views: np.ndarray,
+          sigma_views: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """Each camera's rotation on the geodesic from the viewpoints' to the self-calibration's,
+    at the self-calibration's inverse-variance weight; (rotations, weights) or unchanged and None."""
+    if sigma_views <= 0 or std_deg is None or not np.all(np.isfinite(views)):
+        return rotations, None
+    sigma = np.linalg.norm(np.asarray(std_deg, float), axis=1)
+    weight = np.where(np.isfinite(sigma), sigma_views**2 / (sigma_views**2 + sigma**2), 0.0)
+    weight[0] = 1.0
+    delta = Rotation.from_matrix(rotations) * Rotation.from_matrix(views).inv()  # views -> self-calibration
+    fused = (Rotation.from_rotvec(delta.as_rotvec() * weight[:, None]) * Rotation.from_matrix(views)).as_matrix()
+    return fused, weight
+
+
+def _box_scales(estimate: WalkEstimate) -> np.ndarray:
+    """Each camera's image scale relative to the first: ratio of median silhouette heights (1 without tracks)."""
+    if estimate.tracks is None:
+        return np.ones(len(estimate.cameras))
+    h = np.array([np.nanmedian(estimate.tracks[n].boxes[:, 3]) if n in estimate.tracks else np.nan
+                  for n in estimate.cameras])
+    return np.where(np.isfinite(h), h / h[0], 1.0) if np.isfinite(h[0]) else np.ones(len(h))

@@ -1,0 +1,132 @@
+"""The rig and the person's posture from measured 2D postures (estimator.rig), on real renders."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimator._selfcal_core import geodesic_deg
+from estimator.camera import world_to_camera_rotation
+from estimator.gait import load_gait
+from estimator.joints import JOINT_INDEX as J
+from estimator.joints import N_JOINTS
+from estimator.mnbp import MNBPConfig, measure_postures
+from estimator.pipeline import estimate_walk, tracks_from_sequence
+from estimator.rig import RigConfig, calibrate_rig, person_frame, segment_lengths
+from estimator.selfcal import self_calibrate
+from estimator.skeleton import BodyShape, forward_kinematics
+from estimator.synth import SynthSpec, synthesize
+
+
+@pytest.fixture(scope="module")
+def walk(small_model):
+    """Three cameras on a 24-frame walk, estimated and its postures measured (2 mNBP iterations)."""
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=24, seed=8, azimuths=(40.0, 110.0, 300.0),
+                               elevations=(5.0, 15.0, 10.0), image_size=(320, 240)))
+    est = estimate_walk(tracks_from_sequence(seq), small_model)
+    return seq, est, measure_postures(est, MNBPConfig(n_iterations=2))
+
+
+def _true_rig(seq) -> np.ndarray:
+    r = np.stack([world_to_camera_rotation(seq.truth["cameras"][c]["azimuth_deg"],
+                                           seq.truth["cameras"][c]["elevation_deg"]) for c in seq.cameras])
+    return r @ r[0].T
+
+
+def test_rig_from_measured_postures(walk):
+    seq, _, measured = walk
+    rig = calibrate_rig(measured, RigConfig(height_m=1.8))
+    assert rig.source == "self-calibration" and rig.cameras == tuple(seq.cameras)
+    errors = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], _true_rig(seq)[1:])]
+    assert max(errors) < 15.0, errors
+    assert np.allclose(rig.rotations[0], np.eye(3)) and rig.scales[0] == 1.0
+    # The person's posture: metres at the given stature, in the person frame (z up, y left).
+    assert rig.joints3d.shape == (seq.n_frames, N_JOINTS, 3) and np.isfinite(rig.joints3d).all()
+    head_up = rig.joints3d[:, J["head"], 2] - rig.joints3d[:, [J["left_ankle"], J["right_ankle"]], 2].mean(1)
+    assert 1.2 < np.median(head_up) < 1.8
+    left = rig.joints3d[:, J["left_hip"], 1] - rig.joints3d[:, J["right_hip"], 1]
+    assert np.all(left > 0)
+    body = rig.body_dict()
+    assert body["stature_m"] == 1.8
+    assert 0.2 < body["segments"]["left_thigh"]["relative"] < 0.3
+    d = rig.to_dict()
+    json.dumps(d, allow_nan=False)
+    assert d["reference"] == "c0" and set(d["cameras"]) == set(seq.cameras)
+    assert any("self-calibration" in n for n in rig.notes)
+
+
+def test_without_measured_postures_the_rig_is_the_viewpoints(walk):
+    seq, est, _ = walk
+    rig = calibrate_rig(est)
+    assert rig.source == "viewpoints" and rig.joints3d is None and rig.body_dict() is None
+    assert any("not measured" in n for n in rig.notes)
+    one = calibrate_rig(replace(est, cameras={"c0": est.cameras["c0"]}))
+    assert one.source == "viewpoints" and any("one camera" in n for n in one.notes)
+
+
+def test_too_few_frames_fall_back_with_a_note(walk):
+    _, _, measured = walk
+    rig = calibrate_rig(measured, RigConfig(min_frames=100))
+    assert rig.source == "viewpoints" and any("frames seen by two cameras" in n for n in rig.notes)
+
+
+def test_person_frame_does_not_depend_on_the_frame_given():
+    joints = forward_kinematics(load_gait().angles(np.linspace(0, 1, 12)), BodyShape())[:, :N_JOINTS]
+    turned = joints @ Rotation.from_euler("xyz", [30, -50, 120], degrees=True).as_matrix().T
+    assert np.allclose(person_frame(turned), person_frame(joints), atol=1e-9)
+    upright = person_frame(joints)
+    # The model walks along +x: its person frame is the heading frame up to the trunk's lean.
+    assert np.allclose(upright, joints - joints.mean(axis=1, keepdims=True), atol=0.05)
+    for name, lengths in segment_lengths(turned).items():
+        assert np.allclose(lengths, segment_lengths(joints)[name])
+
+
+def test_height_is_a_stature():
+    with pytest.raises(ValueError, match="stature"):
+        RigConfig(height_m=17.5)
+
+
+def test_selfcal_keeps_the_better_of_two_starts():
+    """A second start (e.g. the viewpoints' rig) for the bundle adjustment: the lower cost wins."""
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=20, seed=2, azimuths=(30.0, 100.0), elevations=(5.0, 20.0),
+                               image_size=(320, 240)))
+    rng = np.random.default_rng(0)
+    tracks = np.stack([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras]).astype(float)
+    tracks += rng.normal(0, 1.0, tracks.shape)
+    truth = _true_rig(seq)
+    cal = self_calibrate(tracks, refine=True, upright=True, initial_rotations=truth)
+    assert set(cal.diagnostics["start_costs"]) == {"closed form", "given"}
+    assert cal.diagnostics["start"] in ("closed form", "given")
+    costs = cal.diagnostics["start_costs"]
+    assert cal.diagnostics["bundle"]["cost_end"] == pytest.approx(min(costs.values()))
+    alone = self_calibrate(tracks, refine=True, upright=True)
+    assert "start" not in alone.diagnostics
+    assert costs["closed form"] == pytest.approx(alone.diagnostics["bundle"]["cost_end"])
+    # Perspective renders, scaled-orthographic model: a few degrees off either way.
+    assert geodesic_deg(cal.rotations[1], truth[1]) < 10.0
+    with pytest.raises(ValueError, match="initial_rotations"):
+        self_calibrate(tracks, refine=True, initial_rotations=np.eye(3))
+
+
+def test_cli_height_is_checked(small_model_path, tmp_path, capsys):
+    from service.cli import main
+
+    assert main(["estimate", str(tmp_path / "none"), "--out", str(tmp_path / "r.json"), "--model", small_model_path,
+                 "--height", "0"]) == 2
+    assert "--height" in capsys.readouterr().err
+
+
+def test_rotations_fuse_by_their_errors():
+    from estimator.rig import _fuse
+
+    views = Rotation.from_euler("y", np.array([[0.0], [10.0], [40.0]]), degrees=True).as_matrix()
+    selfcal = Rotation.from_euler("y", np.array([[0.0], [20.0], [60.0]]), degrees=True).as_matrix()
+    fused, weight = _fuse(selfcal, np.array([[0.0, 0, 0], [7.0, 0, 0], [0.0, 0, 0]]), views, 7.0)
+    assert np.allclose(weight, [1.0, 0.5, 1.0])  # equal errors: halfway; an exact one: itself
+    assert np.allclose(Rotation.from_matrix(fused).as_euler("yxz", degrees=True)[:, 0], [0.0, 15.0, 60.0])
+    same, none = _fuse(selfcal, None, views, 7.0)
+    assert none is None and np.array_equal(same, selfcal)
