@@ -264,3 +264,16 @@ def geodesic_deg(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
     cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
+
+def triangulate(y: np.ndarray, observed: np.ndarray, rots: np.ndarray, scales: np.ndarray,
+                 centroids: np.ndarray) -> np.ndarray:
+    """Joints (T, J, 3) in camera 0's frame that best reproject, by linear least squares,
+    through scaled orthographic cameras ``s_c (R_c X)_{uv} + centroid_ct``."""
+    a = scales[:, None, None] * rots[:, :2, :]  # (C, 2, 3)
+    w = observed[..., None].astype(float)  # (C, T, J, 1)
+    obs = np.where(observed[..., None], y - centroids[:, :, None, :], 0.0)  # (C, T, J, 2)
+    normal = np.einsum("ctjk,cka,ckb->tjab", np.repeat(w, 2, axis=-1), a, a)
+    rhs = np.einsum("ctjk,cka->tja", obs, a)
+    eps = 1e-9 * np.trace(normal, axis1=2, axis2=3)[..., None, None] + 1e-12
+    x = np.linalg.solve(normal + eps * np.eye(3), rhs[..., None])[..., 0]
+    return x - x.mean(axis=1, keepdims=True)

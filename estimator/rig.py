@@ -8,7 +8,10 @@ degrees off per camera. The mNBP postures measured on each silhouette
 the refined path: bundle adjustment with the upright prior). The adjustment is
 started twice, from the closed form and from the viewpoints' rig, and keeps
 the lower cost; each camera's rotation is then fused with the viewpoints'
-by their errors (:class:`RigConfig`). When self-calibration cannot run or
+by their errors, and pinhole cameras are adjusted from there
+(:mod:`estimator.perspective`: rotation, centre and focal length per camera),
+which the scaled-orthographic model cannot give and which halves the tail of
+the rotation errors (docs/POSTURE.md). When self-calibration cannot run or
 fails, the viewpoints' rig stands and ``notes`` say why. The 3D joints come out in camera 0's
 frame; :func:`person_frame` turns them to the walker's (x walking direction,
 y left, z up) by the mean hip line and trunk, and they are scaled to metres
@@ -27,7 +30,8 @@ from .camera import world_to_camera_rotation
 from .gait import load_gait
 from .joints import JOINT_INDEX, N_JOINTS
 from .pipeline import WalkEstimate
-from .selfcal import self_calibrate
+from .perspective import PerspectiveConfig, perspective_refine
+from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
 __all__ = ["Rig", "RigConfig", "SEGMENTS", "calibrate_rig", "person_frame", "segment_lengths",
@@ -66,8 +70,13 @@ class RigConfig:
         The bundle adjustment's upright prior (:func:`estimator.selfcal.self_calibrate`).
     min_frames : int
         Fewer frames seen by at least two cameras: the viewpoints' rig stands.
+    perspective : bool
+        Finish with pinhole cameras (:func:`estimator.perspective.perspective_refine`:
+        rotation, centre and focal length per camera; needs full-frame
+        tracks): the camera rotations, focal lengths and centres (metres, in
+        camera 0's frame) then come from it.
     viewpoint_sigma_deg : float
-        Typical error of a camera's rotation from the viewpoints' rig
+        Without ``perspective``: typical error of a camera's rotation from the viewpoints' rig
         (``bench/eval_rig_from_silhouettes.py``: median 6-7.6 deg per camera
         pair). Each camera's self-calibrated rotation is fused with it, weighted
         by the inverse squares of this and of the self-calibration's posterior
@@ -78,6 +87,8 @@ class RigConfig:
     upright: bool = True
     min_frames: int = 8
     viewpoint_sigma_deg: float = 7.0
+    perspective: bool = True
+    pinhole: PerspectiveConfig = PerspectiveConfig()
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
@@ -121,6 +132,8 @@ class Rig:
     segments_m: dict[str, float] = field(default_factory=dict)
     height_m: float = 1.75
     notes: list[str] = field(default_factory=list)
+    focal_px: np.ndarray | None = None
+    centres_m: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """The result's ``rig`` (JSON-able)."""
@@ -135,6 +148,9 @@ class Rig:
                                           for v in self.euler_std_deg[k]]
             if self.scale_std is not None:
                 d["scale_std"] = None if not np.isfinite(self.scale_std[k]) else round(float(self.scale_std[k]), 5)
+            if self.focal_px is not None:
+                d["focal_px"] = round(float(self.focal_px[k]), 1)
+                d["centre_m"] = np.round(self.centres_m[k], 3).tolist()
             cams[name] = d
         return {"reference": self.cameras[0], "source": self.source, "cameras": cams}
 
@@ -232,18 +248,32 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     if not cal:
         fallback.notes.append(f"rig from the viewpoints: self-calibration failed ({cal.reason})")
         return fallback
+    sizes = [estimate.tracks[n].image_size if estimate.tracks and n in estimate.tracks else None for n in names]
+    fused, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, from_views, config.viewpoint_sigma_deg)
+    pinhole = None
+    if config.perspective and all(sz is not None for sz in sizes):
+        pinhole = perspective_refine(tracks[:, seen], np.array(sizes, float), fused, cal.scales,
+                                     list(RIGID_LINKS), config=config.pinhole)
     joints = np.full((len(seen), N_JOINTS, 3), np.nan)
-    joints[seen] = person_frame(cal.joints3d)
+    joints[seen] = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
     measured = {k: float(np.nanmedian(v)) for k, v in segment_lengths(joints[seen]).items()}
     k = _stature_chain(_model_lengths(config.height_m)) / _stature_chain(measured)
-    rotations, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, from_views, config.viewpoint_sigma_deg)
-    rig = Rig(names, rotations, cal.scales, "self-calibration", cal.euler_xyz_std_deg, cal.scale_std,
-              joints * k, {n: v * k for n, v in measured.items()}, config.height_m)
     start_used = cal.diagnostics.get("start", "closed form")
-    rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4, bundle adjustment from the {start_used}) "
-                     f"on {int(seen.sum())} frames; metres at a stature of {config.height_m} m")
+    if pinhole is None:
+        rig = Rig(names, fused, cal.scales, "self-calibration", cal.euler_xyz_std_deg, cal.scale_std,
+                  joints * k, {n: v * k for n, v in measured.items()}, config.height_m)
+        how = f"scaled orthographic bundle adjustment from the {start_used}"
+    else:
+        rig = Rig(names, pinhole.rotations, pinhole.scales, "self-calibration", None, None, joints * k,
+                  {n: v * k for n, v in measured.items()}, config.height_m, focal_px=pinhole.focal_px,
+                  centres_m=pinhole.centres * k)
+        how = (f"scaled orthographic bundle adjustment from the {start_used}, then pinhole cameras "
+               f"(reprojection {pinhole.rmse_px:.1f} px rms)")
+    rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {int(seen.sum())} frames; "
+                     f"metres at a stature of {config.height_m} m")
     if weight is not None:
-        rig.notes.append("rotations fused with the viewpoints' rig by their errors (self-calibration's weight: "
+        rig.notes.append(("pinhole adjustment started from the " if pinhole is not None else "")
+                         + "rotations fused with the viewpoints' rig by their errors (self-calibration's weight: "
                          + ", ".join(f"{n} {w:.2f}" for n, w in zip(names[1:], weight[1:])) + ")")
     return rig
 

@@ -63,6 +63,7 @@ from ._selfcal_core import (
     nearest_scaled_rotation,
     poly_interp,
     sym_from_vec,
+    triangulate,
 )
 from .joints import JOINT_INDEX, N_JOINTS
 from .viewpoint import azimuth_difference_deg
@@ -658,7 +659,7 @@ def self_calibrate(
         starts = [("closed form", rots, joints / fact.norm)]
         if initial_rotations is not None:
             given = _check_rotations(initial_rotations, n_cam)
-            starts.append(("given", given, _triangulate(y / fact.norm, fact.observed, given, sc,
+            starts.append(("given", given, triangulate(y / fact.norm, fact.observed, given, sc,
                                                         fact.centroids / fact.norm)))
         runs = [(name, _bundle_adjust(y / fact.norm, fact.observed, r0, np.repeat(sc[:, None], t, axis=1),
                                       x0, fact.centroids / fact.norm, links_,
@@ -692,20 +693,6 @@ def _check_rotations(rotations: np.ndarray, n_cam: int) -> np.ndarray:
                                                                                           atol=1e-6):
         raise ValueError("initial_rotations must be proper rotations")
     return r @ r[0].T
-
-
-def _triangulate(y: np.ndarray, observed: np.ndarray, rots: np.ndarray, scales: np.ndarray,
-                 centroids: np.ndarray) -> np.ndarray:
-    """Joints (T, J, 3) in camera 0's frame that best reproject, by linear least squares,
-    through scaled orthographic cameras ``s_c (R_c X)_{uv} + centroid_ct``."""
-    a = scales[:, None, None] * rots[:, :2, :]  # (C, 2, 3)
-    w = observed[..., None].astype(float)  # (C, T, J, 1)
-    obs = np.where(observed[..., None], y - centroids[:, :, None, :], 0.0)  # (C, T, J, 2)
-    normal = np.einsum("ctjk,cka,ckb->tjab", np.repeat(w, 2, axis=-1), a, a)
-    rhs = np.einsum("ctjk,cka->tja", obs, a)
-    eps = 1e-9 * np.trace(normal, axis1=2, axis2=3)[..., None, None] + 1e-12
-    x = np.linalg.solve(normal + eps * np.eye(3), rhs[..., None])[..., 0]
-    return x - x.mean(axis=1, keepdims=True)
 
 
 # ------------------------------------------------------------------ §4.3 varying scales

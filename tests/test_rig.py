@@ -14,9 +14,11 @@ from estimator.camera import world_to_camera_rotation
 from estimator.gait import load_gait
 from estimator.joints import JOINT_INDEX as J
 from estimator.joints import N_JOINTS
-from estimator.mnbp import MNBPConfig, measure_postures
+from estimator.mnbp import measure_postures
 from estimator.pipeline import estimate_walk, tracks_from_sequence
-from estimator.rig import RigConfig, calibrate_rig, person_frame, segment_lengths
+from estimator.perspective import perspective_refine
+from estimator.rig import RigConfig, calibrate_rig, person_frame, segment_lengths, viewpoint_rotations
+from estimator.selfcal import RIGID_LINKS
 from estimator.selfcal import self_calibrate
 from estimator.skeleton import BodyShape, forward_kinematics
 from estimator.synth import SynthSpec, synthesize
@@ -24,11 +26,11 @@ from estimator.synth import SynthSpec, synthesize
 
 @pytest.fixture(scope="module")
 def walk(small_model):
-    """Three cameras on a 24-frame walk, estimated and its postures measured (2 mNBP iterations)."""
+    """Three cameras on a 24-frame walk, estimated and its postures measured (default mNBP)."""
     seq = synthesize(SynthSpec(n_cameras=3, n_frames=24, seed=8, azimuths=(40.0, 110.0, 300.0),
                                elevations=(5.0, 15.0, 10.0), image_size=(320, 240)))
     est = estimate_walk(tracks_from_sequence(seq), small_model)
-    return seq, est, measure_postures(est, MNBPConfig(n_iterations=2))
+    return seq, est, measure_postures(est)
 
 
 def _true_rig(seq) -> np.ndarray:
@@ -42,7 +44,13 @@ def test_rig_from_measured_postures(walk):
     rig = calibrate_rig(measured, RigConfig(height_m=1.8))
     assert rig.source == "self-calibration" and rig.cameras == tuple(seq.cameras)
     errors = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], _true_rig(seq)[1:])]
-    assert max(errors) < 15.0, errors
+    views = [geodesic_deg(a, b) for a, b in zip(viewpoint_rotations(measured)[1:], _true_rig(seq)[1:])]
+    # The small test model's viewpoints are 6-13 deg off here; the rig must not be worse by more than
+    # issue 16's 2 deg (accuracy with the full model: bench/eval_rig_from_silhouettes.py).
+    assert max(errors) <= max(views) + 2.0, (errors, views)
+    assert rig.focal_px is not None and np.all(rig.focal_px > 0) and rig.centres_m.shape == (3, 3)
+    assert np.allclose(rig.centres_m[0], 0.0)
+    assert 4.0 < np.linalg.norm(rig.centres_m[1]) < 20.0  # metres from camera 0 (truth: 2 x 8.7 x sin(35 deg))
     assert np.allclose(rig.rotations[0], np.eye(3)) and rig.scales[0] == 1.0
     # The person's posture: metres at the given stature, in the person frame (z up, y left).
     assert rig.joints3d.shape == (seq.n_frames, N_JOINTS, 3) and np.isfinite(rig.joints3d).all()
@@ -130,3 +138,25 @@ def test_rotations_fuse_by_their_errors():
     assert np.allclose(Rotation.from_matrix(fused).as_euler("yxz", degrees=True)[:, 0], [0.0, 15.0, 60.0])
     same, none = _fuse(selfcal, None, views, 7.0)
     assert none is None and np.array_equal(same, selfcal)
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 2.0])
+def test_pinhole_cameras_from_joint_tracks(noise_px):
+    """Perspective renders: the scaled-orthographic rig is a few degrees off even on exact
+    joints; the pinhole adjustment recovers the rotations and the focal length."""
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=12, azimuths=(20.0, 95.0, 230.0),
+                               elevations=(10.0, 25.0, 0.0), image_size=(640, 480)))
+    tracks = np.stack([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras]).astype(float)
+    tracks += np.random.default_rng(1).normal(0.0, noise_px, tracks.shape)
+    cal = self_calibrate(tracks, refine=True, upright=True)
+    pin = perspective_refine(tracks, np.tile(seq.image_size, (3, 1)), cal.rotations, cal.scales, list(RIGID_LINKS))
+    truth = _true_rig(seq)
+    ortho = max(geodesic_deg(a, b) for a, b in zip(cal.rotations[1:], truth[1:]))
+    pinhole = max(geodesic_deg(a, b) for a, b in zip(pin.rotations[1:], truth[1:]))
+    focal = seq.truth["cameras"]["c0"]["focal_px"]
+    if noise_px == 0.0:
+        assert pinhole < 0.5 < ortho, (pinhole, ortho)
+        assert np.allclose(pin.focal_px, focal, rtol=0.03) and pin.rmse_px < 0.1
+    else:
+        assert pinhole < 3.0 and pinhole < ortho, (pinhole, ortho)
+        assert 0.8 * noise_px < pin.rmse_px < 1.2 * noise_px

@@ -100,6 +100,8 @@ def _print_rig(rig: dict, truth: dict) -> None:
             continue
         r = np.array(cam["rotation"])
         line = f"    {name}: {geodesic_deg(r, np.eye(3)):6.1f} deg, scale {cam['scale']:.3f}"
+        if "focal_px" in cam:
+            line += f", focal {cam['focal_px']:.0f} px, {np.linalg.norm(cam['centre_m']):.1f} m from {ref}"
         if name in truth and ref in truth:
             t = [world_to_camera_rotation(truth[c]["azimuth_deg"], truth[c]["elevation_deg"]) for c in (name, ref)]
             line += f"   off the truth by {geodesic_deg(r, t[0] @ t[1].T):.1f} deg"
