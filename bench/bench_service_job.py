@@ -3,9 +3,10 @@
 The service runs as ``posecal serve --no-live`` in its own process (warm: the
 worker pool is started with the service). Each run times POST (upload +
 validation) -> polling ``GET /v1/jobs/{id}`` every 20 ms -> ``GET .../result``.
-Target: <= 3 s end to end.
+Targets, end to end: <= 10 s with the default job (mNBP postures and the rig,
+issue 16), <= 3 s with ``posture=model`` (the model's placement alone).
 
-Usage: ``python bench/bench_service_job.py [--runs 5] [--model PATH]``.
+Usage: ``python bench/bench_service_job.py [--runs 5] [--posture mnbp|model] [--model PATH]``.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--model", help="appearance model (default: the service's default model)")
+    ap.add_argument("--posture", choices=("mnbp", "model"), default="mnbp",
+                    help="the job's posture field (default mnbp, as a job without it)")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
     load_before = os.getloadavg()[0]
@@ -56,7 +59,8 @@ def main() -> int:
     with ServiceProcess(workdir / "svc", "--no-live", model=args.model) as svc:
         for _ in range(args.runs):
             t0 = time.perf_counter()
-            r = svc.client.post("/v1/jobs", files={"files": ("walk.zip", data, "application/zip")})
+            r = svc.client.post("/v1/jobs", files={"files": ("walk.zip", data, "application/zip")},
+                                data={"posture": args.posture})
             r.raise_for_status()
             t1 = time.perf_counter()
             job_id = r.json()["id"]
@@ -75,11 +79,13 @@ def main() -> int:
            "submit_s": round(float(np.median(submit)), 3), "estimate_walk_s": round(float(np.median(run)), 3),
            "cameras": {c: {k: result["cameras"][c][k] for k in ("azimuth_deg", "elevation_deg")} for c in result["cameras"]},
            "truth": result.get("truth_cameras"),
+           "rig": result.get("rig", {}).get("source"), "posture": args.posture,
            "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)]}
-    fig["targets_met"] = fig["end_to_end_s"]["max"] <= 3.0
+    target = 10.0 if args.posture == "mnbp" else 3.0
+    fig["targets_met"] = fig["end_to_end_s"]["max"] <= target
     print(json.dumps(fig, indent=1))
     print(f"end to end: median {fig['end_to_end_s']['p50']:.2f} s, max {fig['end_to_end_s']['max']:.2f} s "
-          f"(target <= 3 s) -> {'MET' if fig['targets_met'] else 'NOT MET'}")
+          f"(target <= {target:g} s) -> {'MET' if fig['targets_met'] else 'NOT MET'}")
     if args.json:
         Path(args.json).write_text(json.dumps(fig, indent=1))
     return 0 if fig["targets_met"] else 1

@@ -47,7 +47,7 @@ from estimator.mnbp import measure_postures  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.perspective import perspective_refine  # noqa: E402
-from estimator.rig import calibrate_rig, segment_lengths  # noqa: E402
+from estimator.rig import aligned_error, calibrate_rig, segment_lengths  # noqa: E402
 from estimator.selfcal import RIGID_LINKS, self_calibrate  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
 
@@ -57,22 +57,6 @@ STYLISED = GaitStyle(stride=0.7, leg_lift=1.3, arm_swing=1.8, cadence=1.0)  # as
 
 def relative(rotations: list[np.ndarray]) -> list[np.ndarray]:
     return [r @ rotations[0].T for r in rotations[1:]]
-
-
-def procrustes_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """Per frame: mean joint distance after the similarity transform taking ``est`` nearest ``true``."""
-    out = np.full(len(est), np.nan)
-    for t, (a, b) in enumerate(zip(est, true)):
-        ok = np.isfinite(a).all(axis=1)
-        if ok.sum() < 4:
-            continue
-        a0, b0 = a[ok] - a[ok].mean(0), b[ok] - b[ok].mean(0)
-        u, sv, vt = np.linalg.svd(a0.T @ b0)
-        d = np.sign(np.linalg.det(u @ vt))
-        r = u @ np.diag([1, 1, d]) @ vt
-        scale = (sv * [1, 1, d]).sum() / (a0 ** 2).sum()
-        out[t] = np.linalg.norm(scale * a0 @ r - b0, axis=1).mean()
-    return out
 
 
 def main() -> None:
@@ -128,10 +112,10 @@ def main() -> None:
         stature = seq.truth["body"]["height"]
         true3d = np.array([f["joints3d"] for f in seq.truth["frames"]])
         if rig.joints3d is not None:
-            e3d += list(procrustes_error(rig.joints3d, true3d) / stature)
+            e3d += list(aligned_error(rig.joints3d, true3d) / stature)
             true_len = {k: np.median(v) / stature for k, v in segment_lengths(true3d).items()}
             seg_err += [abs(rig.segments_m[k] / rig.height_m - true_len[k]) / true_len[k] for k in true_len]
-        e3d_model += list(procrustes_error(est.joints3d, true3d) / stature)
+        e3d_model += list(aligned_error(est.joints3d, true3d) / stature)
     print(f"\n{args.sequences} walks, {len(errors['viewpoints'])} camera pairs\n")
     print("| rotations from | median | p90 | max | failed walks |\n|---|---|---|---|---|")
     for name, e in errors.items():

@@ -44,7 +44,7 @@ class PerspectiveConfig:
     ----------
     focal_px : float or None
         Known focal length (every camera); None: free per camera, started at
-        ``focal_start`` x image width.
+        ``focal_start`` x that camera's image width.
     focal_start : float
         Start of a free focal length, in image widths (1.5: a 37 deg field of view).
     focal_sigma : float
@@ -126,11 +126,13 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     n_cam, t, j, _ = y.shape
     principal = np.asarray(image_sizes, float) / 2.0
     observed = np.all(np.isfinite(y), axis=-1)
-    f0 = np.full(n_cam, config.focal_px if config.focal_px else config.focal_start * float(np.asarray(image_sizes)[0, 0]))
+    f0 = np.full(n_cam, float(config.focal_px)) if config.focal_px else config.focal_start * np.asarray(image_sizes,
+                                                                                                      float)[:, 0]
     # Start: each camera's pixels per unit s_c (camera 0: 1), the walker at depth f_0 in camera 0
     # (1 unit = 1 pixel of camera 0 at the walker), centred where camera 0 sees its centroid.
-    centroid = np.array([[np.nanmean(y[c, k], axis=0) if observed[c, k].any() else [np.nan, np.nan]
-                          for k in range(t)] for c in range(n_cam)])  # (C, T, 2)
+    count = observed.sum(axis=2)[..., None]  # (C, T, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centroid = np.where(observed[..., None], y, 0.0).sum(axis=2) / count  # (C, T, 2), NaN where none
     filled = np.where(np.isfinite(centroid), centroid, np.nanmean(centroid, axis=1, keepdims=True))
     depth0 = f0[0]
     ray0 = np.concatenate([(filled[0] - principal[0]) / f0[0], np.ones((t, 1))], axis=1) * depth0  # (T, 3)

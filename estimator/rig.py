@@ -34,7 +34,7 @@ from .perspective import PerspectiveConfig, perspective_refine
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
-__all__ = ["Rig", "RigConfig", "SEGMENTS", "calibrate_rig", "person_frame", "segment_lengths",
+__all__ = ["Rig", "RigConfig", "SEGMENTS", "aligned_error", "calibrate_rig", "person_frame", "segment_lengths",
            "viewpoint_rotations"]
 
 _J = JOINT_INDEX
@@ -74,13 +74,27 @@ class RigConfig:
         Finish with pinhole cameras (:func:`estimator.perspective.perspective_refine`:
         rotation, centre and focal length per camera; needs full-frame
         tracks): the camera rotations, focal lengths and centres (metres, in
-        camera 0's frame) then come from it.
+        the reference camera's frame) then come from it.
+    pinhole : PerspectiveConfig
+    pinhole_max_rms : float
+        The pinhole result is refused (the scaled-orthographic rig stands, with
+        a note) when its reprojection error exceeds this fraction of the
+        walker's image height.
+    pinhole_focal_widths : (float, float)
+        ... or when a focal length lies outside this many image widths (a far
+        camera's focal length is loosely determined, 10-20 widths for a true
+        2.4 are seen with good rotations; a diverged fit gives 100s).
+    max_frames : int
+        Frames the rig is calibrated on, evenly spread over the segment (the
+        adjustments grow with the frames: 22 s for 200 frames); the person's
+        posture is given on those frames.
     viewpoint_sigma_deg : float
-        Without ``perspective``: typical error of a camera's rotation from the viewpoints' rig
+        Typical error of a camera's rotation from the viewpoints' rig
         (``bench/eval_rig_from_silhouettes.py``: median 6-7.6 deg per camera
         pair). Each camera's self-calibrated rotation is fused with it, weighted
         by the inverse squares of this and of the self-calibration's posterior
-        error; 0 keeps the self-calibration alone.
+        error; 0 keeps the self-calibration alone. With ``perspective`` the
+        fused rotations are where the pinhole adjustment starts.
     """
 
     height_m: float = 1.75
@@ -89,6 +103,9 @@ class RigConfig:
     viewpoint_sigma_deg: float = 7.0
     perspective: bool = True
     pinhole: PerspectiveConfig = PerspectiveConfig()
+    pinhole_max_rms: float = 0.04
+    pinhole_focal_widths: tuple[float, float] = (0.3, 50.0)
+    max_frames: int = 60
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
@@ -102,7 +119,7 @@ class Rig:
     Attributes
     ----------
     cameras : tuple of str
-        Camera names; ``cameras[0]`` is the reference.
+        Camera names.
     rotations : ndarray of shape (C, 3, 3)
         ``R_c R_ref^T``, rows image u, image v, viewing direction (the
         convention of ``posecal selfcal``).
@@ -111,7 +128,8 @@ class Rig:
     source : str
         ``"self-calibration"`` or ``"viewpoints"`` (the fallback).
     euler_std_deg, scale_std : ndarray or None
-        Posterior standard deviations from the bundle adjustment (Laplace).
+        Posterior standard deviations from the scaled-orthographic bundle
+        adjustment (Laplace); None with pinhole cameras (not computed there).
     joints3d : ndarray of shape (T, 13, 3) or None
         The person's posture in the person frame, metres, centred on the 13
         joints' centroid per frame; NaN where seen by fewer than two cameras.
@@ -120,6 +138,12 @@ class Rig:
         Median segment lengths (:data:`SEGMENTS`), metres; empty without joints3d.
     height_m : float
     notes : list of str
+    reference : str
+        The camera the rotations are relative to (the first camera in the rig).
+    focal_px, centres_m, walker_m : ndarray or None
+        With pinhole cameras: focal lengths (C,), camera centres (C, 3) and the
+        walker's mean position (3,), metres in camera 0's frame (x right, y
+        down, z forward).
     """
 
     cameras: tuple[str, ...]
@@ -134,25 +158,33 @@ class Rig:
     notes: list[str] = field(default_factory=list)
     focal_px: np.ndarray | None = None
     centres_m: np.ndarray | None = None
+    walker_m: np.ndarray | None = None  # the walker's mean position in camera 0's frame (pinhole rig)
+    reference: str | None = None  # default: cameras[0]
+
+    def __post_init__(self) -> None:
+        self.reference = self.reference or self.cameras[0]
 
     def to_dict(self) -> dict:
-        """The result's ``rig`` (JSON-able)."""
-        euler = Rotation.from_matrix(self.rotations).as_euler("xyz", degrees=True)
+        """The result's ``rig`` (strict JSON: a camera left out of the rig has ``None`` values)."""
+        def num(v, digits: int):
+            return np.round(v, digits).tolist() if np.all(np.isfinite(v)) else None
+
         cams = {}
         for k, name in enumerate(self.cameras):
-            d = {"rotation": np.round(self.rotations[k], 6).tolist(),
-                 "euler_xyz_deg": np.round(euler[k], 3).tolist(),
-                 "scale": round(float(self.scales[k]), 5)}
+            r = self.rotations[k]
+            ok = bool(np.all(np.isfinite(r)))
+            d = {"rotation": num(r, 6),
+                 "euler_xyz_deg": num(Rotation.from_matrix(r).as_euler("xyz", degrees=True), 3) if ok else None,
+                 "scale": num(self.scales[k], 5)}
             if self.euler_std_deg is not None:
-                d["euler_xyz_std_deg"] = [None if not np.isfinite(v) else round(float(v), 3)
-                                          for v in self.euler_std_deg[k]]
+                d["euler_xyz_std_deg"] = num(self.euler_std_deg[k], 3)
             if self.scale_std is not None:
-                d["scale_std"] = None if not np.isfinite(self.scale_std[k]) else round(float(self.scale_std[k]), 5)
+                d["scale_std"] = num(self.scale_std[k], 5)
             if self.focal_px is not None:
-                d["focal_px"] = round(float(self.focal_px[k]), 1)
-                d["centre_m"] = np.round(self.centres_m[k], 3).tolist()
+                d["focal_px"] = num(self.focal_px[k], 1)
+                d["centre_m"] = num(self.centres_m[k], 3)
             cams[name] = d
-        return {"reference": self.cameras[0], "source": self.source, "cameras": cams}
+        return {"reference": self.reference, "source": self.source, "cameras": cams}
 
     def body_dict(self) -> dict | None:
         """The result's ``body``: segment lengths in metres and relative to stature; None without them."""
@@ -180,6 +212,24 @@ def segment_lengths(joints3d: np.ndarray) -> dict[str, np.ndarray]:
     for name, (a, b) in SEGMENTS.items():
         pa, pb = joints3d[:, list(a)].mean(axis=1), joints3d[:, list(b)].mean(axis=1)
         out[name] = np.linalg.norm(pa - pb, axis=-1)
+    return out
+
+
+def aligned_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Per frame: mean joint distance of ``est`` (T, J, 3) to ``true`` after the similarity
+    transform (Procrustes with scale) taking the first nearest the second; NaN where fewer
+    than 4 joints are finite. For evaluations: the posture's shape, whatever its frame and size."""
+    out = np.full(len(est), np.nan)
+    for t, (a, b) in enumerate(zip(np.asarray(est, float), np.asarray(true, float))):
+        ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+        if ok.sum() < 4:
+            continue
+        a0, b0 = a[ok] - a[ok].mean(0), b[ok] - b[ok].mean(0)
+        u, sv, vt = np.linalg.svd(a0.T @ b0)
+        d = np.sign(np.linalg.det(u @ vt))
+        r = u @ np.diag([1.0, 1.0, d]) @ vt
+        scale = (sv * [1.0, 1.0, d]).sum() / (a0 ** 2).sum()
+        out[t] = np.linalg.norm(scale * a0 @ r - b0, axis=1).mean()
     return out
 
 
@@ -220,13 +270,14 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     Needs ``joints2d`` measured on the silhouettes (:func:`estimator.mnbp.measure_postures`,
     which keeps the placement as ``model_joints2d``): self-calibrating the
     model's placement would calibrate the model's walk, so without them the
-    viewpoints' rig is returned. Never raises for the data: every fallback
-    is the viewpoints' rig with a note.
+    viewpoints' rig is returned. Cameras with postures on fewer than
+    ``min_frames`` frames are left out (rotation ``None`` in the result).
+    Never raises for the data: every fallback is the viewpoints' rig, or the
+    scaled-orthographic one, with a note.
     """
     names = tuple(estimate.cameras)
     from_views = viewpoint_rotations(estimate)
-    scales = _box_scales(estimate)
-    fallback = Rig(names, from_views, scales, "viewpoints", height_m=config.height_m)
+    fallback = Rig(names, from_views, _box_scales(estimate), "viewpoints", height_m=config.height_m)
     if len(names) < 2:
         fallback.notes.append("one camera: no rig to calibrate")
         return fallback
@@ -234,48 +285,93 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
         fallback.notes.append("rig from the viewpoints: the 2D postures were not measured (posture 'model')")
         return fallback
     tracks = np.stack([estimate.cameras[n].joints2d for n in names])  # (C, T, 13, 2)
-    seen = np.isfinite(tracks).all(axis=(2, 3)).sum(axis=0) >= 2
-    if seen.sum() < config.min_frames:
-        fallback.notes.append(f"rig from the viewpoints: {int(seen.sum())} frames seen by two cameras or more "
-                              f"(self-calibration needs {config.min_frames})")
+    posed = np.isfinite(tracks).all(axis=(2, 3))  # (C, T)
+    use = np.flatnonzero(posed.sum(axis=1) >= config.min_frames)
+    seen = posed[use].sum(axis=0) >= 2
+    if len(use) < 2 or seen.sum() < config.min_frames:
+        fallback.notes.append(f"rig from the viewpoints: {int(seen.sum())} frames with postures from two cameras "
+                              f"or more (self-calibration needs {config.min_frames})")
         return fallback
-    start = from_views if np.all(np.isfinite(from_views)) else None
+    frames = np.flatnonzero(seen)
+    frames = frames[::int(np.ceil(len(frames) / config.max_frames))]  # evenly, at most max_frames
+    views = from_views[use] @ from_views[use[0]].T
     try:
-        cal = self_calibrate(tracks[:, seen], refine=True, upright=config.upright, initial_rotations=start)
+        cal = self_calibrate(tracks[use][:, frames], refine=True, upright=config.upright,
+                             initial_rotations=views if np.all(np.isfinite(views)) else None)
     except (ValueError, np.linalg.LinAlgError) as exc:
+        cal = None
         fallback.notes.append(f"rig from the viewpoints: self-calibration failed ({exc})")
-        return fallback
-    if not cal:
+    if cal is not None and not cal:
         fallback.notes.append(f"rig from the viewpoints: self-calibration failed ({cal.reason})")
+    if not cal:
         return fallback
-    sizes = [estimate.tracks[n].image_size if estimate.tracks and n in estimate.tracks else None for n in names]
-    fused, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, from_views, config.viewpoint_sigma_deg)
-    pinhole = None
-    if config.perspective and all(sz is not None for sz in sizes):
-        pinhole = perspective_refine(tracks[:, seen], np.array(sizes, float), fused, cal.scales,
-                                     list(RIGID_LINKS), config=config.pinhole)
-    joints = np.full((len(seen), N_JOINTS, 3), np.nan)
-    joints[seen] = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
-    measured = {k: float(np.nanmedian(v)) for k, v in segment_lengths(joints[seen]).items()}
-    k = _stature_chain(_model_lengths(config.height_m)) / _stature_chain(measured)
+    fused, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, views, config.viewpoint_sigma_deg)
+    pinhole, why_not = _pinhole(estimate, [names[c] for c in use], tracks[use][:, frames], fused, cal.scales, config)
+    joints3d = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
+    measured = {k: float(np.nanmedian(v)) for k, v in segment_lengths(joints3d).items()}
+    chain = _stature_chain(measured)
+    if not (np.isfinite(chain) and chain > 0):
+        fallback.notes.append("rig from the viewpoints: the self-calibrated body has no length")
+        return fallback
+    k = _stature_chain(_model_lengths(config.height_m)) / chain
+    joints = np.full((tracks.shape[1], N_JOINTS, 3), np.nan)
+    joints[frames] = joints3d * k
+
+    def full(a: np.ndarray | None, fill: float = np.nan) -> np.ndarray | None:
+        """Per-camera values of the calibrated cameras, spread over every camera (``fill`` elsewhere)."""
+        if a is None:
+            return None
+        out = np.full((len(names), *np.shape(a)[1:]), fill)
+        out[use] = a
+        return out
+
     start_used = cal.diagnostics.get("start", "closed form")
     if pinhole is None:
-        rig = Rig(names, fused, cal.scales, "self-calibration", cal.euler_xyz_std_deg, cal.scale_std,
-                  joints * k, {n: v * k for n, v in measured.items()}, config.height_m)
-        how = f"scaled orthographic bundle adjustment from the {start_used}"
+        rig = Rig(names, full(fused), full(cal.scales), "self-calibration", full(cal.euler_xyz_std_deg),
+                  full(cal.scale_std), joints, {n: v * k for n, v in measured.items()}, config.height_m,
+                  reference=names[use[0]])
+        how = f"scaled orthographic bundle adjustment from the {start_used}" + (f"; {why_not}" if why_not else "")
     else:
-        rig = Rig(names, pinhole.rotations, pinhole.scales, "self-calibration", None, None, joints * k,
-                  {n: v * k for n, v in measured.items()}, config.height_m, focal_px=pinhole.focal_px,
-                  centres_m=pinhole.centres * k)
+        rig = Rig(names, full(pinhole.rotations), full(pinhole.scales), "self-calibration", None, None, joints,
+                  {n: v * k for n, v in measured.items()}, config.height_m, reference=names[use[0]],
+                  focal_px=full(pinhole.focal_px), centres_m=full(pinhole.centres * k),
+                  walker_m=np.nanmean(pinhole.joints3d.reshape(-1, 3), axis=0) * k)
         how = (f"scaled orthographic bundle adjustment from the {start_used}, then pinhole cameras "
                f"(reprojection {pinhole.rmse_px:.1f} px rms)")
-    rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {int(seen.sum())} frames; "
-                     f"metres at a stature of {config.height_m} m")
+    rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {len(frames)} frames"
+                     + (f" (every {frames[1] - frames[0]}th)" if len(frames) > 1 and frames[1] - frames[0] > 1 else "")
+                     + f"; metres at a stature of {config.height_m} m")
+    left_out = [n for c, n in enumerate(names) if c not in use]
+    if left_out:
+        rig.notes.append(f"not in the rig (postures on fewer than {config.min_frames} frames): {', '.join(left_out)}")
     if weight is not None:
         rig.notes.append(("pinhole adjustment started from the " if pinhole is not None else "")
                          + "rotations fused with the viewpoints' rig by their errors (self-calibration's weight: "
-                         + ", ".join(f"{n} {w:.2f}" for n, w in zip(names[1:], weight[1:])) + ")")
+                         + ", ".join(f"{names[c]} {w:.2f}" for c, w in zip(use[1:], weight[1:])) + ")")
     return rig
+
+
+def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotations: np.ndarray,
+             scales: np.ndarray, config: RigConfig):
+    """The pinhole adjustment when it can run and its result is sane; else (None, why not)."""
+    if not config.perspective:
+        return None, ""
+    tr = estimate.tracks or {}
+    if not all(n in tr and tr[n].full_frame and tr[n].image_size is not None for n in names):
+        return None, "no pinhole cameras: the silhouettes are crops without a full frame"
+    sizes = np.array([tr[n].image_size for n in names], float)
+    try:
+        pin = perspective_refine(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return None, f"the pinhole adjustment failed ({exc})"
+    height = float(np.nanmedian(np.concatenate([tr[n].boxes[:, 3] for n in names])))
+    widths = pin.focal_px / sizes[:, 0]
+    lo, hi = config.pinhole_focal_widths
+    if not (np.all(np.isfinite(pin.rotations)) and np.all((widths > lo) & (widths < hi))
+            and pin.rmse_px <= config.pinhole_max_rms * height):
+        return None, (f"pinhole cameras refused (focal lengths {np.round(widths, 2).tolist()} image widths, "
+                      f"reprojection {pin.rmse_px:.1f} px rms)")
+    return pin, ""
 
 
 def _fuse(rotations: np.ndarray, std_deg: np.ndarray | None, views: np.ndarray,

@@ -15,9 +15,11 @@ coordinate spaces, under a prefix per rig (``rigs/<rig>``) or job
     <P>/phase/observed/<cam>              per-camera phase observation (scalar)
     <P>/phase/hmm                         the HMM (Viterbi) path (scalar)
     <P>/world/skeleton                    3D joints (person frame), keypoints + bones
+    <P>/world/person                      the person's posture (self-calibrated), 1 m to the left
     <P>/world/cameras/<cam>               estimated camera: Transform3D + Pinhole
     <P>/world/cameras/<cam>/box           silhouette box in that camera's image
     <P>/world/cameras/<cam>/joints        2D joints in that camera's image
+    <P>/world/rig/<cam>                   the calibrated pinhole camera (jobs): pose, focal length
     <P>/feedback/<cam>/prior              §7.1 prior sent for a frame (live: predicted ahead)
     <P>/feedback/<cam>/raw                jobs with refine: the raw silhouette, ...
     <P>/feedback/<cam>/refined            ... and the refined one, cut to the same box as the prior
@@ -51,7 +53,8 @@ __all__ = ["CAPTURE_PATHS", "RerunLog", "STAGE_PATHS"]
 log = logging.getLogger(__name__)
 
 TIMELINE = "frame"
-CAMERA_DISTANCE_M = 4.0  # where cameras are drawn: scaled orthography fixes no distance
+CAMERA_DISTANCE_M = 4.0  # where viewpoint cameras are drawn: scaled orthography fixes no distance
+PERSON_OFFSET_M = np.array([0.0, 1.0, 0.0])  # the person's posture beside the model's skeleton
 STAGE_PATHS = ("inputs/{cam}", "registration/{cam}/silhouette", "registration/{cam}/cluster_mean",
                "viewpoints/{cam}/cloud", "viewpoints/{cam}/ellipse", "phase/observed/{cam}",
                "phase/hmm", "world/skeleton", "world/cameras/{cam}", "world/cameras/{cam}/joints")
@@ -132,6 +135,11 @@ class RerunLog:
             s.log(f"{p}/phase/hmm", rr.Scalars(float(b.phase[t])))
             s.log(f"{p}/world/skeleton", rr.Points3D(
                 b.joints3d[t], class_ids=_WALKER, keypoint_ids=np.arange(len(JOINT_NAMES)), radii=0.03))
+            person = b.extra.get("person")
+            if person is not None and np.isfinite(person[t]).all(axis=1).any():
+                ok = np.isfinite(person[t]).all(axis=1)
+                s.log(f"{p}/world/person", rr.Points3D(
+                    person[t][ok] + PERSON_OFFSET_M, class_ids=_WALKER, keypoint_ids=np.flatnonzero(ok), radii=0.03))
             for cam, views in b.extra.get("feedback", {}).items():
                 if t < len(views) and views[t] is not None:
                     for name, img in zip(("raw", "prior", "refined"), views[t]):
@@ -148,6 +156,8 @@ class RerunLog:
                 s.log(f"{p}/viewpoints/{cam}/cloud", rr.Points2D(unwrapped, radii=0.6))
             s.log(f"{p}/viewpoints/{cam}/ellipse", rr.LineStrips2D([_ellipse(az, el, vp["covariance"])]))
             self._log_camera(p, cam, az, el, b.image_size.get(cam, (640, 480)))
+        if "rig" in b.extra:
+            self._log_rig(p, b)
 
     def _log_camera(self, p: str, cam: str, az: float, el: float, size: tuple[int, int]) -> None:
         R = world_to_camera_rotation(az, el)  # rows: u, v, viewing direction = camera RDF axes
@@ -156,6 +166,26 @@ class RerunLog:
         self.stream.log(f"{p}/world/cameras/{cam}", rr.Pinhole(
             resolution=[int(size[0]), int(size[1])], focal_length=1.2 * float(size[0]),
             camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.8))
+
+    def _log_rig(self, p: str, b: StageBundle) -> None:
+        """The calibrated pinhole cameras, placed in the person frame through the reference
+        camera's viewpoint (the rig itself is relative to that camera), the walker at the origin."""
+        rig = b.extra["rig"]
+        ref = b.viewpoints.get(rig["reference"], {})
+        az, el = ref.get("azimuth_deg", np.nan), ref.get("elevation_deg", np.nan)
+        if not (np.isfinite(az) and np.isfinite(el)):
+            return
+        r0 = world_to_camera_rotation(az, el)  # person frame -> reference camera
+        for k, cam in enumerate(rig["cameras"]):
+            if not np.all(np.isfinite(rig["rotations"][k])):
+                continue  # left out of the rig
+            r = rig["rotations"][k] @ r0
+            size = b.image_size.get(cam, (640, 480))
+            self.stream.log(f"{p}/world/rig/{cam}", rr.Transform3D(
+                translation=r0.T @ (rig["centres_m"][k] - rig["walker_m"]), mat3x3=r.T))
+            self.stream.log(f"{p}/world/rig/{cam}", rr.Pinhole(
+                resolution=[int(size[0]), int(size[1])], focal_length=float(rig["focal_px"][k]),
+                camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.8))
 
     def log_smoothed(self, prefix: str, index: int, smoothed: dict[str, dict]) -> None:
         """The live viewpoint smoothed across windows, per camera."""

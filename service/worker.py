@@ -153,7 +153,7 @@ def _find_sequence_root(out: Path) -> Path:
     if len(tops) == 1 and tops[0].is_dir() and (tops[0] / "rig.json").is_file():
         return tops[0]
     raise UploadError(422, "no rig.json at the top of the zip (or in its single top folder): "
-                           "zip a sequence folder, see DESIGN.md")
+                           "zip a sequence folder, see docs/FORMATS.md")
 
 
 def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, *, max_frames: int) -> StagedInput:
@@ -370,8 +370,22 @@ def make_bundle(tracks: dict[str, CameraTrack], est: WalkEstimate, model: Appear
         joints2d={n: c.joints2d for n, c in est.cameras.items()},
         viewpoints=vps, clouds=clouds, means={},
         phase=est.phase, states=est.states, joints3d=est.joints3d,
-        extra={"from_frame": from_frame})
+        extra={"from_frame": from_frame, **_rig_extra(est)})
     return register_stage(bundle, model) if register else bundle
+
+
+def _rig_extra(est: WalkEstimate) -> dict[str, Any]:
+    """The person's posture and the pinhole rig, as plain arrays, when the estimate has them."""
+    rig = est.rig
+    out: dict[str, Any] = {}
+    if rig is not None and rig.joints3d is not None:
+        out["person"] = np.asarray(rig.joints3d, float)
+    if rig is not None and rig.centres_m is not None:
+        out["rig"] = {"cameras": list(rig.cameras), "reference": rig.reference,
+                      "rotations": np.asarray(rig.rotations, float),
+                      "centres_m": np.asarray(rig.centres_m, float), "focal_px": np.asarray(rig.focal_px, float),
+                      "walker_m": np.asarray(rig.walker_m, float)}
+    return out
 
 
 def register_stage(bundle: StageBundle, model: AppearanceModel | None = None) -> StageBundle:

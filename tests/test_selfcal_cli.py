@@ -1,4 +1,4 @@
-"""``posecal selfcal``: the JSON formats of DESIGN.md and exit codes."""
+"""``posecal selfcal``: the JSON formats of docs/FORMATS.md and exit codes."""
 
 from __future__ import annotations
 

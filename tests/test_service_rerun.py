@@ -71,6 +71,10 @@ def test_rrd_holds_every_stage_of_live_windows_and_jobs(tmp_path: Path):
                 path = f"{prefix}/{template.format(cam=cam)}"
                 assert path in paths, f"{path} missing from the recording"
     assert f"rigs/{RIG}/viewpoints/c0/smoothed" in paths
+    # The job's person posture and calibrated pinhole cameras (the live path keeps the model's).
+    assert f"jobs/{job['id']}/world/person" in paths
+    for cam in seq.cameras:
+        assert f"jobs/{job['id']}/world/rig/{cam}" in paths
     for cam in seq.cameras:  # §7.1: live priors; the job's raw, prior and refined side by side
         assert f"rigs/{RIG}/feedback/{cam}/prior" in paths
         for layer in ("raw", "prior", "refined"):

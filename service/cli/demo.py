@@ -18,7 +18,7 @@ from pathlib import Path
 
 from . import CliError
 
-# Viewpoints of the demo cameras (azimuth, elevation), DESIGN.md convention.
+# Viewpoints of the demo cameras (azimuth, elevation), docs/FORMATS.md convention.
 CAMERAS = ((60.0, 10.0), (150.0, 15.0), (240.0, 5.0), (330.0, 20.0), (105.0, 25.0), (285.0, 0.0))
 FPS = 15.0
 EMPTY = 30  # empty frames first: the agents learn the background from them

@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "estimate",
         help="estimate walking phase, 3D/2D joints and camera viewpoints of a sequence folder",
         description="Match every silhouette to the appearance model, fit each camera's viewpoint, "
-        "decode the walking phase with the cyclic HMM and write the result (DESIGN.md format). "
+        "decode the walking phase with the cyclic HMM and write the result (format: docs/FORMATS.md). "
         "A recording longer than a window is estimated window by window and cut into segments "
         "where the viewpoints change (the walker turned); the result lists them. "
         "The default appearance model is built and cached on first use (about two minutes).",
@@ -97,6 +97,9 @@ def _print_rig(rig: dict, truth: dict) -> None:
     print(f"  rig ({rig['source']}), rotations from {ref}:")
     for name, cam in rig["cameras"].items():
         if name == ref:
+            continue
+        if cam["rotation"] is None:
+            print(f"    {name}: not in the rig")
             continue
         r = np.array(cam["rotation"])
         line = f"    {name}: {geodesic_deg(r, np.eye(3)):6.1f} deg, scale {cam['scale']:.3f}"

@@ -1,7 +1,7 @@
 """``posecal selfcal TRACKS.json --out result.json``: camera self-calibration.
 
-Reads 2D joint tracks of one walker in two or more views (DESIGN.md,
-"Self-calibration input"), runs :func:`estimator.selfcal.self_calibrate` and
+Reads 2D joint tracks of one walker in two or more views (docs/FORMATS.md,
+"Self-calibration"), runs :func:`estimator.selfcal.self_calibrate` and
 writes the rotation and scale of every camera relative to the first plus the
 metric 3D joints per frame.
 """
@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "selfcal",
         help="self-calibrate cameras from 2D joint tracks (Wang-Leow section 4)",
         description="Relative rotation and scale of two or more scaled orthographic cameras, "
-        "and metric 3D joints, from 2D joint tracks of one walker (DESIGN.md formats).",
+        "and metric 3D joints, from 2D joint tracks of one walker (formats: docs/FORMATS.md).",
     )
     p.add_argument("tracks", type=Path, help="tracks JSON: {joint_names, cameras: {name: frames}}")
     p.add_argument("--out", type=Path, default=None, help="result JSON (default: stdout)")
@@ -107,7 +107,7 @@ def _nullable(a: np.ndarray) -> list:
 
 
 def result_to_json(result, cameras: list[str]) -> dict:
-    """The result document of DESIGN.md for a successful :class:`SelfCalibration`."""
+    """The calibration document of docs/FORMATS.md for a successful :class:`SelfCalibration`."""
     euler = result.euler_xyz_deg
     doc: dict[str, Any] = {
         "joint_names": list(JOINT_NAMES),

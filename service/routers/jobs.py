@@ -84,7 +84,7 @@ def get_job(job_id: str, store: StoreDep) -> JobOut:
 
 @router.get("/{job_id}/result")
 def get_result(job_id: str, store: StoreDep) -> dict[str, Any]:
-    """The DESIGN.md result of a finished job; 409 while it is not done."""
+    """The result (docs/FORMATS.md) of a finished job; 409 while it is not done."""
     row = _job_or_404(store, job_id)
     if row.state != "done":
         detail = f"job {job_id} is {row.state}" + (f": {row.error}" if row.error else "")

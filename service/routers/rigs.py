@@ -39,7 +39,7 @@ def get_rig(rig: str, live: LiveDep) -> RigOut:
 
 @router.get("/{rig}/estimate")
 def latest_estimate(rig: str, live: LiveDep) -> dict[str, Any]:
-    """The latest window's result (DESIGN.md result plus rig, window, smoothed, latency_ms)."""
+    """The latest window's result (the docs/FORMATS.md result plus rig, window, smoothed, latency_ms)."""
     _rig_or_404(live, rig)
     latest = live.latest(rig)
     if latest is None:
