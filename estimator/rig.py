@@ -35,7 +35,7 @@ from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
 __all__ = ["Rig", "RigConfig", "SEGMENTS", "aligned_error", "calibrate_rig", "person_frame", "segment_lengths",
-           "viewpoint_rotations"]
+           "stature_scale", "viewpoint_rotations"]
 
 _J = JOINT_INDEX
 SEGMENTS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
@@ -233,6 +233,14 @@ def aligned_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     return out
 
 
+def stature_scale(joints3d: np.ndarray, height_m: float) -> float:
+    """Metres per unit of ``joints3d`` (T, 13, 3) for a walker of stature ``height_m``: the
+    chain ankle-knee-hip-shoulder-head as long as on the model's body of that stature (NaN
+    when the joints give it no length)."""
+    chain = _stature_chain({k: float(np.nanmedian(v)) for k, v in segment_lengths(joints3d).items()})
+    return _stature_chain(_model_lengths(height_m)) / chain if np.isfinite(chain) and chain > 0 else float("nan")
+
+
 def _stature_chain(lengths: dict[str, float]) -> float:
     """Ankle to head: mean of left and right leg segments, then trunk and neck-head."""
     def side(k: str) -> float:
@@ -309,11 +317,10 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     pinhole, why_not = _pinhole(estimate, [names[c] for c in use], tracks[use][:, frames], fused, cal.scales, config)
     joints3d = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
     measured = {k: float(np.nanmedian(v)) for k, v in segment_lengths(joints3d).items()}
-    chain = _stature_chain(measured)
-    if not (np.isfinite(chain) and chain > 0):
+    k = stature_scale(joints3d, config.height_m)
+    if not np.isfinite(k):
         fallback.notes.append("rig from the viewpoints: the self-calibrated body has no length")
         return fallback
-    k = _stature_chain(_model_lengths(config.height_m)) / chain
     joints = np.full((tracks.shape[1], N_JOINTS, 3), np.nan)
     joints[frames] = joints3d * k
 

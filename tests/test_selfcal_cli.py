@@ -65,13 +65,51 @@ def test_selfcal_writes_result(tmp_path, tracks):
     assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
     np.testing.assert_allclose(cam["euler_xyz_deg"], [-10, -60, 20], atol=0.01)
     assert cam["scale"] == pytest.approx(0.8, abs=1e-4)
-    assert "euler_xyz_std_deg" not in cam  # closed form only: no posterior
+    assert res["method"] == "wang-leow+ba" and cam["euler_xyz_std_deg"] == [0.0, 0.0, 0.0]  # the refined default
     assert 0.5 <= res["reflection_confidence"] <= 1
     assert len(res["frames"]) == 30 and res["frames"][3]["index"] == 3
     assert res["frames"][7]["joints3d"][0] is None
     frame2 = res["frames"][2]["joints3d"]
     assert frame2[4] is None  # seen by one camera only: no 3D
     assert all(len(p) == 3 for k, p in enumerate(frame2) if k != 4)
+
+
+def test_closed_form_is_kept_as_published(tmp_path, tracks):
+    out = tmp_path / "closed.json"
+    assert main(["selfcal", str(write(tmp_path, as_doc(tracks))), "--out", str(out), "--method", "closed-form"]) == 0
+    res = json.loads(out.read_text())
+    cam = res["cameras"]["right"]
+    assert res["method"] == "wang-leow" and "euler_xyz_std_deg" not in cam  # closed form only: no posterior
+    assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
+
+
+def test_pinhole_cameras_with_the_image_size(tmp_path, capsys):
+    """Joints of a perspective render: with --image-size the cameras are pinholes, exact here,
+    their centres in metres at the stature (the render's body is the model's, 1.75 m)."""
+    from estimator.synth import SynthSpec, synthesize
+
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=12, azimuths=(20.0, 95.0, 230.0),
+                               elevations=(10.0, 25.0, 0.0), image_size=(640, 480)))
+    y = np.stack([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras]).astype(float)
+    path = write(tmp_path, as_doc(y, names=seq.cameras))
+    out = tmp_path / "pin.json"
+    assert main(["selfcal", str(path), "--out", str(out), "--image-size", "640,480"]) == 0
+    res = json.loads(out.read_text())
+    truth = {c: seq.truth["cameras"][c] for c in seq.cameras}
+    r0 = world_to_camera_rotation(truth["c0"]["azimuth_deg"], truth["c0"]["elevation_deg"])
+    for c in ("c1", "c2"):
+        cam = res["cameras"][c]
+        rc = world_to_camera_rotation(truth[c]["azimuth_deg"], truth[c]["elevation_deg"])
+        assert geodesic_deg(np.array(cam["rotation"]), rc @ r0.T) < 0.5
+        assert cam["focal_px"] == pytest.approx(truth[c]["focal_px"], rel=0.03)
+        baseline = np.linalg.norm(np.subtract(truth[c]["position_m"], truth["c0"]["position_m"]))
+        assert np.linalg.norm(cam["centre_m"]) == pytest.approx(baseline, rel=0.1)
+    assert res["method"].endswith("+pinhole") and res["reprojection_rms_px"] < 0.1
+    assert set(res["scaled_orthographic"]) == {"c1", "c2"}
+    for bad, message in ((["--image-size", "640x480"], "W,H"),
+                         (["--image-size", "640,480", "--method", "closed-form"], "refined path")):
+        assert main(["selfcal", str(path), *bad]) == 2
+        assert message in capsys.readouterr().err
 
 
 def test_joint_subset_order_and_nan(tmp_path, tracks):

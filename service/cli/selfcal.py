@@ -17,8 +17,12 @@ from typing import Any
 
 import numpy as np
 
+from scipy.spatial.transform import Rotation
+
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
-from estimator.selfcal import self_calibrate
+from estimator.perspective import perspective_refine
+from estimator.rig import RigConfig, stature_scale
+from estimator.selfcal import RIGID_LINKS, self_calibrate
 
 from . import CliError
 
@@ -34,16 +38,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("tracks", type=Path, help="tracks JSON: {joint_names, cameras: {name: frames}}")
     p.add_argument("--out", type=Path, default=None, help="result JSON (default: stdout)")
+    p.add_argument("--method", choices=("refined", "closed-form"), default="refined",
+                   help="'refined' (default): the closed form, then the bundle adjustment with the "
+                        "upright-walker priors (adds euler_xyz_std_deg and scale_std), then pinhole "
+                        "cameras when --image-size is given; 'closed-form': the paper's closed form "
+                        "alone (section 4.2), as published")
+    p.add_argument("--image-size", metavar="W,H",
+                   help="the cameras' image size in pixels (principal point at its centre): adds "
+                        "pinhole cameras after the refined path (rotation, focal length, centre per "
+                        "camera), exact where the scaled orthographic model is not")
+    p.add_argument("--height", type=float, default=1.75, metavar="M",
+                   help="with --image-size: the walker's stature in metres, the scale of the camera "
+                        "centres and the 3D joints (default 1.75)")
     p.add_argument("--varying-scale", action="store_true",
                    help="camera scales change over time: one U per frame and a bundle "
                         "adjustment (section 4.3)")
     p.add_argument("--refine", action="store_true",
-                   help="finish the closed form with the bundle adjustment (adds each "
-                        "angle's posterior standard deviation, euler_xyz_std_deg, and scale_std; "
-                        "--varying-scale always refines)")
-    p.add_argument("--upright", action="store_true",
-                   help="with --refine: the walker is upright with free arms (right angles "
-                        "inside the trunk and shoulders as soft priors)")
+                   help="the bundle adjustment without the upright priors (unless --upright); "
+                        "the default --method refined has both")
+    p.add_argument("--upright", action="store_true", help="with --refine: the upright-walker priors")
     p.set_defaults(func=run)
 
 
@@ -148,19 +161,71 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CliError(f"cannot read {args.tracks}: {exc}") from None
     cameras, tracks = load_tracks(doc)
+    size = _image_size(args.image_size)
+    if args.upright and not args.refine:
+        raise CliError("--upright needs --refine (the default --method refined has it)")
+    closed = args.method == "closed-form" and not args.refine
+    if size is not None and (closed or args.varying_scale):
+        raise CliError("--image-size needs the refined path with fixed scales (not --method closed-form, "
+                       "not --varying-scale)")
     try:
-        if args.upright and not args.refine:
-            raise CliError("--upright needs --refine")
+        rig = RigConfig(height_m=args.height)
         result = self_calibrate(tracks, scales="varying" if args.varying_scale else "fixed",
-                                refine=True if args.refine else None, upright=args.upright)
+                                refine=None if closed else True,
+                                upright=args.upright if args.refine else not closed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if not result:
         raise CliError(f"self-calibration failed: {result.reason}")
-    text = json.dumps(result_to_json(result, cameras), indent=1)
+    out = result_to_json(result, cameras)
+    if size is not None:
+        out = _with_pinhole(out, result, tracks, cameras, size, rig)
+    text = json.dumps(out, indent=1, allow_nan=False)
     if args.out is None:
         sys.stdout.write(text + "\n")
     else:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
     return 0
+
+
+def _image_size(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.split(","))
+    except ValueError:
+        raise CliError(f"--image-size: expected W,H in pixels, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise CliError(f"--image-size: expected positive W,H, got {text!r}")
+    return w, h
+
+
+def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], size: tuple[int, int],
+                  rig: RigConfig) -> dict:
+    """The calibration with pinhole cameras (:func:`estimator.perspective.perspective_refine`)
+    after the refined scaled-orthographic one: rotations, focal lengths and centres per
+    camera, 3D joints in metres at the stature (:func:`estimator.rig.stature_scale`)."""
+    pin = perspective_refine(tracks, np.tile(np.array(size, float), (len(cameras), 1)), result.rotations,
+                             result.scales, list(RIGID_LINKS))
+    k = stature_scale(pin.joints3d, rig.height_m)
+    if not np.isfinite(k):
+        raise CliError("the pinhole adjustment gave a body without length")
+    euler = Rotation.from_matrix(pin.rotations).as_euler("xyz", degrees=True)
+    doc = dict(doc, method=result.method + "+pinhole",
+               joints3d_frame=f"camera {cameras[0]!r}: x right, y down, z forward (its optical axis); metres at a "
+                              f"stature of {rig.height_m} m; origin at that camera's centre",
+               frames=[{"index": i, "joints3d": _nullable(j * k)} for i, j in enumerate(pin.joints3d)],
+               reprojection_rms_px=round(pin.rmse_px, 3),
+               scaled_orthographic={name: {"rotation": doc["cameras"][name]["rotation"],
+                                           "scale": doc["cameras"][name]["scale"]} for name in cameras[1:]},
+               reference_focal_px=float(pin.focal_px[0]))
+    cams = {}
+    for c, name in enumerate(cameras):
+        if c == 0:
+            continue
+        cams[name] = {"rotation": pin.rotations[c].tolist(), "euler_xyz_deg": euler[c].tolist(),
+                      "scale": float(pin.scales[c]), "focal_px": float(pin.focal_px[c]),
+                      "centre_m": (pin.centres[c] * k).tolist()}
+    doc["cameras"] = cams
+    return doc
