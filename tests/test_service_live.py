@@ -187,8 +187,11 @@ def _run_agents(endpoint: str, cameras: dict[str, list], **settings) -> dict[str
 def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered, feedback):
     """With feedback (§7.1) the service's priors reach the agents and are used; without,
     the agents work as before."""
+    # max_wait_ms: how long a frame waits for a camera is a latency budget (bench/bench_service_live.py),
+    # not asserted here: with CI's two cores shared by the agents, the service and the estimates, one
+    # camera's frame came more than the default 120 ms after the other's (one frame of 182, once).
     settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
-                             feedback=feedback)
+                             feedback=feedback, max_wait_ms=400.0)
     endpoint = settings.zenoh_listen[0]
     with ServerThread(settings) as srv, zenoh.open(build_config(connect=[endpoint])) as session:
         published = []
