@@ -180,7 +180,20 @@ def tracks_from_sequence(sequence: Sequence) -> dict[str, CameraTrack]:
         full_frame = bool(full) and all(full)
         tracks[cam] = CameraTrack(sils, np.array(boxes, float).reshape(-1, 4), full_frame=full_frame,
                                   image_size=tuple(sequence.image_size) if full_frame else None)
-    return tracks
+    return pad_tracks(tracks)
+
+
+def pad_tracks(tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:
+    """Every camera with the same number of frames: a camera's missing trailing frames are
+    frames without data (as a missing file in a sequence folder)."""
+    n = max((len(t.silhouettes) for t in tracks.values()), default=0)
+    out = {}
+    for name, t in tracks.items():
+        k = n - len(t.silhouettes)
+        out[name] = t if k == 0 else CameraTrack(
+            list(t.silhouettes) + [None] * k, np.vstack([np.asarray(t.boxes, float).reshape(-1, 4),
+                                                         np.full((k, 4), np.nan)]), t.full_frame, t.image_size)
+    return out
 
 
 @dataclass

@@ -39,7 +39,8 @@ import numpy as np
 
 from estimator.appearance import AppearanceModel, load_model
 from estimator.mnbp import MNBPConfig
-from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
+from estimator.pipeline import (CameraTrack, WalkEstimate, crop_to_box, estimate_walk, pad_tracks,
+                                tracks_from_sequence)
 from estimator.rig import RigConfig
 from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
@@ -504,7 +505,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             truth = None
         else:
             raise ValueError(f"unknown job kind {kind!r}")
-        tracks = _pad_tracks(tracks)
+        tracks = pad_tracks(tracks)
         store.report(job_id, 0.5, "estimating")
         model = _get_model()
         t0 = time.perf_counter()
@@ -596,18 +597,6 @@ def feedback_views(refined) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.n
                 continue
             x, y, w, h = (int(v) for v in box[1])
             out[cam].append(tuple(layer[y:y + h, x:x + w] for layer in layers))
-    return out
-
-
-def _pad_tracks(tracks: dict[str, CameraTrack]) -> dict[str, CameraTrack]:
-    """Give every camera the same number of frames (missing trailing frames = no data)."""
-    n = max(len(t.silhouettes) for t in tracks.values())
-    out = {}
-    for name, t in tracks.items():
-        k = n - len(t.silhouettes)
-        out[name] = t if k == 0 else CameraTrack(
-            t.silhouettes + [None] * k, np.vstack([t.boxes, np.full((k, 4), np.nan)]), t.full_frame,
-            t.image_size)
     return out
 
 
