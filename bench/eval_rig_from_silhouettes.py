@@ -42,21 +42,17 @@ from tqdm import tqdm  # noqa: E402
 from eval_mnbp import MOCAP, body  # noqa: E402
 from estimator.gait import GaitStyle  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
-from estimator.camera import world_to_camera_rotation  # noqa: E402
 from estimator.mnbp import measure_postures  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.perspective import perspective_refine  # noqa: E402
-from estimator.rig import aligned_error, calibrate_rig, segment_lengths  # noqa: E402
+from estimator.rig import (aligned_error, calibrate_rig, rotations_from_viewpoints, segment_lengths,  # noqa: E402
+                           viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
 
 
 STYLISED = GaitStyle(stride=0.7, leg_lift=1.3, arm_swing=1.8, cadence=1.0)  # as bench/eval_mnbp.py
-
-
-def relative(rotations: list[np.ndarray]) -> list[np.ndarray]:
-    return [r @ rotations[0].T for r in rotations[1:]]
 
 
 def main() -> None:
@@ -84,11 +80,9 @@ def main() -> None:
         est = estimate_walk(tracks_from_sequence(seq), model)
         measured = measure_postures(est)
         cams = seq.cameras
-        truth = relative([world_to_camera_rotation(seq.truth["cameras"][c]["azimuth_deg"],
-                                                   seq.truth["cameras"][c]["elevation_deg"]) for c in cams])
-        found = {"viewpoints": relative([world_to_camera_rotation(est.cameras[c].viewpoint.azimuth_deg,
-                                                                  est.cameras[c].viewpoint.elevation_deg)
-                                         for c in cams])}
+        truth = list(rotations_from_viewpoints([(seq.truth["cameras"][c]["azimuth_deg"],
+                                                 seq.truth["cameras"][c]["elevation_deg"]) for c in cams])[1:])
+        found = {"viewpoints": list(viewpoint_rotations(est)[1:])}
         for name, joints in (("selfcal(model)", [measured.cameras[c].model_joints2d for c in cams]),
                              ("selfcal(mNBP)", [measured.cameras[c].joints2d for c in cams])):
             cal = self_calibrate(np.stack(joints), refine=True, upright=True)

@@ -142,8 +142,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     centres = np.zeros((n_cam, 3))
     for c in range(1, n_cam):
         d = f0[c] / scales[c]  # depth at which camera c sees 1 unit as s_c pixels
-        m = np.nanmean(filled[c], axis=0)
-        p_cam = np.array([(m[0] - principal[c, 0]) / f0[c] * d, (m[1] - principal[c, 1]) / f0[c] * d, d])
+        p_cam = np.append((np.nanmean(filled[c], axis=0) - principal[c]) / f0[c], 1.0) * d
         centres[c] = walker - rotations[c].T @ p_cam
     ln = np.asarray(links, int).reshape(-1, 2)
     lengths0 = np.median(np.linalg.norm(x0[:, ln[:, 0]] - x0[:, ln[:, 1]], axis=-1), axis=0)
@@ -176,9 +175,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     sparsity = _sparsity(n_cam, t, j, ln, obs_c, obs_t, obs_j, free_focal, o_c, o_f, o_x, o_l)
     sol = least_squares(residuals, p0, jac_sparsity=sparsity, method="trf", x_scale="jac",
                         loss=config.loss, f_scale=config.loss_scale_px, max_nfev=config.max_nfev)
-    rv, ce, fo, x, lk = unpack(sol.x)
-    proj = _project(x, rv, ce, fo, principal)
-    rmse = float(np.sqrt(np.mean(np.sum((proj[obs_c, obs_t, obs_j] - y_obs) ** 2, axis=-1))))
+    rv, ce, fo, x, _ = unpack(sol.x)
+    rmse = float(np.sqrt(np.mean(np.sum(sol.fun[:y_obs.size].reshape(-1, 2) ** 2, axis=-1))))  # reprojection
     rots = Rotation.from_rotvec(rv).as_matrix()
     depth = np.einsum("ca,ca->c", rots[:, 2], x.reshape(-1, 3).mean(axis=0)[None] - ce)  # walker's mean depth
     size = fo / depth

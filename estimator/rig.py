@@ -34,8 +34,8 @@ from .perspective import PerspectiveConfig, perspective_refine
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
-__all__ = ["Rig", "RigConfig", "SEGMENTS", "aligned_error", "calibrate_rig", "person_frame", "segment_lengths",
-           "stature_scale", "viewpoint_rotations"]
+__all__ = ["Rig", "RigConfig", "SEGMENTS", "aligned_error", "calibrate_rig", "person_frame",
+           "rotations_from_viewpoints", "segment_lengths", "stature_scale", "viewpoint_rotations"]
 
 _J = JOINT_INDEX
 SEGMENTS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
@@ -54,7 +54,6 @@ SEGMENTS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
 }
 """Segments between the 13 joints: (joints averaged at one end, at the other)."""
 
-_STATURE_CHAIN = ("shank", "thigh", "trunk", "neck_head")  # ankle to head: what stature scales
 
 
 @dataclass(frozen=True)
@@ -195,15 +194,18 @@ class Rig:
                              for k, v in self.segments_m.items()}}
 
 
+def rotations_from_viewpoints(viewpoints: list[tuple[float, float]]) -> np.ndarray:
+    """``R_c R_0^T`` (C, 3, 3) of cameras seen from (azimuth, elevation) in degrees, relative
+    to the first; NaN for a camera whose viewpoint is not finite."""
+    rots = np.stack([world_to_camera_rotation(az, el) if np.isfinite(az) and np.isfinite(el)
+                     else np.full((3, 3), np.nan) for az, el in viewpoints])
+    return rots @ rots[0].T
+
+
 def viewpoint_rotations(estimate: WalkEstimate) -> np.ndarray:
     """``R_c R_0^T`` (C, 3, 3) from each camera's Izo–Grimson viewpoint; NaN for a camera without one."""
-    rots = []
-    for cam in estimate.cameras.values():
-        vp = cam.viewpoint
-        ok = np.isfinite(vp.azimuth_deg) and np.isfinite(vp.elevation_deg)
-        rots.append(world_to_camera_rotation(vp.azimuth_deg, vp.elevation_deg) if ok else np.full((3, 3), np.nan))
-    rots = np.stack(rots)
-    return rots @ rots[0].T
+    return rotations_from_viewpoints([(c.viewpoint.azimuth_deg, c.viewpoint.elevation_deg)
+                                      for c in estimate.cameras.values()])
 
 
 def segment_lengths(joints3d: np.ndarray) -> dict[str, np.ndarray]:
@@ -237,7 +239,17 @@ def stature_scale(joints3d: np.ndarray, height_m: float) -> float:
     """Metres per unit of ``joints3d`` (T, 13, 3) for a walker of stature ``height_m``: the
     chain ankle-knee-hip-shoulder-head as long as on the model's body of that stature (NaN
     when the joints give it no length)."""
-    chain = _stature_chain({k: float(np.nanmedian(v)) for k, v in segment_lengths(joints3d).items()})
+    return _scale_for(_median_lengths(joints3d), height_m)
+
+
+def _median_lengths(joints3d: np.ndarray) -> dict[str, float]:
+    """Each :data:`SEGMENTS` entry's median length over the frames."""
+    return {k: float(np.nanmedian(v)) for k, v in segment_lengths(joints3d).items()}
+
+
+def _scale_for(lengths: dict[str, float], height_m: float) -> float:
+    """:func:`stature_scale` of median segment ``lengths``."""
+    chain = _stature_chain(lengths)
     return _stature_chain(_model_lengths(height_m)) / chain if np.isfinite(chain) and chain > 0 else float("nan")
 
 
@@ -316,13 +328,14 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     fused, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, views, config.viewpoint_sigma_deg)
     pinhole, why_not = _pinhole(estimate, [names[c] for c in use], tracks[use][:, frames], fused, cal.scales, config)
     joints3d = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
-    measured = {k: float(np.nanmedian(v)) for k, v in segment_lengths(joints3d).items()}
-    k = stature_scale(joints3d, config.height_m)
+    measured = _median_lengths(joints3d)
+    k = _scale_for(measured, config.height_m)
     if not np.isfinite(k):
         fallback.notes.append("rig from the viewpoints: the self-calibrated body has no length")
         return fallback
     joints = np.full((tracks.shape[1], N_JOINTS, 3), np.nan)
     joints[frames] = joints3d * k
+    segments = {n: v * k for n, v in measured.items()}
 
     def full(a: np.ndarray | None, fill: float = np.nan) -> np.ndarray | None:
         """Per-camera values of the calibrated cameras, spread over every camera (``fill`` elsewhere)."""
@@ -335,12 +348,11 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     start_used = cal.diagnostics.get("start", "closed form")
     if pinhole is None:
         rig = Rig(names, full(fused), full(cal.scales), "self-calibration", full(cal.euler_xyz_std_deg),
-                  full(cal.scale_std), joints, {n: v * k for n, v in measured.items()}, config.height_m,
-                  reference=names[use[0]])
+                  full(cal.scale_std), joints, segments, config.height_m, reference=names[use[0]])
         how = f"scaled orthographic bundle adjustment from the {start_used}" + (f"; {why_not}" if why_not else "")
     else:
         rig = Rig(names, full(pinhole.rotations), full(pinhole.scales), "self-calibration", None, None, joints,
-                  {n: v * k for n, v in measured.items()}, config.height_m, reference=names[use[0]],
+                  segments, config.height_m, reference=names[use[0]],
                   focal_px=full(pinhole.focal_px), centres_m=full(pinhole.centres * k),
                   walker_m=np.nanmean(pinhole.joints3d.reshape(-1, 3), axis=0) * k)
         how = (f"scaled orthographic bundle adjustment from the {start_used}, then pinhole cameras "

@@ -136,8 +136,8 @@ class RerunLog:
             s.log(f"{p}/world/skeleton", rr.Points3D(
                 b.joints3d[t], class_ids=_WALKER, keypoint_ids=np.arange(len(JOINT_NAMES)), radii=0.03))
             person = b.extra.get("person")
-            if person is not None and np.isfinite(person[t]).all(axis=1).any():
-                ok = np.isfinite(person[t]).all(axis=1)
+            ok = np.isfinite(person[t]).all(axis=1) if person is not None else np.zeros(0, bool)
+            if ok.any():
                 s.log(f"{p}/world/person", rr.Points3D(
                     person[t][ok] + PERSON_OFFSET_M, class_ids=_WALKER, keypoint_ids=np.flatnonzero(ok), radii=0.03))
             for cam, views in b.extra.get("feedback", {}).items():

@@ -10,17 +10,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimator._selfcal_core import geodesic_deg
-from estimator.camera import world_to_camera_rotation
 from estimator.gait import load_gait
 from estimator.joints import JOINT_INDEX as J
 from estimator.joints import N_JOINTS
 from estimator.mnbp import measure_postures
 from estimator.pipeline import estimate_walk, tracks_from_sequence
 from estimator.perspective import perspective_refine
-from estimator.rig import (RigConfig, aligned_error, calibrate_rig, person_frame, segment_lengths,
-                           viewpoint_rotations)
-from estimator.selfcal import RIGID_LINKS
-from estimator.selfcal import self_calibrate
+from estimator.rig import (RigConfig, aligned_error, calibrate_rig, person_frame, rotations_from_viewpoints,
+                           segment_lengths, viewpoint_rotations)
+from estimator.selfcal import RIGID_LINKS, self_calibrate
 from estimator.skeleton import BodyShape, forward_kinematics
 from estimator.synth import SynthSpec, synthesize
 
@@ -35,9 +33,8 @@ def walk(small_model):
 
 
 def _true_rig(seq) -> np.ndarray:
-    r = np.stack([world_to_camera_rotation(seq.truth["cameras"][c]["azimuth_deg"],
-                                           seq.truth["cameras"][c]["elevation_deg"]) for c in seq.cameras])
-    return r @ r[0].T
+    return rotations_from_viewpoints([(seq.truth["cameras"][c]["azimuth_deg"], seq.truth["cameras"][c]["elevation_deg"])
+                                      for c in seq.cameras])
 
 
 def test_rig_from_measured_postures(walk):

@@ -91,7 +91,7 @@ def _print_rig(rig: dict, truth: dict) -> None:
     import numpy as np
 
     from estimator._selfcal_core import geodesic_deg
-    from estimator.camera import world_to_camera_rotation
+    from estimator.rig import rotations_from_viewpoints
 
     ref = rig["reference"]
     print(f"  rig ({rig['source']}), rotations from {ref}:")
@@ -106,6 +106,7 @@ def _print_rig(rig: dict, truth: dict) -> None:
         if "focal_px" in cam:
             line += f", focal {cam['focal_px']:.0f} px, {np.linalg.norm(cam['centre_m']):.1f} m from {ref}"
         if name in truth and ref in truth:
-            t = [world_to_camera_rotation(truth[c]["azimuth_deg"], truth[c]["elevation_deg"]) for c in (name, ref)]
-            line += f"   off the truth by {geodesic_deg(r, t[0] @ t[1].T):.1f} deg"
+            true = rotations_from_viewpoints([(truth[c]["azimuth_deg"], truth[c]["elevation_deg"])
+                                              for c in (ref, name)])
+            line += f"   off the truth by {geodesic_deg(r, true[1]):.1f} deg"
         print(line)

@@ -221,9 +221,7 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
                                            "scale": doc["cameras"][name]["scale"]} for name in cameras[1:]},
                reference_focal_px=float(pin.focal_px[0]))
     cams = {}
-    for c, name in enumerate(cameras):
-        if c == 0:
-            continue
+    for c, name in enumerate(cameras[1:], 1):
         cams[name] = {"rotation": pin.rotations[c].tolist(), "euler_xyz_deg": euler[c].tolist(),
                       "scale": float(pin.scales[c]), "focal_px": float(pin.focal_px[c]),
                       "centre_m": (pin.centres[c] * k).tolist()}
