@@ -22,7 +22,9 @@ from .exemplars import ExemplarIndex
 from .hmm import PhaseHMM, cyclic_transitions, phase_log_emission, viterbi
 from .gait import GaitModel, GaitStyle, fit_gait, heel_strikes, load_gait, motion_angles, motion_phase
 from .joints import BONES, JOINT_INDEX, JOINT_NAMES, MIRROR, N_JOINTS
+from .keypoints import SKELETONS, Skeleton, detect_skeleton, keypoints_to_joints, track_person
 from .mocap import Motion, read_asf_amc, read_bvh, read_motion
+from .pinhole import PinholeCameras, floor_frame, triangulate
 from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, tracks_from_sequence
 from .registration import Transforms, transform_points
 from .render import Renderer
@@ -42,6 +44,7 @@ __all__ = [
     "N_JOINTS",
     "PARTS",
     "RIGID_LINKS",
+    "SKELETONS",
     "SYMMETRIC_RATIOS",
     "AppearanceModel",
     "BodyPart",
@@ -59,10 +62,12 @@ __all__ = [
     "Motion",
     "MotionCue",
     "PhaseHMM",
+    "PinholeCameras",
     "Renderer",
     "SelfCalibration",
     "Sequence",
     "SequenceError",
+    "Skeleton",
     "SynthSpec",
     "Transforms",
     "Viewpoint",
@@ -71,11 +76,14 @@ __all__ = [
     "choose_n_clusters",
     "cyclic_transitions",
     "default_model",
+    "detect_skeleton",
     "estimate_viewpoint",
     "estimate_walk",
     "fit_gait",
+    "floor_frame",
     "forward_kinematics",
     "heel_strikes",
+    "keypoints_to_joints",
     "liebowitz_carlsson",
     "load_gait",
     "load_model",
@@ -93,8 +101,10 @@ __all__ = [
     "segment_angles",
     "self_calibrate",
     "synthesize",
+    "track_person",
     "tracks_from_sequence",
     "transform_points",
+    "triangulate",
     "tresadern_reid",
     "viewpoint_direction",
     "viterbi",

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse
+import scipy.sparse.linalg
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -42,9 +43,12 @@ class PerspectiveConfig:
 
     Attributes
     ----------
-    focal_px : float or None
-        Known focal length (every camera); None: free per camera, started at
-        ``focal_start`` x that camera's image width.
+    focal_px : float, sequence of float (one per camera), or None
+        Known focal length in pixels, the same for every camera (a float) or
+        per camera; None: free per camera, started at ``focal_start`` x that
+        camera's image width.
+    principal_px : sequence of (float, float), or None
+        Known principal point per camera, pixels; None: the image centre.
     focal_start : float
         Start of a free focal length, in image widths (1.5: a 37 deg field of view).
     focal_sigma : float
@@ -59,7 +63,8 @@ class PerspectiveConfig:
     max_nfev : int
     """
 
-    focal_px: float | None = None
+    focal_px: float | tuple[float, ...] | None = None
+    principal_px: tuple[tuple[float, float], ...] | None = None
     focal_start: float = 1.5
     focal_sigma: float = 0.5
     bone_weight: float = 1.0
@@ -87,6 +92,11 @@ class PerspectiveRig:
     scales : ndarray of shape (C,)
         Each camera's pixels per unit at the walker (focal length over the
         walker's mean depth) relative to camera 0's.
+    focal_log_std : ndarray of shape (C,) or None
+        Posterior standard deviation of each free focal length's logarithm
+        (about its relative error; Laplace approximation at the optimum, image
+        noise = the rms reprojection error, the focal prior included); None
+        when the focal lengths were given.
     """
 
     rotations: np.ndarray
@@ -95,6 +105,7 @@ class PerspectiveRig:
     joints3d: np.ndarray
     rmse_px: float
     scales: np.ndarray
+    focal_log_std: np.ndarray | None = None
 
 
 def _project(x: np.ndarray, rotvec: np.ndarray, centre: np.ndarray, focal: np.ndarray,
@@ -107,8 +118,8 @@ def _project(x: np.ndarray, rotvec: np.ndarray, centre: np.ndarray, focal: np.nd
 
 
 def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: np.ndarray, scales: np.ndarray,
-                       links: list[tuple[int, int]], *, config: PerspectiveConfig = PerspectiveConfig()
-                       ) -> PerspectiveRig:
+                       links: list[tuple[int, int]], *, config: PerspectiveConfig = PerspectiveConfig(),
+                       initial: PerspectiveRig | None = None) -> PerspectiveRig:
     """Adjust pinhole cameras and 3D joints to 2D joint tracks, from a scaled-orthographic rig.
 
     Parameters
@@ -116,18 +127,23 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     tracks : ndarray of shape (C, T, 13, 2)
         Full-frame pixels, NaN where missing.
     image_sizes : ndarray of shape (C, 2)
-        (width, height) per camera: the principal point is the image centre.
+        (width, height) per camera: the principal point is the image centre
+        unless ``config.principal_px`` gives it.
     rotations, scales : ndarray of shape (C, 3, 3), (C,)
         The scaled-orthographic result (``R_c R_0^T`` and relative scales).
     links : list of (int, int)
         Joint pairs of constant length.
+    initial : PerspectiveRig, optional
+        Start from these pinhole cameras and joints (a previous round's
+        result) instead of from the scaled-orthographic rig; the focal
+        lengths' prior stays centred where ``config`` puts it.
     """
     y = np.asarray(tracks, float)
     n_cam, t, j, _ = y.shape
-    principal = np.asarray(image_sizes, float) / 2.0
+    principal = _per_camera(config.principal_px, (n_cam, 2), "principal_px", np.asarray(image_sizes, float) / 2.0)
     observed = np.all(np.isfinite(y), axis=-1)
-    f0 = np.full(n_cam, float(config.focal_px)) if config.focal_px else config.focal_start * np.asarray(image_sizes,
-                                                                                                      float)[:, 0]
+    f0 = _per_camera(config.focal_px, (n_cam,), "focal_px",
+                     config.focal_start * np.asarray(image_sizes, float)[:, 0])
     # Start: each camera's pixels per unit s_c (camera 0: 1), the walker at depth f_0 in camera 0
     # (1 unit = 1 pixel of camera 0 at the walker), centred where camera 0 sees its centroid.
     count = observed.sum(axis=2)[..., None]  # (C, T, 1)
@@ -144,11 +160,15 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         d = f0[c] / scales[c]  # depth at which camera c sees 1 unit as s_c pixels
         p_cam = np.append((np.nanmean(filled[c], axis=0) - principal[c]) / f0[c], 1.0) * d
         centres[c] = walker - rotations[c].T @ p_cam
+    focal = f0
+    if initial is not None:
+        rotations, centres, x0, focal = initial.rotations, initial.centres, initial.joints3d, initial.focal_px
     ln = np.asarray(links, int).reshape(-1, 2)
-    lengths0 = np.median(np.linalg.norm(x0[:, ln[:, 0]] - x0[:, ln[:, 1]], axis=-1), axis=0)
+    lengths0 = np.nanmedian(np.linalg.norm(x0[:, ln[:, 0]] - x0[:, ln[:, 1]], axis=-1), axis=0)
     free_focal = config.focal_px is None
     rv0 = Rotation.from_matrix(rotations[1:]).as_rotvec()
-    p0 = np.concatenate([rv0.ravel(), centres[1:].ravel(), np.log(f0) if free_focal else [], x0.ravel(), lengths0])
+    p0 = np.concatenate([rv0.ravel(), centres[1:].ravel(), np.log(focal) if free_focal else [], x0.ravel(),
+                         lengths0])
     n_r, n_c, n_f = 3 * (n_cam - 1), 3 * (n_cam - 1), n_cam if free_focal else 0
     o_c, o_f, o_x = n_r, n_r + n_c, n_r + n_c + n_f
     o_l = o_x + 3 * t * j
@@ -180,7 +200,33 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     rots = Rotation.from_rotvec(rv).as_matrix()
     depth = np.einsum("ca,ca->c", rots[:, 2], x.reshape(-1, 3).mean(axis=0)[None] - ce)  # walker's mean depth
     size = fo / depth
-    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0])
+    log_std = _focal_log_std(sol.jac, rmse / np.sqrt(2.0), o_f, n_f) if free_focal else None
+    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std)
+
+
+def _per_camera(value, shape: tuple[int, ...], name: str, default: np.ndarray) -> np.ndarray:
+    """A setting given for every camera at once or per camera, as an array of ``shape``."""
+    if value is None:
+        return default
+    try:
+        out = np.broadcast_to(np.asarray(value, float), shape).copy()
+    except ValueError:
+        raise ValueError(f"{name} must be one value or one per camera ({shape[0]}), got {value!r}") from None
+    if not np.all(np.isfinite(out)) or (name == "focal_px" and not np.all(out > 0)):
+        raise ValueError(f"{name} must be finite{' and positive' if name == 'focal_px' else ''}, got {value!r}")
+    return out
+
+
+def _focal_log_std(jac, sigma_px: float, start: int, n: int) -> np.ndarray:
+    """Posterior standard deviation of the ``n`` log focal lengths at ``start`` (Laplace approximation:
+    covariance ``sigma^2 (J^T J)^-1`` of the reprojection residuals, in pixels; the focal prior's rows are
+    in the same units, so ``sigma`` scales them too, which keeps the estimate conservative)."""
+    h = scipy.sparse.csc_matrix(jac.T @ jac)
+    h = h + scipy.sparse.identity(h.shape[0], format="csc") * (1e-12 * h.diagonal().max())
+    rhs = np.zeros((h.shape[0], n))
+    rhs[start + np.arange(n), np.arange(n)] = 1.0
+    cov = scipy.sparse.linalg.splu(h).solve(rhs)[start:start + n]
+    return sigma_px * np.sqrt(np.clip(np.diag(cov), 0.0, None))
 
 
 def _sparsity(n_cam, t, j, ln, obs_c, obs_t, obs_j, free_focal, o_c, o_f, o_x, o_l):

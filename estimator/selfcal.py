@@ -68,7 +68,8 @@ from ._selfcal_core import (
 from .joints import JOINT_INDEX, N_JOINTS
 from .viewpoint import azimuth_difference_deg
 
-__all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "UPRIGHT_PRIORS", "SelfCalibration", "self_calibrate"]
+__all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "UPRIGHT_PRIORS", "SelfCalibration", "input_warnings",
+           "self_calibrate"]
 
 Link = tuple[int, int]
 Ratio = tuple[Link, Link, float]
@@ -145,6 +146,16 @@ class SelfCalibration:
     method : str
         ``"wang-leow"``, ``"wang-leow-lsq"`` (3+ cameras),
         ``"wang-leow-varying"``, or a baseline's name.
+    start : str
+        Where the rotations came from (fixed scales): ``"closed form"`` (the
+        paper's, refined or not), or, when the bundle adjustment started
+        elsewhere, ``"camera pairs"`` (two-camera closed forms chained
+        over the best-conditioned pairs), ``"nearest positive-definite Omega"``
+        (the least-squares ``Omega^-1`` with its eigenvalues clipped) or
+        ``"given"`` (``initial_rotations``); empty for the baselines.
+    notes : tuple of str
+        What the tracks do not determine well (:func:`input_warnings`);
+        empty when nothing was found.
     reason : str
         Why the estimate failed; empty on success.
     diagnostics : dict
@@ -162,6 +173,8 @@ class SelfCalibration:
     diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
     euler_xyz_cov: np.ndarray | None = None
     scale_std: np.ndarray | None = None
+    start: str = ""
+    notes: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.reason:
@@ -571,7 +584,10 @@ def self_calibrate(
     -------
     SelfCalibration
         Falsy with a ``reason`` when the input is degenerate or no positive
-        definite ``Omega`` exists.
+        definite ``Omega`` exists (with ``refine`` and three or more cameras,
+        only when no other start exists either: :func:`_fallback_starts`;
+        ``start`` says which ran). ``notes``: what the input determines
+        poorly (:func:`input_warnings`).
 
     Raises
     ------
@@ -647,29 +663,42 @@ def self_calibrate(
         omega_inv = sym_from_vec(vec)
         diag.update(camera_residual=float(np.linalg.norm(a_rows @ vec - b_rhs)))
     out = _metric(motion, structure, omega_inv)
+    yn, tr_n = y / fact.norm, fact.centroids / fact.norm
+    start = "closed form"
     if isinstance(out, str):
-        return SelfCalibration.failed(out + " (camera constraints in least squares)", method)
-    rots, sc, pts = out
-    joints = pts.reshape(t, j, 3) * fcf.norm
-    rots, joints, conf, flip = _apply_reflection(rots, joints)
-    diag["reflected"] = flip
+        reason = out + " (camera constraints in least squares)"
+        if not refine:
+            return SelfCalibration.failed(reason, method)
+        # The refined path does not need the closed form itself, only a start for the
+        # bundle adjustment: every start that can be had, the lowest final cost wins.
+        starts = _fallback_starts(yn, fact.observed, motion, omega_inv, links_, strength, rank_tol)
+        if not starts:
+            return SelfCalibration.failed(reason + "; no camera pair could be chained to every camera either",
+                                          method)
+        diag.update(closed_form=reason, fallback_starts={name: info for name, *_, info in starts})
+        starts = [starts[0][:-1]]  # from either start the adjustment ends at the same cost on the failing rigs
+        rots, sc = starts[0][1], starts[0][2]
+    else:
+        rots, sc, pts = out
+        joints = pts.reshape(t, j, 3) * fcf.norm
+        rots, joints, conf, flip = _apply_reflection(rots, joints)
+        diag["reflected"] = flip
+        starts = [(start, rots, sc, joints / fact.norm, tr_n)]
     frame_scales, euler_cov, scale_std = None, None, None
     if refine:
         sigma = noise_sigma(fact)
-        starts = [("closed form", rots, joints / fact.norm)]
         if initial_rotations is not None:
             given = _check_rotations(initial_rotations, n_cam)
-            starts.append(("given", given, triangulate(y / fact.norm, fact.observed, given, sc,
-                                                        fact.centroids / fact.norm)))
-        runs = [(name, _bundle_adjust(y / fact.norm, fact.observed, r0, np.repeat(sc[:, None], t, axis=1),
-                                      x0, fact.centroids / fact.norm, links_,
+            starts.append(("given", given, sc, triangulate(yn, fact.observed, given, sc, tr_n), tr_n))
+        runs = [(name, _bundle_adjust(yn, fact.observed, r0, np.repeat(s0[:, None], t, axis=1),
+                                      x0, c0, links_,
                                       per_frame_scales=False, max_nfev=max_nfev, prior_op=prior_op,
                                       length_prior=_length_prior(body_proportions, links_, sigma),
                                       angle_prior=_angle_prior(UPRIGHT_PRIORS, sigma, upright_w),
                                       noise_sigma=sigma))
-                for name, r0, x0 in starts]
+                for name, r0, s0, x0, c0 in starts]
         start, ba = min(runs, key=lambda run: run[1][4]["cost_end"])
-        if len(runs) > 1:
+        if len(runs) > 1 or start != "closed form":
             diag.update(start=start, start_costs={name: run[4]["cost_end"] for name, run in runs})
         rots, sc_t, joints_n, cov, info = ba
         sc = sc_t[:, 0] / sc_t[0, 0]
@@ -680,8 +709,63 @@ def self_calibrate(
         _, conf = kinematic_reflection(joints)
         diag.update(bundle=info)
         method += "+ba"
-    return SelfCalibration(rots, sc, _mask_unseen(joints, fact.observed), frame_scales,
-                           conf, method, "", diag, euler_cov, scale_std)
+    joints = _mask_unseen(joints, fact.observed)
+    return SelfCalibration(rots, sc, joints, frame_scales, conf, method, "", diag, euler_cov, scale_std,
+                           start=start, notes=tuple(input_warnings(y, rots, joints)))
+
+
+PLANAR_RATIO = 0.05
+"""Third over first singular value of the metric joints (centred per frame, all frames) below
+which the motion is reported as near-planar; a walker's body gives 0.2-0.3."""
+SAME_AXIS_DEG = 10.0
+"""Two cameras whose relative rotation is below this look along nearly the same axis."""
+MIN_FRAMES = 10
+"""A camera that sees at least 4 joints in fewer frames than this (or than a quarter of the frames) is reported."""
+
+
+def input_warnings(tracks: np.ndarray, rotations: np.ndarray, joints3d: np.ndarray) -> list[str]:
+    """What 2D joint tracks determine poorly, as sentences for a result's ``notes``.
+
+    Parameters
+    ----------
+    tracks : ndarray of shape (C, T, 13, 2)
+        The tracks calibrated (NaN = missing).
+    rotations : ndarray of shape (C, 3, 3)
+        The estimated ``R_c R_0^T``.
+    joints3d : ndarray of shape (T, 13, 3)
+        The estimated joints (any unit; NaN allowed).
+
+    Returns
+    -------
+    list of str
+        Near-planar motion (:data:`PLANAR_RATIO`), cameras looking along nearly the
+        same axis (:data:`SAME_AXIS_DEG`), cameras that see the walker in too few
+        frames (:data:`MIN_FRAMES`); empty when none applies. Cameras are named by index.
+    """
+    notes = []
+    x = np.asarray(joints3d, float)
+    seen = np.isfinite(x).all(axis=-1)
+    centre = np.where(seen[..., None], x, 0.0).sum(axis=1) / np.maximum(seen.sum(axis=1), 1)[:, None]
+    x = (x - centre[:, None])[seen]
+    if len(x) >= 3:
+        sv = np.linalg.svd(x, compute_uv=False)
+        if sv[2] < PLANAR_RATIO * sv[0]:
+            notes.append(f"near-planar motion: the joints span little depth (3rd / 1st singular value "
+                         f"{sv[2] / sv[0]:.3f} < {PLANAR_RATIO}); the rotations about the plane are poorly determined")
+    n_cam = len(rotations)
+    for a in range(n_cam):
+        for b in range(a + 1, n_cam):
+            angle = float(geodesic_deg(rotations[a], rotations[b]))
+            if angle < SAME_AXIS_DEG:
+                notes.append(f"cameras {a} and {b} look along nearly the same axis (relative rotation {angle:.1f} deg "
+                             f"< {SAME_AXIS_DEG:g}): their relative scale and depth are poorly determined")
+    y = np.asarray(tracks, float)
+    frames = (np.isfinite(y).all(axis=-1).sum(axis=2) >= 4).sum(axis=1)
+    need = max(MIN_FRAMES, int(np.ceil(y.shape[1] / 4)))
+    for c in np.nonzero(frames < need)[0]:
+        notes.append(f"camera {c} sees the walker (4+ joints) in only {frames[c]} of {y.shape[1]} frames "
+                     f"(fewer than {need}): its rotation rests on few poses")
+    return notes
 
 
 def _check_rotations(rotations: np.ndarray, n_cam: int) -> np.ndarray:
@@ -693,6 +777,108 @@ def _check_rotations(rotations: np.ndarray, n_cam: int) -> np.ndarray:
                                                                                           atol=1e-6):
         raise ValueError("initial_rotations must be proper rotations")
     return r @ r[0].T
+
+
+def _orthographic_fit(y: np.ndarray, observed: np.ndarray, rots: np.ndarray, scales: np.ndarray,
+                      iters: int = 4) -> tuple[np.ndarray, np.ndarray, float]:
+    """Joints and image translations that fit scaled orthographic cameras to the observed joints alone.
+
+    Alternates the linear triangulation (:func:`_selfcal_core.triangulate`) with
+    each camera's per-frame translation (the mean residual of its observed joints),
+    started at their centroid: unlike :attr:`Factorization.centroids` nothing
+    depends on imputed joints. ``y`` (C, T, J, 2) normalised; returns joints
+    (T, J, 3) centred per frame, translations (C, T, 2) and the rms residual.
+    """
+    count = np.maximum(observed.sum(axis=2), 1)[..., None]
+    obs = np.where(observed[..., None], y, 0.0)
+    tr = obs.sum(axis=2) / count
+    for _ in range(iters):
+        x = triangulate(y, observed, rots, scales, tr)
+        proj = scales[:, None, None, None] * np.einsum("cij,tkj->ctki", rots[:, :2], x)
+        resid = np.where(observed[..., None], y - proj, 0.0)
+        tr = resid.sum(axis=2) / count
+    x = triangulate(y, observed, rots, scales, tr)
+    proj = scales[:, None, None, None] * np.einsum("cij,tkj->ctki", rots[:, :2], x) + tr[:, :, None]
+    rms = float(np.sqrt(np.mean(np.sum((proj - y)[observed] ** 2, axis=-1))))
+    return x, tr, rms
+
+
+def _fallback_starts(y: np.ndarray, observed: np.ndarray, motion: np.ndarray, omega_inv: np.ndarray, links: list,
+                     strength: float, rank_tol: float) -> list[tuple]:
+    """Starts for the bundle adjustment when the closed form over all cameras has no
+    positive-definite ``Omega`` (3+ cameras, ``refine``).
+
+    Why it happens (docs/SELFCAL.md, "No rig left behind by the closed form"):
+    with cameras 2.5-4 m from a walk of 2.2 m, the walker's image grows by up to
+    2x in the cameras the walk heads towards, the tracks are far from rank 3
+    and the least-squares camera constraints of all cameras sit near the edge
+    of positive definiteness; the detector's errors (e.g. joints cut by the
+    image border) tip them over, while each pair's closed form still exists.
+
+    * ``"camera pairs"``: the two-camera closed form (eqs. 7–14, with the
+      temporal prior and the noise-consistent beta of the refined path) on
+      every pair; a spanning tree from camera 0 over the pairs that succeed,
+      best conditioned first (the pair's ``sigma_3 / sigma_1``: nearly opposite
+      or coincident views are near rank 2), chains the relative rotations and
+      scales. Each pair leaves its own depth reversal; the combination that
+      best fits all cameras wins, and the knees and elbows decide the global one.
+    * ``"nearest positive-definite Omega"``: the least-squares ``Omega^-1`` with
+      its eigenvalues clipped to 5 % of the largest.
+
+    Returns ``[(name, rotations (C, 3, 3), scales (C,), joints (T, J, 3),
+    translations (C, T, 2), info), ...]`` in normalised units; empty if neither works.
+    """
+    n_cam = y.shape[0]
+    out = []
+    pairs = {}
+    for a in range(n_cam):
+        for b in range(a + 1, n_cam):
+            cal = self_calibrate(y[[a, b]], links=links, refine=False, temporal_prior=strength,
+                                 noise_model=True, rank_tol=rank_tol)
+            if cal:
+                sv = np.asarray(cal.diagnostics["singular_values"])
+                pairs[a, b] = (float(sv[2] / sv[0]), cal.rotations[1], float(cal.scales[1]))
+    # Prim's maximum spanning tree from camera 0: relative rotation R_b R_a^T and scale s_b / s_a.
+    rel: dict[int, tuple[int, np.ndarray, float]] = {}
+    tree_sv = []
+    while len(rel) < n_cam - 1:
+        edges = [(ratio, a, b, r, s) for (a, b), (ratio, r, s) in pairs.items() if (a == 0 or a in rel) != (
+            b == 0 or b in rel)]
+        if not edges:
+            break
+        ratio, a, b, r, s = max(edges, key=lambda e: e[0])
+        if b == 0 or b in rel:  # solved b, new a: invert the pair
+            a, b, r, s = b, a, r.T, 1.0 / s
+        rel[b] = (a, r, s)
+        tree_sv.append(ratio)
+    if len(rel) == n_cam - 1:
+        order = list(rel)  # parents come before children
+
+        def chain(flips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            rots, sc = np.tile(np.eye(3), (n_cam, 1, 1)), np.ones(n_cam)
+            for k, c in enumerate(order):
+                parent, r, s = rel[c]
+                r = DEPTH_FLIP @ r @ DEPTH_FLIP if flips[k] else r
+                rots[c], sc[c] = r @ rots[parent], s * sc[parent]
+            return rots, sc
+
+        # Depth reversal per pair: the combination that fits best (global reversal: the knees).
+        combos = [np.array([(m >> k) & 1 for k in range(n_cam - 1)]) for m in range(2 ** min(n_cam - 2, 8))]
+        fits = [(_orthographic_fit(y, observed, *chain(f), iters=2)[2], k) for k, f in enumerate(combos)]
+        rots, sc = chain(combos[min(fits)[1]])
+        x, tr, rms = _orthographic_fit(y, observed, rots, sc)
+        rots, x, _, _ = _apply_reflection(rots, x)
+        out.append(("camera pairs", rots, sc, x, tr,
+                    {"rms": rms, "tree": {f"{rel[c][0]}-{c}": round(v, 4) for c, v in zip(rel, tree_sv)}}))
+    w, v = np.linalg.eigh(omega_inv)
+    if w[-1] > 0:
+        clipped = (v * np.maximum(w, 0.05 * w[-1])) @ v.T
+        rots, sc, _ = _metric(motion, np.zeros((3, 0)), clipped)
+        x, tr, rms = _orthographic_fit(y, observed, rots, sc)
+        rots, x, _, _ = _apply_reflection(rots, x)
+        out.append(("nearest positive-definite Omega", rots, sc, x, tr,
+                    {"rms": rms, "eigenvalues": (w / w[-1]).tolist()}))
+    return out
 
 
 # ------------------------------------------------------------------ §4.3 varying scales
@@ -783,9 +969,10 @@ def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_n
     frame_scales = (sc_t / sc_t[0:1]).T
     diag = {"frames_solved": int(ok.sum()), "bundle": info, "reflected": flip,
             "temporal_prior": prior_diag}
-    return SelfCalibration(rots, np.median(frame_scales, axis=0), _mask_unseen(joints, fact.observed),
-                           frame_scales, conf, method, "", diag,
-                           None if cov is None else _euler_covariance(rots, cov))
+    joints = _mask_unseen(joints, fact.observed)
+    return SelfCalibration(rots, np.median(frame_scales, axis=0), joints, frame_scales, conf, method, "", diag,
+                           None if cov is None else _euler_covariance(rots, cov), start="per-frame closed forms",
+                           notes=tuple(input_warnings(y, rots, joints)))
 
 
 def _temporal_prior(y: np.ndarray, fact: Factorization, strength: float = 1.0

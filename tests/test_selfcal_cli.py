@@ -203,3 +203,24 @@ def test_console_script(tmp_path, tracks):
     bad = subprocess.run([str(POSECAL), "selfcal", str(write(tmp_path, {"cameras": {"a": []}}, "b.json"))],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "two cameras" in bad.stderr
+
+
+def test_an_unreliable_pinhole_rig_is_written_and_exits_1(tmp_path, tracks, capsys):
+    """Keypoints no rigid body explains (each camera's joints shuffled per frame): the pinhole cameras
+    cannot fit them, the result says so (reliable false, a note) and the command exits 1 (the
+    computation failed; 2 is for bad input)."""
+    rng = np.random.default_rng(0)
+    y = tracks.copy()
+    for c in range(2):
+        for t in range(y.shape[1]):
+            y[c, t] = y[c, t, rng.permutation(N_JOINTS)]
+    out = tmp_path / "result.json"
+    code = main(["selfcal", str(write(tmp_path, as_doc(y))), "--out", str(out), "--image-size", "640,480"])
+    err = capsys.readouterr().err
+    assert code == 1 and "unreliable" in err, (code, err)
+    res = json.loads(out.read_text())
+    assert res["reliable"] is False and any("probably wrong" in n for n in res["notes"])
+    good = tmp_path / "good.json"
+    assert main(["selfcal", str(write(tmp_path, as_doc(tracks), "t2.json")), "--out", str(good),
+                 "--image-size", "640,480"]) == 0
+    assert json.loads(good.read_text())["reliable"] is True

@@ -1,9 +1,12 @@
-"""``posecal selfcal TRACKS.json --out result.json``: camera self-calibration.
+"""``posecal selfcal INPUT --out result.json``: camera self-calibration.
 
 Reads 2D joint tracks of one walker in two or more views (docs/FORMATS.md,
-"Self-calibration"), runs :func:`estimator.selfcal.self_calibrate` and
-writes the rotation and scale of every camera relative to the first plus the
-metric 3D joints per frame.
+"Self-calibration"), or the keypoints of OpenPose, MMPose / RTMPose or
+MediaPipe (:mod:`service.keypoints_io`), runs
+:func:`estimator.selfcal.self_calibrate` and writes the rotation and scale of
+every camera relative to the first plus the metric 3D joints per frame; with
+``--image-size``, pinhole cameras, and on request the rig as a Pose2Sim /
+anipose calibration TOML and the joints as an OpenSim TRC (:mod:`service.exports`).
 """
 
 from __future__ import annotations
@@ -11,7 +14,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
+import tomllib
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +26,15 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
-from estimator.perspective import perspective_refine
+from estimator.keypoints import SKELETONS
+from estimator.perspective import PerspectiveConfig, perspective_refine
+from estimator.pinhole import PinholeCameras, floor_frame, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 
-from . import CliError
+from ..exports import write_calibration_toml, write_trc
+from ..keypoints_io import KeypointError, Keypoints, read_keypoints
+from . import CliError, positive_int
 
 __all__ = ["load_tracks", "register", "result_to_json"]
 
@@ -34,9 +44,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "selfcal",
         help="self-calibrate cameras from 2D joint tracks (Wang-Leow section 4)",
         description="Relative rotation and scale of two or more scaled orthographic cameras, "
-        "and metric 3D joints, from 2D joint tracks of one walker (formats: docs/FORMATS.md).",
+        "and metric 3D joints, from 2D joint tracks of one walker or from OpenPose, MMPose or MediaPipe "
+        "keypoints; with --image-size pinhole cameras, a Pose2Sim / anipose calibration TOML and an "
+        "OpenSim TRC (formats: docs/FORMATS.md).",
     )
-    p.add_argument("tracks", type=Path, help="tracks JSON: {joint_names, cameras: {name: frames}}")
+    p.add_argument("tracks", type=Path, nargs="+", metavar="INPUT",
+                   help="tracks JSON ({joint_names, cameras: {name: frames}}); or keypoints: a folder of "
+                        "OpenPose <cam>_json folders (also under pose/, as Pose2Sim lays them out), a folder "
+                        "of (or several) per-camera MMPose / RTMPose prediction or MediaPipe JSON files")
     p.add_argument("--out", type=Path, default=None, help="result JSON (default: stdout)")
     p.add_argument("--method", choices=("refined", "closed-form"), default="refined",
                    help="'refined' (default): the closed form, then the bundle adjustment with the "
@@ -47,6 +62,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="the cameras' image size in pixels (principal point at its centre): adds "
                         "pinhole cameras after the refined path (rotation, focal length, centre per "
                         "camera), exact where the scaled orthographic model is not")
+    p.add_argument("--intrinsics", type=Path, metavar="CALIB.toml",
+                   help="known intrinsics: each camera's 'matrix' (focal length, principal point) and 'size' "
+                        "from a Pose2Sim / anipose calibration TOML (as --export-calibration writes it), matched "
+                        "by camera name; the pinhole adjustment keeps them fixed (implies pinhole cameras)")
+    p.add_argument("--focal", type=float, metavar="PX",
+                   help="with --image-size: one known focal length in pixels for every camera, kept fixed")
     p.add_argument("--height", type=float, default=1.75, metavar="M",
                    help="with --image-size: the walker's stature in metres, the scale of the camera "
                         "centres and the 3D joints (default 1.75)")
@@ -57,6 +78,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="the bundle adjustment without the upright priors (unless --upright); "
                         "the default --method refined has both")
     p.add_argument("--upright", action="store_true", help="with --refine: the upright-walker priors")
+    k = p.add_argument_group("keypoint input (docs/SELFCAL.md, \"Keypoint import\")")
+    k.add_argument("--min-confidence", type=float, default=0.3, metavar="C",
+                   help="keypoints below this confidence are missing (default 0.3)")
+    k.add_argument("--skeleton", choices=sorted(SKELETONS),
+                   help="the keypoint layout (default: from the keypoint count)")
+    k.add_argument("--max-frames", type=positive_int, default=None, metavar="N",
+                   help="calibrate on at most N frames, evenly spread (default 60 for keypoint input, every "
+                        "frame of a tracks JSON); the exports hold every frame")
+    e = p.add_argument_group("exports (need --image-size)")
+    e.add_argument("--export-calibration", type=Path, metavar="PATH.toml",
+                   help="the cameras as a Pose2Sim / anipose calibration TOML (z-up world, metres)")
+    e.add_argument("--export-trc", type=Path, metavar="PATH.trc",
+                   help="the 3D joints of every frame as an OpenSim TRC (Y up, metres)")
+    e.add_argument("--fps", type=float, default=15.0, help="the TRC's frame rate (default 15)")
     p.set_defaults(func=run)
 
 
@@ -115,6 +150,12 @@ def load_tracks(doc: Any) -> tuple[list[str], np.ndarray]:
     return list(cams), out
 
 
+def _named(note: str, cameras: list[str]) -> str:
+    """A note of :func:`estimator.selfcal.input_warnings` with the cameras' names for their indices."""
+    return re.sub(r"\bcameras? (\d+)(?: and (\d+))?", lambda m: ("cameras " if m.group(2) else "camera ")
+                  + " and ".join(repr(cameras[int(g)]) for g in m.groups() if g is not None), note)
+
+
 def _nullable(a: np.ndarray) -> list:
     return [None if not np.isfinite(p).all() else [float(v) for v in p] for p in a]
 
@@ -135,6 +176,8 @@ def result_to_json(result, cameras: list[str]) -> dict:
             for c, name in enumerate(cameras) if c > 0
         },
         "reflection_confidence": result.reflection_confidence,
+        "start": result.start,
+        "notes": [_named(note, cameras) for note in result.notes],
         "joints3d_frame": f"camera {cameras[0]!r}: x = image u, y = image v, z = viewing "
                           "direction; its pixels; origin at each frame's joint centroid",
         "frames": [{"index": i, "joints3d": _nullable(j)} for i, j in enumerate(result.joints3d)],
@@ -154,23 +197,33 @@ def result_to_json(result, cameras: list[str]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        doc = json.loads(Path(args.tracks).read_text())
-    except FileNotFoundError:
-        raise CliError(f"no such file: {args.tracks}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CliError(f"cannot read {args.tracks}: {exc}") from None
-    cameras, tracks = load_tracks(doc)
     size = _image_size(args.image_size)
+    if args.focal is not None and args.intrinsics is not None:
+        raise CliError("give --focal or --intrinsics, not both")
+    if args.focal is not None and (size is None or not (math.isfinite(args.focal) and args.focal > 0)):
+        raise CliError("--focal needs a positive focal length in pixels and --image-size W,H (the principal point "
+                       "is the image centre)")
+    intrinsics = _read_intrinsics(args.intrinsics) if args.intrinsics is not None else None
+    if size is None and intrinsics is not None:
+        size = next(iter(intrinsics.values()))[1]  # for reading normalised keypoints; per camera below
+    cameras, tracks, keypoints = _read_input(args.tracks, args, size)
+    sizes, pinhole_config = _pinhole_setup(cameras, size, args.focal, intrinsics)
     if args.upright and not args.refine:
         raise CliError("--upright needs --refine (the default --method refined has it)")
     closed = args.method == "closed-form" and not args.refine
     if size is not None and (closed or args.varying_scale):
-        raise CliError("--image-size needs the refined path with fixed scales (not --method closed-form, "
-                       "not --varying-scale)")
+        raise CliError("--image-size, --intrinsics and --focal need the refined path with fixed scales (not "
+                       "--method closed-form, not --varying-scale)")
+    exports = [p for p in (args.export_calibration, args.export_trc) if p is not None]
+    if exports and size is None:
+        raise CliError("--export-calibration and --export-trc need pinhole cameras: give --image-size W,H "
+                       "(and the refined path, the default)")
+    if args.fps <= 0:
+        raise CliError(f"--fps must be positive, got {args.fps}")
+    used = _calibration_frames(tracks.shape[1], args.max_frames or (60 if keypoints else None))
     try:
         rig = RigConfig(height_m=args.height)
-        result = self_calibrate(tracks, scales="varying" if args.varying_scale else "fixed",
+        result = self_calibrate(tracks[:, used], scales="varying" if args.varying_scale else "fixed",
                                 refine=None if closed else True,
                                 upright=args.upright if args.refine else not closed)
     except ValueError as exc:
@@ -179,14 +232,80 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"self-calibration failed: {result.reason}")
     out = result_to_json(result, cameras)
     if size is not None:
-        out = _with_pinhole(out, result, tracks, cameras, size, rig)
+        out, pin, k = _with_pinhole(out, result, tracks[:, used], cameras, sizes, rig, pinhole_config)
+        if exports:
+            _export(args, pin, k, tracks, keypoints, cameras, sizes, rig, pinhole_config)
+    for note in out["notes"]:
+        print(f"posecal selfcal: warning: {note}", file=sys.stderr)
+    for frame, index in zip(out["frames"], used):  # indices into the input's frames
+        frame["index"] = int(index)
+        if keypoints is not None:
+            frame["frame"] = keypoints.frames[index]
+    if keypoints is not None:
+        out["input"] = {"format": keypoints.format, "skeletons": keypoints.skeletons,
+                        "min_confidence": args.min_confidence}
     text = json.dumps(out, indent=1, allow_nan=False)
     if args.out is None:
         sys.stdout.write(text + "\n")
     else:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
+    if not out.get("reliable", True):  # the computation ran on valid input and failed: exit 1, not 2
+        print("posecal selfcal: error: the calibration is unreliable (the pinhole cameras do not fit the "
+              "keypoints); it is written for inspection, with its notes", file=sys.stderr)
+        return 1
     return 0
+
+
+def _read_input(paths: list[Path], args: argparse.Namespace, size: tuple[int, int] | None
+                ) -> tuple[list[str], np.ndarray, Keypoints | None]:
+    """Camera names, tracks (C, T, 13, 2) and, for keypoint input, what was read."""
+    if len(paths) == 1 and not paths[0].is_dir():
+        try:
+            doc = json.loads(Path(paths[0]).read_text())
+        except FileNotFoundError:
+            raise CliError(f"no such file: {paths[0]}") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise CliError(f"cannot read {paths[0]}: {exc}") from None
+        if isinstance(doc, dict) and not {"instance_info", "predictions", "format", "frames"} & set(doc):
+            cameras, tracks = load_tracks(doc)
+            return cameras, tracks, None
+    if not 0.0 <= args.min_confidence <= 1.0:
+        raise CliError(f"--min-confidence must lie in [0, 1], got {args.min_confidence}")
+    try:
+        kp = read_keypoints(paths, min_confidence=args.min_confidence, image_size=size, skeleton=args.skeleton)
+    except KeypointError as exc:
+        raise CliError(str(exc)) from None
+    return kp.cameras, kp.tracks, kp
+
+
+def _calibration_frames(t: int, max_frames: int | None) -> np.ndarray:
+    """Indices of the frames to calibrate on: all, or every k-th so that at most ``max_frames`` remain."""
+    if max_frames is None or t <= max_frames:
+        return np.arange(t)
+    return np.arange(0, t, math.ceil(t / max_frames))
+
+
+def _export(args: argparse.Namespace, pin, k: float, tracks: np.ndarray, keypoints: Keypoints | None,
+            cameras: list[str], sizes: np.ndarray, rig: RigConfig, config: PerspectiveConfig) -> None:
+    """Write --export-calibration and --export-trc: the pinhole rig in metres in a z-up world
+    (:func:`estimator.pinhole.floor_frame`), every input frame triangulated."""
+    principal = sizes / 2 if config.principal_px is None else np.asarray(config.principal_px, float)
+    cams = PinholeCameras.from_centres(pin.focal_px, principal, pin.rotations, pin.centres * k)
+    weights = keypoints.confidence if keypoints is not None else None
+    joints = triangulate(cams, tracks, weights)
+    try:
+        rotation, origin = floor_frame(joints, np.array([0.0, 0.0, 1.0]))
+    except ValueError as exc:
+        raise CliError(f"exports: {exc}") from None
+    world = cams.moved(rotation, origin)
+    if args.export_calibration is not None:
+        write_calibration_toml(args.export_calibration, cameras, sizes, world, metadata={
+            "error": float(pin.rmse_px), "source": "posecal selfcal", "reference_camera": cameras[0],
+            "stature_m": float(rig.height_m)})
+    if args.export_trc is not None:
+        frames = keypoints.frames if keypoints is not None else None
+        write_trc(args.export_trc, (joints - origin) @ rotation.T, args.fps, frames)
 
 
 def _image_size(text: str | None) -> tuple[int, int] | None:
@@ -201,13 +320,59 @@ def _image_size(text: str | None) -> tuple[int, int] | None:
     return w, h
 
 
-def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], size: tuple[int, int],
-                  rig: RigConfig) -> dict:
+def _read_intrinsics(path: Path) -> dict[str, tuple[np.ndarray, tuple[int, int]]]:
+    """Per camera name, the intrinsics ``matrix`` (3, 3) and image ``size`` of a Pose2Sim / anipose
+    calibration TOML (the layout :func:`service.exports.write_calibration_toml` writes)."""
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise CliError(f"--intrinsics: no such file: {path}") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise CliError(f"--intrinsics: cannot read {path}: {exc}") from None
+    out = {}
+    for key, table in doc.items():
+        if not isinstance(table, dict) or key == "metadata":
+            continue
+        name = str(table.get("name", key))
+        try:
+            matrix = np.array(table["matrix"], float)
+            size = tuple(int(round(float(v))) for v in table["size"])
+        except (KeyError, TypeError, ValueError):
+            raise CliError(f"--intrinsics: {path}: camera {name!r} needs 'matrix' (3x3) and 'size' [W, H]") from None
+        if matrix.shape != (3, 3) or not np.isfinite(matrix).all() or not (matrix[0, 0] > 0 and matrix[1, 1] > 0) \
+                or len(size) != 2 or min(size) <= 0:
+            raise CliError(f"--intrinsics: {path}: camera {name!r}: 'matrix' must be [[fx, 0, cx], [0, fy, cy], "
+                           f"[0, 0, 1]] with fx, fy > 0 and 'size' [W, H] positive")
+        out[name] = (matrix, size)
+    if not out:
+        raise CliError(f"--intrinsics: {path} has no camera table (with 'matrix' and 'size')")
+    return out
+
+
+def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: float | None,
+                   intrinsics: dict[str, tuple[np.ndarray, tuple[int, int]]] | None
+                   ) -> tuple[np.ndarray | None, PerspectiveConfig]:
+    """Image sizes (C, 2) and the pinhole adjustment's settings: focal lengths and principal points
+    fixed when known (``--focal``, ``--intrinsics``), free otherwise."""
+    if intrinsics is None:
+        sizes = None if size is None else np.tile(np.array(size, float), (len(cameras), 1))
+        return sizes, PerspectiveConfig(focal_px=focal)
+    missing = [c for c in cameras if c not in intrinsics]
+    if missing:
+        raise CliError(f"--intrinsics has no camera {', '.join(map(repr, missing))} (it has "
+                       f"{', '.join(map(repr, intrinsics))}); camera names must match the input's")
+    mats = np.stack([intrinsics[c][0] for c in cameras])
+    sizes = np.array([intrinsics[c][1] for c in cameras], float)
+    return sizes, PerspectiveConfig(focal_px=tuple(float(f) for f in (mats[:, 0, 0] + mats[:, 1, 1]) / 2),
+                                    principal_px=tuple((float(u), float(v)) for u, v in mats[:, :2, 2]))
+
+
+def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], sizes: np.ndarray,
+                  rig: RigConfig, config: PerspectiveConfig) -> tuple[dict, Any, float]:
     """The calibration with pinhole cameras (:func:`estimator.perspective.perspective_refine`)
     after the refined scaled-orthographic one: rotations, focal lengths and centres per
     camera, 3D joints in metres at the stature (:func:`estimator.rig.stature_scale`)."""
-    pin = perspective_refine(tracks, np.tile(np.array(size, float), (len(cameras), 1)), result.rotations,
-                             result.scales, list(RIGID_LINKS))
+    pin = perspective_refine(tracks, sizes, result.rotations, result.scales, list(RIGID_LINKS), config=config)
     k = stature_scale(pin.joints3d, rig.height_m)
     if not np.isfinite(k):
         raise CliError("the pinhole adjustment gave a body without length")
@@ -219,11 +384,46 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
                reprojection_rms_px=round(pin.rmse_px, 3),
                scaled_orthographic={name: {"rotation": doc["cameras"][name]["rotation"],
                                            "scale": doc["cameras"][name]["scale"]} for name in cameras[1:]},
-               reference_focal_px=float(pin.focal_px[0]))
+               reference_focal_px=float(pin.focal_px[0]),
+               intrinsics="given" if config.focal_px is not None else "estimated",
+               notes=doc["notes"] + _focal_notes(pin, cameras) + _fit_notes(pin, tracks),
+               reliable=not _fit_notes(pin, tracks))
     cams = {}
     for c, name in enumerate(cameras[1:], 1):
         cams[name] = {"rotation": pin.rotations[c].tolist(), "euler_xyz_deg": euler[c].tolist(),
                       "scale": float(pin.scales[c]), "focal_px": float(pin.focal_px[c]),
                       "centre_m": (pin.centres[c] * k).tolist()}
     doc["cameras"] = cams
-    return doc
+    return doc, pin, k
+
+
+FOCAL_LOG_STD = 0.03
+"""A free focal length whose posterior log standard deviation exceeds this (about 3 %) is reported. The
+Laplace posterior is optimistic where the focal length is weakly determined (a walker 40 m away, 3 px of
+noise: 3 % posterior, 10-25 % actual error; docs/SELFCAL.md), hence the low threshold."""
+
+
+FIT_SHARE = 0.05
+"""A pinhole fit whose rms reprojection error exceeds this share of the walker's median image height is
+reported: on the evaluation's rigs a right rig leaves 1-3 % (outliers included), a wrong one 10 % or more."""
+
+
+def _fit_notes(pin, tracks: np.ndarray) -> list[str]:
+    """A warning when the pinhole cameras do not fit the tracks (a wrong basin, not noise)."""
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        height = float(np.nanmedian(np.nanmax(tracks[..., 1], axis=2) - np.nanmin(tracks[..., 1], axis=2)))
+    if not (np.isfinite(height) and pin.rmse_px > FIT_SHARE * height):
+        return []
+    return [f"the pinhole cameras fit the keypoints poorly ({pin.rmse_px:.1f} px rms, "
+            f"{100 * pin.rmse_px / height:.0f} % of the walker's image height): the rig is probably wrong"]
+
+
+def _focal_notes(pin, cameras: list[str]) -> list[str]:
+    """Warnings for focal lengths the tracks hardly constrain (:attr:`PerspectiveRig.focal_log_std`)."""
+    if pin.focal_log_std is None:
+        return []
+    return [f"camera {name!r}: the focal length is poorly determined ({pin.focal_px[c]:.0f} px, posterior std "
+            f"about {100 * pin.focal_log_std[c]:.0f} %): focal length and distance trade off when the walker shows "
+            "little perspective; give --focal or --intrinsics"
+            for c, name in enumerate(cameras) if pin.focal_log_std[c] > FOCAL_LOG_STD]
