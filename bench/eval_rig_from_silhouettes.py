@@ -12,6 +12,9 @@ relative rotation ``R_c R_0^T`` of every camera to camera 0 comes from
 - ``rig (default)``: :func:`estimator.rig.calibrate_rig` on the mNBP postures
   (what ``posecal estimate`` reports): the scaled-orthographic bundle
   adjustment from two starts, fused with the viewpoints, then pinhole cameras;
+- ``rig, 2 rounds``: the same with a second round of Wang–Leow's loop (§5:
+  3D mNBP over all views with the pinhole cameras, a short 2D correction
+  per view, the pinhole adjustment again; ``RigConfig(rounds=2)``);
 - ``true 2D joints``: the self-calibration, and the pinhole adjustment after
   it, on the renders' exact joints: what the camera model alone allows.
 
@@ -46,8 +49,8 @@ from estimator.mnbp import measure_postures  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.perspective import perspective_refine  # noqa: E402
-from estimator.rig import (aligned_error, calibrate_rig, rotations_from_viewpoints, segment_lengths,  # noqa: E402
-                           viewpoint_rotations)
+from estimator.rig import (RigConfig, aligned_error, calibrate_rig, rotations_from_viewpoints,  # noqa: E402
+                           segment_lengths, viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
 
@@ -69,10 +72,10 @@ def main() -> None:
     motions = [read_motion(MOCAP / "16_15.bvh"), read_motion(MOCAP / "07_05.amc")]
     rng = np.random.default_rng(args.seed)
     errors: dict[str, list[float]] = {"viewpoints": [], "selfcal(model)": [], "selfcal(mNBP)": [],
-                                      "rig (default)": [], "true 2D joints: selfcal": [],
+                                      "rig (default)": [], "rig, 2 rounds": [], "true 2D joints: selfcal": [],
                                       "true 2D joints: + pinhole": []}
     failed = {k: 0 for k in errors}
-    worse, e3d, e3d_model, seg_err, sources = [], [], [], [], []
+    worse, e3d, e3d_two, e3d_model, seg_err, sources = [], [], [], [], [], []
     for i in tqdm(range(args.sequences), desc="sequences"):
         spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=30, seed=1000 * args.seed + i, shape=body(rng),
                          style=STYLISED if args.gait == "stylised" else None)
@@ -98,6 +101,8 @@ def main() -> None:
         rig = calibrate_rig(measured)
         sources.append(rig.source)
         found["rig (default)"] = list(rig.rotations[1:])
+        two = calibrate_rig(measured, RigConfig(rounds=2))
+        found["rig, 2 rounds"] = list(two.rotations[1:])
         pair = {}
         for name, rots in found.items():
             pair[name] = [float(geodesic_deg(r, t)) for r, t in zip(rots, truth)]
@@ -109,6 +114,8 @@ def main() -> None:
             e3d += list(aligned_error(rig.joints3d, true3d) / stature)
             true_len = {k: np.median(v) / stature for k, v in segment_lengths(true3d).items()}
             seg_err += [abs(rig.segments_m[k] / rig.height_m - true_len[k]) / true_len[k] for k in true_len]
+        if two.joints3d is not None:
+            e3d_two += list(aligned_error(two.joints3d, true3d) / stature)
         e3d_model += list(aligned_error(est.joints3d, true3d) / stature)
     print(f"\n{args.sequences} walks, {len(errors['viewpoints'])} camera pairs\n")
     print("| rotations from | median | p90 | max | failed walks |\n|---|---|---|---|---|")
@@ -118,7 +125,7 @@ def main() -> None:
     print(f"\ndefault rig from self-calibration on {sources.count('self-calibration')} of {len(sources)} walks; "
           f"worst pair worse than the viewpoints' by > 2 deg on {int((worse > 2).sum())} walks "
           f"(max {worse.max():+.1f} deg)")
-    for name, e in (("person (default rig)", e3d), ("model walk", e3d_model)):
+    for name, e in (("person (default rig)", e3d), ("person (2 rounds)", e3d_two), ("model walk", e3d_model)):
         e = np.array(e, float)
         e = e[np.isfinite(e)]
         if e.size:

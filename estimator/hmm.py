@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PhaseHMM", "cyclic_transitions", "phase_log_emission", "viterbi"]
+__all__ = ["PhaseHMM", "cyclic_transitions", "phase_log_emission", "posterior", "viterbi"]
 
 
 def cyclic_transitions(n_states: int, probs: tuple[float, float, float, float]) -> np.ndarray:
@@ -130,6 +130,28 @@ def viterbi(log_start: np.ndarray, log_trans: np.ndarray, log_emission: np.ndarr
     for t in range(T - 1, 0, -1):
         states[t - 1] = back[t, states[t]]
     return float(delta[states[-1]]), states
+
+
+def posterior(log_start: np.ndarray, log_trans: np.ndarray, log_emission: np.ndarray) -> np.ndarray:
+    """Posterior probability of every state at every frame (forward-backward, in log space), (T, K).
+
+    Where the Viterbi path says which phase, this says how sure: a frame that
+    no camera saw has a flat emission and its posterior spreads over the
+    phases the transitions allow.
+    """
+    log_start, log_trans, log_emission = (np.asarray(a, dtype=float) for a in (log_start, log_trans, log_emission))
+    T, K = log_emission.shape
+    if T == 0:
+        return np.zeros((0, K))
+    alpha, beta = np.empty((T, K)), np.zeros((T, K))
+    alpha[0] = log_start + log_emission[0]
+    for t in range(1, T):
+        alpha[t] = np.logaddexp.reduce(alpha[t - 1][:, None] + log_trans, axis=0) + log_emission[t]
+    for t in range(T - 2, -1, -1):
+        beta[t] = np.logaddexp.reduce(log_trans + (log_emission[t + 1] + beta[t + 1])[None, :], axis=1)
+    log_post = alpha + beta
+    log_post -= np.logaddexp.reduce(log_post, axis=1, keepdims=True)
+    return np.exp(log_post)
 
 
 @dataclass

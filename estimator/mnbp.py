@@ -206,7 +206,7 @@ def _sample_points(i: int, x: np.ndarray, height: float) -> tuple[np.ndarray, np
 
 
 def _draw(mask: np.ndarray, i: int, x: np.ndarray, height: float) -> None:
-    """Draw part ``i`` in state ``x`` (one state) into ``mask`` (255), OpenCV capsules."""
+    """Draw part ``i`` in state ``x`` (one state) into ``mask`` (value 1), OpenCV capsules."""
     part = PARTS_2D[i]
     w = max(1, int(round(part.width * height)))
     s = 16.0  # 4 bits of sub-pixel precision
@@ -217,12 +217,12 @@ def _draw(mask: np.ndarray, i: int, x: np.ndarray, height: float) -> None:
     if i == 0:
         t = _torso_points(x)
         quad = np.array([t["left_shoulder"], t["right_shoulder"], t["right_hip"], t["left_hip"]])
-        cv2.fillConvexPoly(mask, np.round(quad * s).astype(np.int32), 255, cv2.LINE_8, 4)
-        cv2.polylines(mask, [np.round(quad * s).astype(np.int32)], True, 255, w, cv2.LINE_8, 4)
+        cv2.fillConvexPoly(mask, np.round(quad * s).astype(np.int32), 1, cv2.LINE_8, 4)
+        cv2.polylines(mask, [np.round(quad * s).astype(np.int32)], True, 1, w, cv2.LINE_8, 4)
     elif part.name == "head":
-        cv2.circle(mask, p(_limb_end(x)), int(round(0.5 * w * s)), 255, -1, cv2.LINE_8, 4)
+        cv2.circle(mask, p(_limb_end(x)), int(round(0.5 * w * s)), 1, -1, cv2.LINE_8, 4)
     else:
-        cv2.line(mask, p(x[:2]), p(_limb_end(x, part.extend)), 255, w, cv2.LINE_8, 4)
+        cv2.line(mask, p(x[:2]), p(_limb_end(x, part.extend)), 1, w, cv2.LINE_8, 4)
 
 
 def joints_from_states(states: list[np.ndarray]) -> np.ndarray:
@@ -239,23 +239,32 @@ def joints_from_states(states: list[np.ndarray]) -> np.ndarray:
 def states_from_joints(joints: np.ndarray, height: float) -> list[np.ndarray]:
     """Each part's state from 13 joints (the inverse of :func:`joints_from_states`)."""
     j = {name: joints[k] for name, k in _J.items()}
-    sm = 0.5 * (j["left_shoulder"] + j["right_shoulder"])
-    hm = 0.5 * (j["left_hip"] + j["right_hip"])
-    axis = sm - hm
-    ln = max(float(np.hypot(*axis)), 1e-3 * height)
-    ang = float(np.arctan2(axis[1], axis[0]))
-    u = axis / ln
-    n = np.array([u[1], -u[0]])
-    ds, dh = j["left_shoulder"] - sm, j["left_hip"] - hm
-    torso = np.array([*(0.5 * (sm + hm)), ang, ln, ds @ n, ds @ u, dh @ n, dh @ u])
-    states = [torso]
-    points = {"neck": sm, **j}
+    states = [torso_state(j["left_shoulder"], j["right_shoulder"], j["left_hip"], j["right_hip"], height)]
+    points = {"neck": 0.5 * (j["left_shoulder"] + j["right_shoulder"]), **j}
     for part in PARTS_2D[1:]:
-        prox = points[_ATTACH.get(part.name) or _proximal_joint(part)]
-        d = j[part.distal] - prox
-        states.append(np.array([*prox, float(np.arctan2(d[1], d[0])),
-                                max(float(np.hypot(*d)), 1e-3 * height)]))
+        states.append(limb_state(points[_ATTACH.get(part.name) or _proximal_joint(part)], j[part.distal], height))
     return states
+
+
+def torso_state(ls: np.ndarray, rs: np.ndarray, lh: np.ndarray, rh: np.ndarray, height: float) -> np.ndarray:
+    """The torso's state(s) (..., 8) from its shoulders and hips (..., 2): the inverse of
+    :func:`_torso_points` (lengths floored at 0.001 of ``height``)."""
+    sm, hm = 0.5 * (ls + rs), 0.5 * (lh + rh)
+    axis = sm - hm
+    ln = np.maximum(np.linalg.norm(axis, axis=-1), 1e-3 * height)
+    u = axis / ln[..., None]
+    n = np.stack([u[..., 1], -u[..., 0]], -1)
+    ds, dh = ls - sm, lh - hm
+    dot = lambda a, b: (a * b).sum(-1)  # noqa: E731
+    return np.stack([*np.moveaxis(0.5 * (sm + hm), -1, 0), np.arctan2(axis[..., 1], axis[..., 0]), ln,
+                     dot(ds, n), dot(ds, u), dot(dh, n), dot(dh, u)], -1)
+
+
+def limb_state(proximal: np.ndarray, distal: np.ndarray, height: float) -> np.ndarray:
+    """A limb's state(s) (..., 4) from its proximal and distal points (..., 2)."""
+    d = distal - proximal
+    return np.concatenate([proximal, np.arctan2(d[..., 1], d[..., 0])[..., None],
+                           np.maximum(np.linalg.norm(d, axis=-1), 1e-3 * height)[..., None]], -1)
 
 
 def _proximal_joint(part: _Part) -> str:
@@ -270,17 +279,8 @@ def _observation(silhouette: np.ndarray) -> np.ndarray:
     return np.where(silhouette > 0, 1.0, -1.0).astype(np.float32)
 
 
-def _score(G: np.ndarray, pts: np.ndarray, area: np.ndarray) -> np.ndarray:
-    """Mean of ``G`` at each candidate's points times its area; off the image = -1."""
-    h, w = G.shape
-    ij = np.round(pts).astype(np.int64)
-    inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
-    vals = np.where(inside, G[np.clip(ij[..., 1], 0, h - 1), np.clip(ij[..., 0], 0, w - 1)], -1.0)
-    return vals.mean(axis=1) * area
-
-
 def _gauss2(d: np.ndarray, sigma: float) -> np.ndarray:
-    return np.exp(-0.5 * (d ** 2).sum(-1) / sigma ** 2)
+    return np.exp(np.einsum("...k,...k->...", d, d) * (-0.5 / sigma ** 2))
 
 
 class _Beliefs:
@@ -298,15 +298,25 @@ class _Beliefs:
     def best(self, i: int) -> np.ndarray:
         return self.x[i][int(np.argmax(self.w[i]))]
 
+    @staticmethod
+    def attach(parent: int, child: int, x: np.ndarray) -> np.ndarray:
+        """Where ``child`` hangs from ``parent`` in the parent's state(s) ``x``."""
+        return _attach(parent, child, x)
+
+    @staticmethod
+    def proximal(x: np.ndarray) -> np.ndarray:
+        """A limb's proximal point in its state(s) ``x``."""
+        return x[..., :2]
+
     def message(self, k: int, i: int, xi: np.ndarray) -> np.ndarray:
         """m_ki at the candidate states ``xi`` of part ``i`` (eq. 2, particle estimate)."""
         weights = self.w[k] / np.maximum(self.received[k][i], 1e-300)
         weights = weights / weights.sum()
         sigma = self.joint_sigma
         if PARTS_2D[i].parent is not None and _INDEX[PARTS_2D[i].parent] == k:  # k is i's parent
-            gap = _attach(k, i, self.x[k])[None, :, :] - xi[:, None, :2]
+            gap = self.attach(k, i, self.x[k])[None, :, :] - self.proximal(xi)[:, None, :]
         else:  # k is i's child
-            gap = self.x[k][None, :, :2] - _attach(i, k, xi)[:, None, :]
+            gap = self.proximal(self.x[k])[None, :, :] - self.attach(i, k, xi)[:, None, :]
         return _gauss2(gap, sigma) @ weights + 1e-12
 
     def propose(self, i: int, frac: float) -> np.ndarray:
@@ -335,6 +345,78 @@ class _Beliefs:
         return x
 
 
+class SilhouetteView:
+    """One silhouette as mNBP sees it: ``phi_i(x_i, X_-i^(n-1), z)`` (eq. 1-3).
+
+    Keeps each part's current best drawn (OpenCV capsules) so that part *i*
+    is scored against the pixels the other parts leave unexplained: ``G = 0``
+    where another part is drawn, ``+1`` on the silhouette, ``-1`` off it. A
+    count of the parts drawn on each pixel makes "another part" one
+    comparison at the candidates' points, with no image-sized work per call.
+    """
+
+    def __init__(self, silhouette: np.ndarray, height: float, states: list[np.ndarray]) -> None:
+        self.base = _observation(silhouette)
+        self.height = height
+        self.drawn = [np.zeros(silhouette.shape, np.uint8) for _ in PARTS_2D]
+        for i, x in enumerate(states):
+            _draw(self.drawn[i], i, x, height)
+        self.count = np.sum(self.drawn, axis=0, dtype=np.uint8)  # parts drawn on each pixel
+
+    def log_phi(self, i: int, x: np.ndarray) -> np.ndarray:
+        """``log phi_i`` of candidate states ``x`` (M, ...) of part ``i``, in units of height^2:
+        the mean of ``G`` at each candidate's points times its area; off the image ``-1``."""
+        pts, area = _sample_points(i, x, self.height)
+        h, w = self.base.shape
+        ij = np.round(pts).astype(np.int64)
+        inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
+        flat = np.clip(ij[..., 1], 0, h - 1) * w + np.clip(ij[..., 0], 0, w - 1)
+        others = self.count.ravel()[flat] > self.drawn[i].ravel()[flat]  # X_-i^(n-1) explains these
+        vals = np.where(inside, np.where(others, 0.0, self.base.ravel()[flat]), -1.0)
+        return vals.mean(axis=1) * area / self.height ** 2
+
+    def redraw(self, i: int, x: np.ndarray) -> None:
+        self.count -= self.drawn[i]
+        self.drawn[i][:] = 0
+        _draw(self.drawn[i], i, x, self.height)
+        self.count += self.drawn[i]
+
+    def score(self) -> float:
+        """Sum of ``G`` over the whole drawn body / silhouette area (1 = perfect)."""
+        body = self.count > 0
+        base = self.base
+        return float((np.where(body, base, 0.0).sum() - (base > 0)[~body].sum()) / max(1, (base > 0).sum()))
+
+
+def anneal(beliefs: _Beliefs, log_phi, redraw, prior_energy, config: MNBPConfig, scale: float) -> None:
+    """The mNBP iterations (§3): parts root to leaves and back, ``config.n_iterations`` times.
+
+    ``log_phi(i, x)`` scores candidate states (in units of the walker's
+    height squared, summed over the views), ``redraw(i, best)`` records part
+    *i*'s new estimate for the others' observations, ``prior_energy(i, x)``
+    is the unary prior; ``scale`` is the walker's size in the states' units
+    (the articulation width is a fraction of it). The temperature and the
+    articulation width decrease geometrically (the paper's lambda).
+    """
+    c = config
+    n_parts = len(beliefs.x)
+    order = list(range(n_parts)) + list(range(n_parts - 1, -1, -1))
+    temps = np.geomspace(c.temperature[0], c.temperature[1], c.n_iterations)
+    sigmas = np.geomspace(c.joint_sigma[0], c.joint_sigma[1], c.n_iterations) * scale
+    for n, temp in enumerate(temps):
+        frac = n / max(1, c.n_iterations - 1)
+        beliefs.joint_sigma = sigmas[n]
+        for i in order:
+            x = beliefs.propose(i, frac)
+            log_w = log_phi(i, x) / temp - prior_energy(i, x)
+            incoming = {k: beliefs.message(k, i, x) for k in _NEIGHBOURS[i]}
+            for msg in incoming.values():
+                log_w += np.log(msg)
+            w = np.exp(log_w - log_w.max())
+            beliefs.x[i], beliefs.w[i], beliefs.received[i] = x, w / w.sum(), incoming
+            redraw(i, beliefs.best(i))
+
+
 def estimate_posture2d(silhouette: np.ndarray, start: np.ndarray, *, height: float | None = None,
                        prior: np.ndarray | None = None, config: MNBPConfig = MNBPConfig()) -> Posture2D:
     """The 2D posture on one silhouette by mNBP, started from ``start`` (13, 2).
@@ -350,47 +432,22 @@ def estimate_posture2d(silhouette: np.ndarray, start: np.ndarray, *, height: flo
     prior : ndarray of shape (13, 2), optional
         Centre of the weak unary prior (default: ``start``).
     """
-    rows = np.flatnonzero(silhouette.any(axis=1))
     if height is None:
-        height = float(rows[-1] - rows[0] + 1) if rows.size else float(silhouette.shape[0])
-    c = config
-    rng = np.random.default_rng(c.seed)
-    beliefs = _Beliefs(states_from_joints(np.asarray(start, float), height), height, c, rng)
+        height = image_height(silhouette)
+    rng = np.random.default_rng(config.seed)
+    beliefs = _Beliefs(states_from_joints(np.asarray(start, float), height), height, config, rng)
     prior_states = states_from_joints(np.asarray(start if prior is None else prior, float), height)
-    base = _observation(silhouette)
-    n_parts = len(PARTS_2D)
-    drawn = [np.zeros(silhouette.shape, np.uint8) for _ in range(n_parts)]
-    for i in range(n_parts):
-        _draw(drawn[i], i, beliefs.best(i), height)
-    order = list(range(n_parts)) + list(range(n_parts - 1, -1, -1))  # root to leaves and back
-    temps = np.geomspace(c.temperature[0], c.temperature[1], c.n_iterations) * height ** 2
-    sigmas = np.geomspace(c.joint_sigma[0], c.joint_sigma[1], c.n_iterations) * height
-    for n, temp in enumerate(temps):
-        frac = n / max(1, c.n_iterations - 1)
-        beliefs.joint_sigma = sigmas[n]
-        for i in order:
-            others = np.zeros_like(drawn[0])
-            for k in range(n_parts):
-                if k != i:
-                    others |= drawn[k]
-            G = np.where(others > 0, 0.0, base).astype(np.float32)  # X_-i^(n-1) explains these
-            x = beliefs.propose(i, frac)
-            pts, area = _sample_points(i, x, height)
-            log_w = _score(G, pts, area) / temp
-            log_w -= _prior_energy(i, x, prior_states[i], height, c)
-            incoming = {k: beliefs.message(k, i, x) for k in _NEIGHBOURS[i]}
-            for msg in incoming.values():
-                log_w += np.log(msg)
-            w = np.exp(log_w - log_w.max())
-            beliefs.x[i], beliefs.w[i], beliefs.received[i] = x, w / w.sum(), incoming
-            drawn[i][:] = 0
-            _draw(drawn[i], i, beliefs.best(i), height)
-    states = [beliefs.best(i) for i in range(n_parts)]
-    body = np.zeros_like(drawn[0])
-    for d in drawn:
-        body |= d
-    score = float((np.where(body > 0, base, 0.0).sum() - (base > 0)[body == 0].sum()) / max(1, (base > 0).sum()))
-    return Posture2D(joints_from_states(states), score, states)
+    view = SilhouetteView(silhouette, height, [beliefs.best(i) for i in range(len(PARTS_2D))])
+    anneal(beliefs, view.log_phi, view.redraw,
+           lambda i, x: _prior_energy(i, x, prior_states[i], height, config), config, height)
+    states = [beliefs.best(i) for i in range(len(PARTS_2D))]
+    return Posture2D(joints_from_states(states), view.score(), states)
+
+
+def image_height(silhouette: np.ndarray) -> float:
+    """The walker's height in pixels: the silhouette's rows from first to last (all rows if empty)."""
+    rows = np.flatnonzero(silhouette.any(axis=1))
+    return float(rows[-1] - rows[0] + 1) if rows.size else float(silhouette.shape[0])
 
 
 def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: float, c: MNBPConfig) -> np.ndarray:

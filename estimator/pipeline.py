@@ -27,7 +27,7 @@ The online path for one window of synchronized frames:
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -38,14 +38,15 @@ from .cleanup import CleanupConfig, CleanupReport, check_plausible, select_walke
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, hamming, pack
 from .gait import GaitModel, load_gait
-from .hmm import PhaseHMM, viterbi
+from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
 from .registration import distance
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, head_points, motion_cue
 
-__all__ = ["CameraTrack", "EstimateConfig", "clean_tracks", "WalkEstimate", "estimate_walk", "track_length", "tracks_from_sequence"]
+__all__ = ["CameraTrack", "EstimateConfig", "WalkEstimate", "clean_tracks", "concat_estimates", "estimate_walk",
+           "take_frames", "track_length", "tracks_from_sequence"]
 
 _J = {name: i for i, name in enumerate(FULL_JOINT_NAMES)}
 
@@ -223,6 +224,7 @@ class WalkEstimate:
     notes: list[str] = field(default_factory=list)
     tracks: dict[str, CameraTrack] | None = None  # the tracks estimated from (after clean-up)
     rig: Any = None  # estimator.rig.Rig, once calibrated (estimator.rig.calibrate_rig)
+    phase_posterior: np.ndarray | None = None  # (T, n_states): the HMM's posterior (forward-backward)
 
     def to_result(self, *, first_index: int = 0) -> dict:
         """The result format of DESIGN.md (JSON-able)."""
@@ -250,9 +252,13 @@ class WalkEstimate:
                 if c.model_joints2d is not None and np.all(np.isfinite(c.model_joints2d[t]))
             }
             person = None if self.rig is None or self.rig.joints3d is None else self.rig.joints3d[t]
+            seen = [name for name, c in self.cameras.items() if c.labels[t] >= 0]
             frames.append({
                 "index": first_index + t,
                 "phase": round(float(self.phase[t]), 4),
+                "seen_by": seen,
+                "predicted": not any(np.isfinite(c.observations[t]) for c in self.cameras.values()),
+                **self._phase_belief(t),
                 "joints3d": np.round(self.joints3d[t], 4).tolist(),
                 **({} if person is None else {"person_joints3d": [
                     np.round(j, 4).tolist() if np.all(np.isfinite(j)) else None for j in person]}),
@@ -264,6 +270,9 @@ class WalkEstimate:
                 **({"model_joints2d": placed} if placed else {}),
             })
         return {
+            "schema_version": RESULT_SCHEMA_VERSION,
+            "units": RESULT_UNITS,
+            "coordinate_frames": RESULT_FRAMES,
             "joint_names": list(JOINT_NAMES),
             "cameras": cams,
             "frames": frames,
@@ -274,6 +283,99 @@ class WalkEstimate:
             "notes": self.notes + ([] if self.rig is None else self.rig.notes),
             **({} if self.rig is None else {"rig": self.rig.to_dict(), "body": self.rig.body_dict()}),
         }
+
+
+    def _phase_belief(self, t: int) -> dict:
+        """``phase_confidence`` (posterior mass within one state of the reported phase) and
+        ``phase_posterior`` of frame ``t``; nothing without a posterior."""
+        if self.phase_posterior is None:
+            return {}
+        post = self.phase_posterior[t]
+        k = len(post)
+        near = (int(self.states[t]) + np.arange(-1, 2)) % k
+        return {"phase_confidence": round(float(post[near].sum()), 4),
+                "phase_posterior": np.round(post, 4).tolist()}
+
+
+RESULT_SCHEMA_VERSION = 1
+"""Version of the result's layout (docs/FORMATS.md); raised when a key changes meaning or goes."""
+
+RESULT_UNITS = {"joints3d": "m", "person_joints3d": "m", "joints2d": "px", "model_joints2d": "px",
+                "phase": "cycles", "azimuth_deg": "deg", "elevation_deg": "deg", "focal_px": "px",
+                "centre_m": "m", "segments": "m"}
+"""Units of the result's fields."""
+
+RESULT_FRAMES = {
+    "joints3d": "person frame: x walking direction, y the walker's left, z up; centred on the 13 joints",
+    "person_joints3d": "person frame: x the way the body faces, y its left, z up (trunk); centred on the 13 joints",
+    "joints2d": "each camera's full-frame image: u right, v down, pixel centres at integers, origin top-left",
+    "rig.rotation": "R_c R_ref^T: rows the camera's image u, image v and viewing direction, in the reference camera's",
+    "rig.centre_m": "the reference camera's frame: x right, y down, z forward",
+    "azimuth_deg": "the walker's frame, from the direction the walker faces, counter-clockwise seen from above",
+}
+"""The frame each coordinate field is expressed in (docs/FORMATS.md, Coordinate frames)."""
+
+
+def take_frames(estimate: WalkEstimate, frames: np.ndarray) -> WalkEstimate:
+    """The estimate on ``frames`` (indices into its window) only: every per-frame array sliced."""
+    idx = np.asarray(frames, int)
+
+    def cut(a):
+        return None if a is None else np.asarray(a)[idx]
+
+    cams = {n: replace(c, labels=cut(c.labels), observations=cut(c.observations), joints2d=cut(c.joints2d),
+                       model_joints2d=cut(c.model_joints2d)) for n, c in estimate.cameras.items()}
+    tracks = None if estimate.tracks is None else {
+        n: CameraTrack([t.silhouettes[k] for k in idx], t.boxes[idx], t.full_frame, t.image_size)
+        for n, t in estimate.tracks.items()}
+    return replace(estimate, phase=cut(estimate.phase), states=cut(estimate.states), joints3d=cut(estimate.joints3d),
+                   cameras=cams, tracks=tracks, phase_posterior=cut(estimate.phase_posterior), rig=None)
+
+
+def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
+    """Estimates of successive stretches of one walk joined in time (e.g. frames of several live
+    windows, for a rig solved over all of them with fixed cameras). Each camera's viewpoint and
+    notes are the last estimate's that has it; a camera absent from a stretch has no data there."""
+    if not estimates:
+        raise ValueError("nothing to join")
+    names = list(dict.fromkeys(n for e in estimates for n in e.cameras))
+    lengths = [len(e.phase) for e in estimates]
+
+    def per_camera(name: str, get, fill_shape: tuple, fill=np.nan) -> np.ndarray:
+        parts = []
+        for e, n in zip(estimates, lengths):
+            c = e.cameras.get(name)
+            v = None if c is None else get(c)
+            parts.append(np.asarray(v, float) if v is not None else np.full((n, *fill_shape), fill))
+        return np.concatenate(parts)
+
+    cams = {}
+    for name in names:
+        last = next(e.cameras[name] for e in reversed(estimates) if name in e.cameras)
+        measured = any(name in e.cameras and e.cameras[name].model_joints2d is not None for e in estimates)
+        cams[name] = replace(
+            last, labels=per_camera(name, lambda c: c.labels, (), -1).astype(int),
+            observations=per_camera(name, lambda c: c.observations, ()),
+            joints2d=per_camera(name, lambda c: c.joints2d, (N_JOINTS, 2)),
+            model_joints2d=per_camera(name, lambda c: c.model_joints2d, (N_JOINTS, 2)) if measured else None)
+    tracks = None
+    if all(e.tracks is not None for e in estimates):
+        tracks = {}
+        for name in names:
+            sils, boxes, ref = [], [], None
+            for e, n in zip(estimates, lengths):
+                t = e.tracks.get(name)
+                sils += [None] * n if t is None else list(t.silhouettes)
+                boxes.append(np.full((n, 4), np.nan) if t is None else t.boxes)
+                ref = t or ref
+            tracks[name] = CameraTrack(sils, np.concatenate(boxes), ref.full_frame, ref.image_size)
+    posts = [e.phase_posterior for e in estimates]
+    return WalkEstimate(
+        phase=np.concatenate([e.phase for e in estimates]), states=np.concatenate([e.states for e in estimates]),
+        joints3d=np.concatenate([e.joints3d for e in estimates]), cameras=cams,
+        log_prob=float(sum(e.log_prob for e in estimates)), half_cycle_margin=estimates[-1].half_cycle_margin,
+        notes=list(estimates[-1].notes), tracks=tracks,
+        phase_posterior=np.concatenate(posts) if all(p is not None for p in posts) else None)
 
 
 def _abs_az_diff(a: np.ndarray, b: float) -> np.ndarray:
@@ -622,16 +724,21 @@ def estimate_walk(
         raise ValueError("no non-empty silhouette in the window")
     hmm = config.hmm
     if exemplars is None:
-        log_prob, states = hmm.decode(np.stack([c.observations for c in cams.values()], axis=1))
-    else:
-        with np.errstate(divide="ignore"):
-            log_prob, states = viterbi(np.log(hmm.startprob_), np.log(hmm.transmat_), log_emission)
-        if config.phase_refine and inputs:
-            log_prob, states = _refine_at_phases(exemplars, inputs, states, cams, T, config)
+        log_emission = hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
+    with np.errstate(divide="ignore"):
+        log_start, log_trans = np.log(hmm.startprob_), np.log(hmm.transmat_)
+    log_prob, states = viterbi(log_start, log_trans, log_emission)
+    if exemplars is not None and config.phase_refine and inputs:
+        log_emission = _refine_at_phases(exemplars, inputs, states, cams, T, config)
+        log_prob, states = viterbi(log_start, log_trans, log_emission)
+    phase_posterior = posterior(log_start, log_trans, log_emission)
 
     margin = 0.0
     if exemplars is None and config.resolve_half_cycle:
+        decoded = states
         states, margin = _resolve_half_cycle(model, states, cams, distances, n_phases)
+        if not np.array_equal(states, decoded):  # the path moved by half a cycle, its posterior with it
+            phase_posterior = np.roll(phase_posterior, n_phases // 2, axis=1)
 
     phase = states / n_phases
     skeleton = forward_kinematics(gait.angles(phase), config.body)
@@ -649,6 +756,7 @@ def estimate_walk(
         half_cycle_margin=margin,
         notes=[] if exemplars is not None else ["paper's path: cluster means only"],
         tracks=tracks,
+        phase_posterior=phase_posterior,
     )
 
 
@@ -663,8 +771,9 @@ def _phase_evidence(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint, obs: 
 
 def _refine_at_phases(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                       states: np.ndarray, cams: dict[str, CameraEstimate], T: int,
-                      config: EstimateConfig) -> tuple[float, np.ndarray]:
-    """Each camera's viewpoint again from the examples at the decoded phases, then the phases again.
+                      config: EstimateConfig) -> np.ndarray:
+    """Each camera's viewpoint again from the examples at the decoded phases; the phases' new
+    log-emission (T, n_phases), to decode again.
 
     The phase is one for all cameras (they are synchronized) and the HMM
     decodes it from all of them over the window (§6); given it, a frame's
@@ -685,9 +794,7 @@ def _refine_at_phases(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, 
         if outliers:
             c.notes.append(f"viewpoint: {outliers} of {len(present)} frames count less (their match to the model, "
                            "or the viewpoint they point to, is an outlier of the window)")
-    hmm = config.hmm
-    with np.errstate(divide="ignore"):
-        return viterbi(np.log(hmm.startprob_), np.log(hmm.transmat_), log_emission)
+    return log_emission
 
 
 def _resolve_half_cycle(

@@ -21,20 +21,24 @@ model's body at the given stature (:class:`RigConfig`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .camera import world_to_camera_rotation
 from .gait import load_gait
+from ._selfcal_core import geodesic_deg
 from .joints import JOINT_INDEX, N_JOINTS
-from .pipeline import WalkEstimate
-from .perspective import PerspectiveConfig, perspective_refine
+from .mnbp import MNBPConfig, measure_postures, posture_sequence
+from .mnbp3d import MNBP3DConfig, posture_sequence3d
+from .pipeline import WalkEstimate, concat_estimates, take_frames
+from .perspective import PerspectiveConfig, PerspectiveRig, perspective_refine
+from .pinhole import PinholeCameras, project
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
-__all__ = ["Rig", "RigConfig", "SEGMENTS", "aligned_error", "calibrate_rig", "person_frame",
+__all__ = ["Rig", "RigAccumulator", "RigConfig", "SEGMENTS", "aligned_error", "calibrate_rig", "person_frame",
            "rotations_from_viewpoints", "segment_lengths", "stature_scale", "viewpoint_rotations"]
 
 _J = JOINT_INDEX
@@ -94,6 +98,17 @@ class RigConfig:
         by the inverse squares of this and of the self-calibration's posterior
         error; 0 keeps the self-calibration alone. With ``perspective`` the
         fused rotations are where the pinhole adjustment starts.
+    rounds : int
+        Rounds of Wang–Leow's loop (§5), counting the first (2D mNBP per
+        camera, then self-calibration): each further round is 3D mNBP over
+        all views with the pinhole cameras (:mod:`estimator.mnbp3d`), a short
+        2D correction per view (``polish``) and the pinhole adjustment again
+        (:func:`iterate_rounds`). Default 1: on the evaluation walks a second
+        round has not improved the rig or the posture yet (docs/POSTURE.md).
+    round3d : MNBP3DConfig
+    polish : MNBPConfig or None
+    converged_deg : float
+        Stop the rounds when no camera turns more than this.
     """
 
     height_m: float = 1.75
@@ -105,10 +120,18 @@ class RigConfig:
     pinhole_max_rms: float = 0.04
     pinhole_focal_widths: tuple[float, float] = (0.3, 50.0)
     max_frames: int = 60
+    rounds: int = 1
+    round3d: MNBP3DConfig = MNBP3DConfig()
+    polish: MNBPConfig | None = MNBPConfig(n_iterations=3, joint_sigma=(0.03, 0.015), step_position=(0.01, 0.005),
+                                           step_angle_deg=(8.0, 3.0), step_length=(0.05, 0.02), explore=0.0,
+                                           prior_sigma=0.05)
+    converged_deg: float = 0.2
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
             raise ValueError(f"height_m must be a stature in metres (0.5-2.5), got {self.height_m!r}")
+        if not 1 <= self.rounds <= 5:
+            raise ValueError(f"rounds must be 1 to 5, got {self.rounds!r}")
 
 
 @dataclass
@@ -173,6 +196,7 @@ class Rig:
             r = self.rotations[k]
             ok = bool(np.all(np.isfinite(r)))
             d = {"rotation": num(r, 6),
+                 "rotvec": num(Rotation.from_matrix(r).as_rotvec(), 6) if ok else None,
                  "euler_xyz_deg": num(Rotation.from_matrix(r).as_euler("xyz", degrees=True), 3) if ok else None,
                  "scale": num(self.scales[k], 5)}
             if self.euler_std_deg is not None:
@@ -327,6 +351,9 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
         return fallback
     fused, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, views, config.viewpoint_sigma_deg)
     pinhole, why_not = _pinhole(estimate, [names[c] for c in use], tracks[use][:, frames], fused, cal.scales, config)
+    changes = None
+    if pinhole is not None and config.rounds > 1:
+        pinhole, changes = iterate_rounds(estimate, [names[c] for c in use], frames, pinhole, config)
     joints3d = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
     measured = _median_lengths(joints3d)
     k = _scale_for(measured, config.height_m)
@@ -360,6 +387,10 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {len(frames)} frames"
                      + (f" (every {frames[1] - frames[0]}th)" if len(frames) > 1 and frames[1] - frames[0] > 1 else "")
                      + f"; metres at a stature of {config.height_m} m")
+    if changes is not None:
+        rig.notes.append(f"{1 + len(changes)} rounds of posture and calibration (Wang-Leow §5: 3D mNBP over all "
+                         "views, then the pinhole adjustment again); largest camera turn per round after the first: "
+                         + (", ".join(f"{c:.2f} deg" for c in changes) or "none (the 3D round failed)"))
     left_out = [n for c, n in enumerate(names) if c not in use]
     if left_out:
         rig.notes.append(f"not in the rig (postures on fewer than {config.min_frames} frames): {', '.join(left_out)}")
@@ -383,14 +414,117 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
         pin = perspective_refine(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return None, f"the pinhole adjustment failed ({exc})"
+    why_not = _insane(pin, estimate, names, config)
+    return (None, why_not) if why_not else (pin, "")
+
+
+def _insane(pin: PerspectiveRig, estimate: WalkEstimate, names: list[str], config: RigConfig) -> str:
+    """Why a pinhole result is refused (a diverged fit), or "" when it is sane."""
+    tr = estimate.tracks
     height = float(np.nanmedian(np.concatenate([tr[n].boxes[:, 3] for n in names])))
-    widths = pin.focal_px / sizes[:, 0]
+    widths = pin.focal_px / np.array([tr[n].image_size[0] for n in names], float)
     lo, hi = config.pinhole_focal_widths
     if not (np.all(np.isfinite(pin.rotations)) and np.all((widths > lo) & (widths < hi))
             and pin.rmse_px <= config.pinhole_max_rms * height):
-        return None, (f"pinhole cameras refused (focal lengths {np.round(widths, 2).tolist()} image widths, "
-                      f"reprojection {pin.rmse_px:.1f} px rms)")
-    return pin, ""
+        return (f"pinhole cameras refused (focal lengths {np.round(widths, 2).tolist()} image widths, "
+                f"reprojection {pin.rmse_px:.1f} px rms)")
+    return ""
+
+
+@dataclass
+class RigAccumulator:
+    """A fixed rig calibrated over many short windows (the live service's rig).
+
+    Windows are short so that viewpoints can be taken as fixed relative to
+    the walker; the cameras themselves are fixed for much longer, and the
+    self-calibration wants more frames than a window has. Each window adds
+    the mNBP postures of at most ``frames_per_window`` of its frames not seen
+    before (evenly spread: mNBP costs about 60 ms per frame and camera, so a
+    window's worth would not keep up with live rates); :meth:`calibrate` runs
+    :func:`calibrate_rig` on the last ``config.max_frames`` of them joined in
+    time (:func:`estimator.pipeline.concat_estimates`). :meth:`reset` when a
+    camera moved.
+    """
+
+    config: RigConfig = field(default_factory=RigConfig)
+    posture: MNBPConfig = field(default_factory=MNBPConfig)
+    frames_per_window: int = 2
+    _parts: list[WalkEstimate] = field(default_factory=list, repr=False)
+    _last_index: int = -1
+    windows: int = 0
+
+    def add(self, estimate: WalkEstimate, first_index: int) -> int:
+        """Measure postures on new frames of a window starting at frame ``first_index``; how many."""
+        n = len(estimate.phase)
+        new = np.flatnonzero(first_index + np.arange(n) > self._last_index)
+        if not len(new) or self.frames_per_window < 1:
+            return 0
+        pick = np.unique(new[np.linspace(0, len(new) - 1, min(self.frames_per_window, len(new))).round().astype(int)])
+        self._parts.append(measure_postures(take_frames(estimate, pick), self.posture))
+        self._last_index = first_index + n - 1
+        self.windows += 1
+        while self.n_frames - len(self._parts[0].phase) >= self.config.max_frames:
+            self._parts.pop(0)
+        return len(pick)
+
+    @property
+    def n_frames(self) -> int:
+        """Frames with measured postures kept."""
+        return sum(len(p.phase) for p in self._parts)
+
+    def calibrate(self) -> Rig:
+        """The rig over the frames kept (the viewpoints' rig, with a note, while they are too few)."""
+        if not self._parts:
+            raise ValueError("no window added yet")
+        return calibrate_rig(concat_estimates(self._parts), self.config)
+
+    def reset(self) -> None:
+        """Forget every frame (a camera moved: the rig is another one)."""
+        self._parts.clear()
+        self._last_index, self.windows = -1, 0
+
+
+def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray, pinhole: PerspectiveRig,
+                   config: RigConfig) -> tuple[PerspectiveRig, list[float]]:
+    """Wang–Leow §5: 3D mNBP with the calibrated cameras, then self-calibration again.
+
+    Each round measures the 3D posture on every view's silhouette at once
+    (:func:`estimator.mnbp3d.posture_sequence3d`, started from the current
+    joints), projects it into each camera, lets each view correct the
+    projection on its own silhouette (``config.polish``, a short 2D mNBP
+    centred on it; without it the projections fit the current cameras
+    exactly and the rig could not move) and adjusts the pinhole cameras to
+    those 2D joints from the current ones. Stops after ``config.rounds``
+    (counting the 2D round) or when no camera turns by ``converged_deg``.
+    Returns the last pinhole result and each round's largest rotation change.
+    """
+    tr = estimate.tracks
+    sizes = np.array([tr[n].image_size for n in names], float)
+    sils = [[tr[n].silhouettes[t] for t in frames] for n in names]
+    boxes = np.stack([tr[n].boxes[frames] for n in names]).astype(float)
+    stature = config.height_m / stature_scale(pinhole.joints3d, config.height_m)
+    changes = []
+    for r in range(1, config.rounds):
+        cams = PinholeCameras.from_centres(pinhole.focal_px, sizes / 2, pinhole.rotations, pinhole.centres)
+        joints3d, _ = posture_sequence3d(sils, boxes, cams, pinhole.joints3d, stature=stature,
+                                         config=config.round3d, seed=1000 * r)
+        tracks = project(cams, joints3d)
+        if config.polish is not None:
+            tracks = np.stack([posture_sequence(sils[c], boxes[c], tracks[c], carry=0.0,
+                                                config=replace(config.polish, seed=1000 * r + 100 * c))[0]
+                               for c in range(len(names))])
+        try:
+            new = perspective_refine(tracks, sizes, pinhole.rotations, pinhole.scales, list(RIGID_LINKS),
+                                     config=config.pinhole, initial=replace(pinhole, joints3d=joints3d))
+        except (ValueError, np.linalg.LinAlgError):
+            break
+        if _insane(new, estimate, names, config):
+            break
+        changes.append(max(float(geodesic_deg(a, b)) for a, b in zip(new.rotations, pinhole.rotations)))
+        pinhole = new
+        if changes[-1] < config.converged_deg:
+            break
+    return pinhole, changes
 
 
 def _fuse(rotations: np.ndarray, std_deg: np.ndarray | None, views: np.ndarray,

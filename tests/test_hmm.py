@@ -5,7 +5,7 @@ import itertools
 import numpy as np
 import pytest
 
-from estimator.hmm import PhaseHMM, cyclic_transitions, phase_log_emission, viterbi
+from estimator.hmm import PhaseHMM, cyclic_transitions, phase_log_emission, posterior, viterbi
 
 
 def test_transitions_are_cyclic_feed_forward():
@@ -114,3 +114,33 @@ def test_equal_mixture_recovers_path_up_to_half_cycle():
 def test_bad_observations_rejected():
     with pytest.raises(ValueError, match=r"\(T, c\)"):
         PhaseHMM().decode(np.zeros(5))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_posterior_is_the_marginal_over_all_paths(seed):
+    """Forward-backward against enumerating every path: P(state k at t | all observations)."""
+    rng = np.random.default_rng(seed)
+    K, T = 4, 5
+    log_start = np.log(rng.dirichlet(np.ones(K)))
+    log_trans = np.log(cyclic_transitions(K, (0.2, 0.4, 0.3, 0.1)))
+    log_em = rng.normal(0.0, 2.0, (T, K))
+    marg = np.zeros((T, K))
+    for path in itertools.product(range(K), repeat=T):
+        lp = log_start[path[0]] + log_em[0, path[0]]
+        lp += sum(log_trans[path[t - 1], path[t]] + log_em[t, path[t]] for t in range(1, T))
+        marg[np.arange(T), list(path)] += np.exp(lp)
+    np.testing.assert_allclose(posterior(log_start, log_trans, log_em), marg / marg.sum(axis=1, keepdims=True),
+                               atol=1e-10)
+
+
+def test_posterior_spreads_where_nothing_was_seen():
+    hmm = PhaseHMM()
+    obs = (np.arange(30)[:, None] * 0.09 + np.array([0.0, 0.0])) % 1.0
+    obs[12:18] = np.nan  # six frames no camera saw
+    with np.errstate(divide="ignore"):
+        post = posterior(np.log(hmm.startprob_), np.log(hmm.transmat_), hmm.log_emission(obs))
+    np.testing.assert_allclose(post.sum(axis=1), 1.0)
+    best = post.argmax(axis=1)
+    near = post[np.arange(30)[:, None], (best[:, None] + np.arange(-1, 2)) % hmm.n_states].sum(axis=1)
+    assert near[14] < 0.8 * np.median(near[:10])  # inside the gap: less sure (0.36 against 0.48)
+    assert near[14] < near[12] and near[14] < near[17]  # least sure farthest from the observations

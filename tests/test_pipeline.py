@@ -74,6 +74,23 @@ def test_missing_frames_and_one_camera(small_model, sequences):
     assert result["frames"][4]["observed_phase"]["c0"] is None
     assert "c0" not in result["frames"][4]["joints2d"] and "c1" in result["frames"][4]["joints2d"]
     assert len(result["frames"]) == 30  # nothing invented, nothing dropped
+    # Honest per-frame output: who saw each frame, and how sure the phase is.
+    assert result["frames"][4]["seen_by"] == ["c1"] and result["frames"][0]["seen_by"] == ["c0", "c1"]
+    assert not any(f["predicted"] for f in result["frames"])
+    for f in result["frames"]:
+        assert len(f["phase_posterior"]) == 20 and abs(sum(f["phase_posterior"]) - 1.0) < 1e-3
+        assert 0.0 <= f["phase_confidence"] <= 1.0
+    assert result["schema_version"] == 1 and result["units"]["joints3d"] == "m"
+    # Frames no camera saw: predicted by the HMM, and less sure than the frames around them.
+    t1 = tracks["c1"]
+    for k in (3, 4, 5):
+        t1.silhouettes[k] = None
+        t1.boxes[k] = np.nan
+    gap = estimate_walk(tracks, small_model).to_result()["frames"]
+    assert [f["index"] for f in gap if f["predicted"]] == [3, 4, 5]
+    assert gap[4]["seen_by"] == [] and gap[4]["phase"] is not None
+    seen = [f["phase_confidence"] for f in gap if not f["predicted"]]
+    assert gap[4]["phase_confidence"] < np.median(seen)
     one = estimate_walk({"c1": tracks["c1"]}, small_model)
     assert az_error(one.cameras["c1"].viewpoint.azimuth_deg, seq.truth["cameras"]["c1"]["azimuth_deg"]) < 30
 

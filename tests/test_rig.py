@@ -182,3 +182,59 @@ def test_an_implausible_pinhole_result_is_refused(walk):
     rig = calibrate_rig(measured, RigConfig(pinhole_max_rms=1e-6))
     assert rig.source == "self-calibration" and rig.focal_px is None and rig.euler_std_deg is not None
     assert any("pinhole cameras refused" in n for n in rig.notes)
+
+
+def test_a_second_round_of_posture_and_calibration(walk):
+    """rounds=2: 3D mNBP over all views with the pinhole cameras, then the pinhole adjustment again
+    (Wang-Leow §5). The round runs, says so, and keeps a sane rig."""
+    seq, _, measured = walk
+    one = calibrate_rig(measured)
+    two = calibrate_rig(measured, RigConfig(rounds=2))
+    assert two.source == "self-calibration" and two.focal_px is not None
+    note = next(n for n in two.notes if "rounds of posture and calibration" in n)
+    assert note.startswith("2 rounds") and "deg" in note
+    assert not any("rounds of posture" in n for n in one.notes)
+    views = [geodesic_deg(a, b) for a, b in zip(viewpoint_rotations(measured)[1:], _true_rig(seq)[1:])]
+    errors = [geodesic_deg(a, b) for a, b in zip(two.rotations[1:], _true_rig(seq)[1:])]
+    assert max(errors) <= max(views) + 2.0, (errors, views)
+    assert np.isfinite(two.joints3d).all()
+    true3d = np.array([f["joints3d"] for f in seq.truth["frames"]])
+    assert np.median(aligned_error(two.joints3d, true3d)) < 0.05 * seq.truth["body"]["height"]
+    with pytest.raises(ValueError, match="rounds"):
+        RigConfig(rounds=0)
+
+
+def test_rig_reports_rotation_vectors(walk):
+    _, _, measured = walk
+    cams = calibrate_rig(measured).to_dict()["cameras"]
+    for cam in cams.values():
+        r = Rotation.from_rotvec(cam["rotvec"]).as_matrix()
+        assert np.allclose(r, cam["rotation"], atol=1e-5)
+    assert cams["c0"]["rotvec"] == [0.0, 0.0, 0.0]
+
+
+def test_a_rig_accumulated_over_windows(walk):
+    """Windows of 8 frames with a hop of 4, two postures each: the rig over all of them matches the
+    one calibrated on the whole walk's frames within a few degrees, and frames are not measured twice."""
+    from estimator.pipeline import take_frames
+    from estimator.rig import RigAccumulator
+
+    seq, est, _ = walk
+    acc = RigAccumulator(RigConfig(min_frames=8), frames_per_window=3)
+    added = [acc.add(take_frames(est, np.arange(a, a + 8)), a) for a in range(0, 13, 4)]
+    assert added == [3, 3, 3, 3] and acc.n_frames == 12 and acc.windows == 4
+    assert acc.add(take_frames(est, np.arange(16, 24)), 16) == 3  # frames 16-19 were seen: 20-23 are new
+    assert acc.add(take_frames(est, np.arange(10, 18)), 10) == 0  # nothing new
+    rig = acc.calibrate()
+    assert rig.source == "self-calibration" and rig.joints3d.shape == (15, N_JOINTS, 3)
+    views = [geodesic_deg(a, b) for a, b in zip(viewpoint_rotations(est)[1:], _true_rig(seq)[1:])]
+    errors = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], _true_rig(seq)[1:])]
+    assert max(errors) <= max(views) + 2.0, (errors, views)
+    short = RigAccumulator(RigConfig(max_frames=6), frames_per_window=3)
+    for a in range(0, 17, 4):
+        short.add(take_frames(est, np.arange(a, a + 8)), a)
+    assert short.n_frames == 6  # the oldest windows go
+    short.reset()
+    assert short.n_frames == 0 and short.windows == 0
+    with pytest.raises(ValueError, match="no window"):
+        short.calibrate()

@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
 
 from . import CliError, positive_int
 
@@ -19,8 +24,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "where the viewpoints change (the walker turned); the result lists them. "
         "The default appearance model is built and cached on first use (about two minutes).",
     )
-    p.add_argument("sequence", metavar="SEQ", help="sequence folder (rig.json + per-camera PNG silhouettes)")
-    p.add_argument("--out", required=True, help="result JSON to write")
+    p.add_argument("sequence", metavar="SEQ", help="sequence folder (rig.json + per-camera PNG silhouettes), "
+                   "or a folder of videos, one per camera (<camera>.mp4, .avi, .mkv, .mov, .webm, .m4v; frames "
+                   "aligned by index): the walker is separated from the background first")
+    p.add_argument("--warmup", type=positive_int, metavar="N",
+                   help="videos: background frames at the start (default: a quarter, at most 100)")
+    p.add_argument("--out", default="-", help="result JSON to write (default: standard output, the summary "
+                                              "then goes to standard error)")
     p.add_argument("--model", help="appearance model file (default: the cached default model)")
     p.add_argument("--window", type=positive_int, default=20,
                    help="frames per window (default 20, about one gait cycle at 15 Hz)")
@@ -33,6 +43,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the walker's stature in metres (default 1.75): the scale of the person's posture "
                         "(frames[].person_joints3d) and body segment lengths (body); silhouettes carry no "
                         "absolute scale")
+    p.add_argument("--rounds", type=int, default=1, metavar="N",
+                   help="rounds of posture and calibration (Wang-Leow §5; default 1): each further round "
+                        "measures the 3D posture on all views at once with the calibrated cameras and "
+                        "calibrates again (about 4 s per round for 2 cameras x 30 frames; it has not improved "
+                        "the rig on our evaluations yet, docs/POSTURE.md)")
     p.set_defaults(func=run)
 
 
@@ -46,26 +61,96 @@ def run(args: argparse.Namespace) -> int:
     from .model import model_from_arg
 
     try:
-        rig = RigConfig(height_m=args.height)
-    except ValueError as exc:
-        raise CliError(f"--height: {exc}") from None
-    try:
-        sequence = read_sequence(args.sequence)
-    except SequenceError as exc:
-        raise CliError(str(exc)) from None
+        rig = RigConfig(height_m=args.height, rounds=args.rounds)
+    except ValueError as exc:  # --height or --rounds
+        raise CliError(str(exc).replace("height_m", "--height").replace("rounds", "--rounds", 1)) from None
+    videos = _videos(args.sequence)
+    sequence = None
+    if not videos:
+        try:
+            sequence = read_sequence(args.sequence)
+        except SequenceError as exc:
+            raise CliError(str(exc)) from None
     model = model_from_arg(args.model)
-    try:
-        walk = segment_walk(tracks_from_sequence(sequence), model, length=args.window, hop=args.hop,
-                            posture=MNBPConfig() if args.posture == "mnbp" else None, rig=rig)
-    except ValueError as exc:
-        raise CliError(f"{args.sequence}: {exc}") from None
+    with tqdm(total=100, desc="estimate", unit="%", file=sys.stderr, disable=None,
+              bar_format="{l_bar}{bar}| {n:.0f}/100 [{elapsed}<{remaining}]") as bar:
+        def progress(fraction: float) -> None:
+            bar.update(100 * fraction - bar.n)
+
+        try:
+            if videos:
+                tracks, info, decoding = _video_tracks(args, videos, lambda f: progress(0.5 * f))
+            else:
+                tracks = tracks_from_sequence(sequence)
+            walk = segment_walk(tracks, model, length=args.window, hop=args.hop,
+                                posture=MNBPConfig() if args.posture == "mnbp" else None, rig=rig,
+                                progress=(lambda f: progress(0.5 + 0.5 * f)) if videos else progress)
+        except ValueError as exc:
+            raise CliError(f"{args.sequence}: {exc}") from None
     result = walk.to_result()
-    result["sequence"] = {"fps": sequence.fps, "image_size": list(sequence.image_size), "frames": sequence.n_frames}
+    if videos:
+        from service.worker import _mark_decoding
+
+        result["sequence"] = info
+        _mark_decoding(result, decoding)
+        shape = (info["frames"], len(tracks), None)
+    else:
+        result["sequence"] = {"fps": sequence.fps, "image_size": list(sequence.image_size),
+                              "frames": sequence.n_frames}
+        shape = (sequence.n_frames, len(sequence.cameras), sequence.truth)
+    if args.out == "-":
+        json.dump(result, sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+        with contextlib.redirect_stdout(sys.stderr):
+            _summary(result, shape, "standard output")
+        return 0
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, allow_nan=False)
-    print(f"wrote {args.out}: {sequence.n_frames} frames, {len(sequence.cameras)} cameras")
-    truth = sequence.truth or {}
+    _summary(result, shape, args.out)
+    return 0
+
+
+def _videos(path: str) -> list[Path]:
+    """The videos of a folder of one video per camera ([] for a sequence folder or anything else)."""
+    from service.intake import VIDEO_EXTENSIONS
+
+    folder = Path(path)
+    if not folder.is_dir() or (folder / "rig.json").exists():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
+
+
+def _video_tracks(args: argparse.Namespace, videos: list[Path], progress):
+    """Each video's silhouettes (background subtraction, as REST jobs do) as camera tracks, the
+    input's ``sequence`` summary and each camera's decoded/announced frame counts."""
+    from capture.refine import track_from_segmentations
+    from capture.segment import default_warmup
+    from capture.sources import VideoFileSource
+    from estimator.pipeline import pad_tracks
+    from service.worker import _segment_videos
+
+    counts = []
+    for path in videos:
+        with VideoFileSource(path) as source:
+            counts.append(source.frame_count() or 0)
+    warmup = args.warmup or default_warmup(min(counts))
+    segmentations, sizes, fps, decoding = _segment_videos(
+        Path(args.sequence), warmup=warmup, report=lambda f, _: progress(f),
+        options={"windows": {"length": args.window}})
+    tracks = pad_tracks({c: track_from_segmentations(s) for c, s in segmentations.items()})
+    frames = max(len(t.silhouettes) for t in tracks.values())
+    size = next(iter(sizes.values()))
+    return tracks, {"fps": fps, "image_size": list(size), "frames": frames, "videos": [p.name for p in videos],
+                    "warmup": warmup}, decoding
+
+
+def _summary(result: dict, shape: tuple[int, int, dict | None], where: str) -> None:
+    """What was written, from ``shape`` = (frames, cameras, truth or None), and each camera's viewpoint
+    and rotation (against the truth when the folder has one)."""
+    n_frames, n_cameras, truth = shape
+    print(f"wrote {where}: {n_frames} frames, {n_cameras} cameras")
+    truth = truth or {}
     for name, cam in result["cameras"].items():
         if cam["azimuth_deg"] is None:
             print(f"  {name}: no silhouette, no viewpoint")
@@ -83,7 +168,6 @@ def run(args: argparse.Namespace) -> int:
             views = ", ".join(f"{n} {c['azimuth_deg']:.1f}" for n, c in seg.get("cameras", {}).items()
                               if c["azimuth_deg"] is not None)
             print(f"    frames {seg['first_index']}-{seg['last_index']}: {views or seg.get('error')}")
-    return 0
 
 
 def _print_rig(rig: dict, truth: dict) -> None:

@@ -1,7 +1,7 @@
 """``posecal model build|info``: the appearance model artifact (Izo–Grimson §4–5).
 
-The default model lives in the cache directory (``$POSECAL_CACHE`` or
-``~/.cache/posecal``) under a name that hashes its build settings and the
+The default model lives in the cache directory (``$POSECAL_CACHE``, else
+``$XDG_CACHE_HOME/posecal``, else ``~/.cache/posecal``) under a name that hashes its build settings and the
 renderer version; any command that needs it builds it on first use
 (:func:`get_default_model`), and ``posecal model build`` does so up front.
 """
@@ -20,9 +20,13 @@ __all__ = ["register", "cache_dir", "get_default_model", "default_model_path", "
 
 
 def cache_dir() -> Path:
-    """``$POSECAL_CACHE`` if set, else ``~/.cache/posecal`` (read at call time)."""
+    """``$POSECAL_CACHE`` if set, else ``$XDG_CACHE_HOME/posecal``, else ``~/.cache/posecal`` (the XDG
+    base directory specification; read at call time)."""
     env = os.environ.get("POSECAL_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "posecal"
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg and os.path.isabs(xdg) else Path.home() / ".cache") / "posecal"
 
 
 def _examples_key() -> dict:
