@@ -8,7 +8,10 @@ time), subscribes to ``posecal/<rig>/estimate``, and reports:
 - windows cut / estimated / skipped / failed / dropped (target: every window estimated);
 - latency from publishing a window's last frame to receiving its estimate
   (same clock), p50 / p95 / max (target: p95 <= 200 ms);
-- the service's own figure (last frame received -> estimate published).
+- the service's own figure (last frame received -> estimate published);
+- the live rig (``GET /v1/rigs/<rig>/calibration``): its source, frames, the
+  windows it lags, and the time per window of its low-priority posture process
+  (``--no-live-rig`` to run without it).
 
 Usage: ``python bench/bench_service_live.py [--cameras 4] [--fps 15] [--seconds 60]
 [--model PATH] [--rerun SINK]``; exit code 0 when the targets are met.
@@ -40,10 +43,15 @@ from _service_proc import ServiceProcess  # noqa: E402
 RIG = "bench"
 
 
+def views(cameras: int) -> list[tuple[float, float]]:
+    """The bench cameras' (azimuth, elevation), degrees."""
+    az = np.linspace(0, 360, cameras, endpoint=False) + 45.0
+    return [(float(a), 10.0 + 5 * (k % 3)) for k, a in enumerate(az)]
+
+
 def render(cameras: int, frames: int, seed: int) -> tuple[list[str], list[list[tuple]], tuple[int, int]]:
-    az = tuple(float(a) for a in np.linspace(0, 360, cameras, endpoint=False) + 45.0)
-    seq = synthesize(SynthSpec(n_cameras=cameras, n_frames=frames, seed=seed, azimuths=az,
-                               elevations=tuple(10.0 + 5 * (k % 3) for k in range(cameras))))
+    az, el = zip(*views(cameras))
+    seq = synthesize(SynthSpec(n_cameras=cameras, n_frames=frames, seed=seed, azimuths=az, elevations=el))
     crops = []
     for cam in seq.cameras:
         row = []
@@ -64,6 +72,7 @@ def main() -> int:
     ap.add_argument("--model", help="appearance model (default: the service's default model)")
     ap.add_argument("--rerun", help="the service's Rerun sink, e.g. save:/tmp/bench.rrd (default: off)")
     ap.add_argument("--json", help="write the figures here")
+    ap.add_argument("--no-live-rig", action="store_true", help="serve without the live rig's postures")
     args = ap.parse_args()
 
     load_before = os.getloadavg()[0]
@@ -71,7 +80,8 @@ def main() -> int:
     cams, crops, size = render(args.cameras, args.loop_frames, seed=5)
     print(f"rendered {len(cams)} x {args.loop_frames} silhouettes in {time.perf_counter() - t:.1f} s")
     workdir = Path(tempfile.mkdtemp(prefix="posecal-bench-live-"))
-    extra = ["--job-workers", "0"] + (["--rerun", args.rerun] if args.rerun else [])
+    extra = (["--job-workers", "0"] + (["--rerun", args.rerun] if args.rerun else [])
+             + (["--no-live-rig"] if args.no_live_rig else []))
     with ServiceProcess(workdir, *extra, model=args.model) as svc, \
             zenoh.open(build_config(connect=[svc.zenoh])) as session:
         received: list[tuple[int, dict]] = []
@@ -101,6 +111,8 @@ def main() -> int:
             sent_ns[k] = time.time_ns()
         time.sleep(3.0)
         summary = svc.client.get(f"/v1/rigs/{RIG}").json()
+        cal = svc.client.get(f"/v1/rigs/{RIG}/calibration")
+        rig_seconds = _histogram(svc.client.get("/metrics").text, "posecal_live_rig_seconds")
         sub.undeclare()
     results = {r["window"]["seq"]: (t_ns, r) for t_ns, r in received}
     ext = np.array([(t_ns - sent_ns[r["window"]["last_index"]]) / 1e6 for t_ns, r in results.values()])
@@ -115,6 +127,12 @@ def main() -> int:
         "estimate_ms": _pct(est_ms),
         "frames_in": sum(c["frames"] for c in summary["cameras"].values()),
         "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+        "live_rig": None if args.no_live_rig else {
+            "calibration": {k: cal.json()[k] for k in ("source", "frames", "windows", "lag_windows")}
+            if cal.status_code == 200 else cal.json()["detail"],
+            "rotation_error_deg": _rig_errors(cal.json(), cams, views(args.cameras))
+            if cal.status_code == 200 else None,
+            "seconds_per_window_mean": rig_seconds},
     }
     ok = (w["estimated"] == w["seq"] and len(results) == w["seq"] and w["dropped"] == 0
           and fig["latency_ms_publish_to_estimate"]["p95"] <= 200.0)
@@ -128,6 +146,32 @@ def main() -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(fig, indent=1))
     return 0 if ok else 1
+
+
+def _rig_errors(cal: dict, cams: list[str], truth: list[tuple[float, float]]) -> dict[str, float | None]:
+    """Geodesic error (deg) of each camera's rotation from the live rig's reference, against the truth."""
+    from estimator._selfcal_core import geodesic_deg
+    from estimator.rig import rotations_from_viewpoints
+
+    rig = cal["calibration"]
+    ref = cams.index(rig["reference"])
+    true = rotations_from_viewpoints([truth[ref]] + truth)[1:]
+    out = {}
+    for k, cam in enumerate(cams):
+        r = rig["cameras"][cam]["rotation"]
+        if cam != rig["reference"]:
+            out[cam] = None if r is None else round(float(geodesic_deg(np.array(r), true[k])), 2)
+    return out
+
+
+def _histogram(metrics: str, name: str) -> float | None:
+    """Mean of a Prometheus histogram in the service's /metrics text (None if it has no samples)."""
+    values = {}
+    for line in metrics.splitlines():
+        for part in ("_sum", "_count"):
+            if line.startswith(name + part + " "):
+                values[part] = float(line.split()[-1])
+    return round(values["_sum"] / values["_count"], 3) if values.get("_count") else None
 
 
 def _pct(a: np.ndarray) -> dict:

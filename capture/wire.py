@@ -54,7 +54,11 @@ WIRE_VERSION = 1
 MAGIC = b"PCAL"
 _PREFIX = struct.Struct(">4sBBI")  # magic, version, kind, header length
 _MAX_HEADER = 64 * 1024
-_MAX_SIDE = 1 << 15
+MAX_IMAGE_SIDE = 8192  # width or height of a frame (8K)
+MAX_IMAGE_PIXELS = 7680 * 4320  # width x height (8K UHD): a full-frame canvas stays below 34 MB
+_MAX_SIDE = MAX_IMAGE_SIDE
+_MAX_INT = (1 << 63) - 1  # integers travel as int64 (nanoseconds, indices, sequence numbers)
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _MAX_CANDIDATES = 1 << 16
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _ROOT = "posecal"
@@ -64,7 +68,15 @@ T = TypeVar("T")
 
 
 class WireError(ValueError):
-    """A payload or key that is not a valid posecal message; ``str()`` is the reason."""
+    """A payload or key that is not a valid posecal message; ``str()`` is the reason.
+
+    ``code`` is its kind, one of a few fixed words (a metric label: ``envelope``,
+    ``header``, ``field``, ``image``, ``key``); the reason itself may quote the payload.
+    """
+
+    def __init__(self, reason: str, code: str = "field") -> None:
+        super().__init__(reason)
+        self.code = code
 
 
 # --------------------------------------------------------------------------- keys
@@ -74,7 +86,7 @@ def _check_name(what: str, name: str, *, wildcard: bool) -> str:
     if wildcard and name in ("*", "**"):
         return name
     if not isinstance(name, str) or not _NAME.match(name):
-        raise WireError(f"{what} must match {_NAME.pattern}, got {name!r}")
+        raise WireError(f"{what} must match {_NAME.pattern}, got {name!r:.80}", "key")
     return name
 
 
@@ -103,7 +115,7 @@ def parse_key(key: str) -> tuple[str, str | None, str]:
                 _check_name("camera", parts[2], wildcard=False), parts[3])
     if len(parts) == 3 and parts[0] == _ROOT and parts[2] == "estimate":
         return _check_name("rig", parts[1], wildcard=False), None, "estimate"
-    raise WireError(f"not a posecal key: {key!r}")
+    raise WireError(f"not a posecal key: {key!r:.200}", "key")
 
 
 # -------------------------------------------------------------------------- messages
@@ -134,6 +146,34 @@ class Box:
         return out
 
 
+def _check_frame(box: Box, image_size: tuple[int, int]) -> None:
+    """The image within the size limits and the box inside it (before a crop is decoded)."""
+    width, height = image_size
+    if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE) or width * height > MAX_IMAGE_PIXELS:
+        raise WireError(f"image_size must be positive, each side <= {MAX_IMAGE_SIDE} and at most "
+                        f"{MAX_IMAGE_PIXELS} pixels, got {image_size}", "image")
+    if min(box.x, box.y, box.w, box.h) < 0 or box.x + box.w > width or box.y + box.h > height:
+        raise WireError(f"box {dataclasses.astuple(box)} is not inside the image {image_size}")
+
+
+def _png_crop(png: bytes, box: Box) -> np.ndarray:
+    """Decode the crop's PNG once its header says it is the box's size (a header claiming
+    100000 x 100000 pixels is refused before anything is allocated)."""
+    if len(png) < 24 or png[:8] != _PNG_SIGNATURE or png[12:16] != b"IHDR":
+        raise WireError("crop is not a decodable PNG (no PNG header)", "image")
+    width, height = struct.unpack(">II", png[16:24])
+    if (width, height) != (box.w, box.h):
+        raise WireError(f"crop PNG of {width}x{height} (its header) does not match box size "
+                        f"{box.w}x{box.h}", "image")
+    try:
+        mask = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise WireError(f"crop is not a decodable PNG: {str(exc).strip().splitlines()[-1]:.120}", "image") from None
+    if mask is None:
+        raise WireError("crop is not a decodable PNG", "image")
+    return mask
+
+
 def _crop_fields(rig: str, camera: str, frame_index: int, box: Box,
                  image_size: tuple[int, int], mask: np.ndarray) -> None:
     """Checks shared by both message kinds; raise WireError with the reason."""
@@ -141,11 +181,7 @@ def _crop_fields(rig: str, camera: str, frame_index: int, box: Box,
     _check_name("camera", camera, wildcard=False)
     if frame_index < 0:
         raise WireError(f"frame_index must be >= 0, got {frame_index}")
-    width, height = image_size
-    if not (0 < width <= _MAX_SIDE and 0 < height <= _MAX_SIDE):
-        raise WireError(f"image_size must be positive and <= {_MAX_SIDE}, got {image_size}")
-    if min(box.x, box.y, box.w, box.h) < 0 or box.x + box.w > width or box.y + box.h > height:
-        raise WireError(f"box {dataclasses.astuple(box)} is not inside the image {image_size}")
+    _check_frame(box, image_size)
     if mask.dtype != np.uint8 or mask.ndim != 2:
         raise WireError(f"mask must be a 2-D uint8 array, got {mask.dtype} {mask.shape}")
     if mask.shape != (box.h, box.w) and not (box.empty and mask.size == 0):
@@ -308,22 +344,23 @@ def encode(msg: Message, *, png_compression: int = 1) -> bytes:
 
 def _int(header: dict[str, Any], name: str) -> int:
     value = header.get(name)
-    if type(value) is not int:  # bool is not a valid int here
-        raise WireError(f"header field {name!r} must be an integer, got {value!r}")
+    if type(value) is not int or abs(value) > _MAX_INT:  # bool is not a valid int here
+        raise WireError(f"header field {name!r} must be an integer (64-bit), got {value!r:.40}")
     return value
 
 
 def _ints(header: dict[str, Any], name: str, n: int) -> tuple[int, ...]:
     value = header.get(name)
-    if not isinstance(value, list) or len(value) != n or any(type(v) is not int for v in value):
-        raise WireError(f"header field {name!r} must be a list of {n} integers, got {value!r}")
+    if not isinstance(value, list) or len(value) != n or any(type(v) is not int or abs(v) > _MAX_INT
+                                                             for v in value):
+        raise WireError(f"header field {name!r} must be a list of {n} integers, got {value!r:.80}")
     return tuple(value)
 
 
 def _quality(header: dict[str, Any], name: str) -> Quality:
     value = header.get(name)
     if not isinstance(value, dict):
-        raise WireError(f"header field {name!r} must be an object, got {value!r}")
+        raise WireError(f"header field {name!r} must be an object, got {value!r:.80}")
     return Quality(walker_fraction=value.get("walker_fraction"), area_median=value.get("area_median"),
                    stability=value.get("stability"))
 
@@ -336,7 +373,7 @@ def _optional(header: dict[str, Any], name: str, parse: Callable[[dict[str, Any]
 def _str(header: dict[str, Any], name: str) -> str:
     value = header.get(name)
     if not isinstance(value, str):
-        raise WireError(f"header field {name!r} must be a string, got {value!r}")
+        raise WireError(f"header field {name!r} must be a string, got {value!r:.80}")
     return value
 
 
@@ -348,37 +385,38 @@ def decode(payload: bytes | bytearray | memoryview, *,
     """
     data = bytes(payload)
     if len(data) < _PREFIX.size:
-        raise WireError(f"payload too short ({len(data)} bytes)")
+        raise WireError(f"payload too short ({len(data)} bytes)", "envelope")
     magic, version, kind, head_len = _PREFIX.unpack_from(data)
     if magic != MAGIC:
-        raise WireError(f"bad magic {magic!r}, expected {MAGIC!r}")
+        raise WireError(f"bad magic {magic!r}, expected {MAGIC!r}", "envelope")
     if version != WIRE_VERSION:
-        raise WireError(f"unsupported wire version {version}, this build speaks {WIRE_VERSION}")
+        raise WireError(f"unsupported wire version {version}, this build speaks {WIRE_VERSION}", "envelope")
     cls = _KINDS.get(kind)
     if cls is None:
-        raise WireError(f"unknown message kind {kind}")
+        raise WireError(f"unknown message kind {kind}", "envelope")
     if expect is not None and cls is not expect:
-        raise WireError(f"expected a {expect.__name__}, got a {cls.__name__}")
+        raise WireError(f"expected a {expect.__name__}, got a {cls.__name__}", "envelope")
     if head_len > _MAX_HEADER or _PREFIX.size + head_len > len(data):
-        raise WireError(f"header length {head_len} exceeds the payload ({len(data)} bytes)")
+        raise WireError(f"header length {head_len} exceeds the payload ({len(data)} bytes)", "envelope")
     try:
         header = json.loads(data[_PREFIX.size:_PREFIX.size + head_len])
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise WireError(f"header is not JSON: {exc}") from None
+        raise WireError(f"header is not JSON: {exc}", "header") from None
+    except RecursionError:
+        raise WireError("header is not JSON: nested too deeply", "header") from None
     if not isinstance(header, dict):
-        raise WireError("header must be a JSON object")
+        raise WireError("header must be a JSON object", "header")
 
     box = Box(*_ints(header, "box", 4))
     width, height = _ints(header, "image_size", 2)
+    _check_frame(box, (width, height))
     png = data[_PREFIX.size + head_len:]
     if box.empty:
         if png:
-            raise WireError("empty box but a PNG is attached")
+            raise WireError("empty box but a PNG is attached", "image")
         mask = np.zeros((0, 0), np.uint8)
     else:
-        mask = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) if png else None
-        if mask is None:
-            raise WireError("crop is not a decodable PNG")
+        mask = _png_crop(png, box)
     common = dict(rig=_str(header, "rig"), camera=_str(header, "camera"),
                   frame_index=_int(header, "frame_index"), box=box,
                   image_size=(width, height), mask=mask)

@@ -11,6 +11,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from .auth import BearerAuthMiddleware
 from .limits import UploadLimitMiddleware
 from .routers import health, jobs, rigs
 from .runtime import Runtime
@@ -34,6 +35,7 @@ def create_app() -> FastAPI:
     app = FastAPI(title="posecal", summary="Walking pose and camera viewpoints from uncalibrated cameras",
                   lifespan=lifespan)
     app.add_middleware(UploadLimitMiddleware, prefix="/v1/jobs")
+    app.add_middleware(BearerAuthMiddleware, prefix="/v1")  # added last: runs first
     app.include_router(health.router)
     app.include_router(jobs.router)
     app.include_router(rigs.router)

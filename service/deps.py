@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
+from fastapi.security import HTTPBearer
 
 from .jobs import JobStore
 from .live import LiveService
@@ -13,7 +14,7 @@ from .runner import JobRunner
 from .runtime import Runtime
 from .settings import Settings, get_settings
 
-__all__ = ["LiveDep", "MetricsDep", "RunnerDep", "RuntimeDep", "SettingsDep", "StoreDep"]
+__all__ = ["LiveDep", "MetricsDep", "RunnerDep", "RuntimeDep", "SettingsDep", "StoreDep", "bearer_scheme"]
 
 
 def get_runtime(request: Request) -> Runtime:
@@ -37,6 +38,13 @@ def get_live(request: Request) -> LiveService:
     if live is None:
         raise HTTPException(503, "live estimation is disabled on this server (POSECAL_LIVE=false)")
     return live
+
+
+# REST access is enforced by service.auth.BearerAuthMiddleware (from the headers, before a
+# body is read); routers declare this scheme so that OpenAPI shows it.
+bearer_scheme = HTTPBearer(auto_error=False, description="when the service has api_token or api_token_file "
+                           "set: every /v1 route (and /metrics, unless metrics_open) needs "
+                           "'Authorization: Bearer <token>', else 401")
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

@@ -6,9 +6,16 @@ worker processes open their own engine on the same URL to write progress.
 
 States: ``queued -> running -> done | failed``, and ``cancelled`` from queued or
 running. :meth:`JobStore.requeue_interrupted` puts jobs left ``running`` by a
-crash or restart back in the queue. A worker writes progress with
-:meth:`JobStore.report`, which only touches a row that is still running, so a
-cancelled or deleted job tells its worker to stop.
+crash or restart back in the queue (a job interrupted ``max_attempts`` times
+fails instead, with the reason). Each claim writes a new token (``claim``)
+into the row; the worker writes progress, the result or the failure only
+while the row is still ``running`` under its own token
+(:meth:`JobStore.claimed`), so a cancelled, deleted or re-queued job tells its
+worker to stop, and a worker orphaned by a crashed service cannot finish a
+job the next service has re-queued.
+
+The schema is versioned (:mod:`service.migrations`, Alembic): opening a store
+upgrades its database, a database made by an older version included.
 """
 
 from __future__ import annotations
@@ -22,7 +29,7 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
-__all__ = ["ACTIVE", "STATES", "JobRow", "JobStore", "JobGone"]
+__all__ = ["ACTIVE", "STATES", "ClaimedJobs", "JobRow", "JobStore", "JobGone"]
 
 STATES = ("queued", "running", "done", "failed", "cancelled")
 ACTIVE = ("queued", "running")
@@ -40,6 +47,7 @@ jobs_table = sa.Table(
     sa.Column("error", sa.Text),
     sa.Column("result", sa.Text),
     sa.Column("attempts", sa.Integer, nullable=False, default=0),
+    sa.Column("claim", sa.String(32)),  # the token of the run that owns the row (None: nobody)
     sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
     sa.Column("started_at", sa.DateTime(timezone=True)),
     sa.Column("finished_at", sa.DateTime(timezone=True)),
@@ -64,6 +72,7 @@ class JobRow:
     error: str | None
     has_result: bool
     attempts: int
+    claim: str | None
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -82,9 +91,13 @@ _ROW_COLUMNS = [c for c in jobs_table.c if c.name != "result"]
 
 
 class JobStore:
-    """Create, claim, update and query jobs. Thread-safe (one engine, short transactions)."""
+    """Create, claim, update and query jobs. Thread-safe (one engine, short transactions).
 
-    def __init__(self, url: str) -> None:
+    ``migrate`` brings the database's schema up to date (the service does; the
+    worker processes, which open the store after it, need not).
+    """
+
+    def __init__(self, url: str, *, migrate: bool = True) -> None:
         kwargs: dict[str, Any] = {}
         if url.startswith("sqlite"):
             # Several processes write one file: wait for the lock instead of failing.
@@ -93,7 +106,10 @@ class JobStore:
         self.engine: Engine = sa.create_engine(url, **kwargs)
         if url.startswith("sqlite"):
             sa.event.listen(self.engine, "connect", _sqlite_pragmas)
-        _meta.create_all(self.engine)
+        if migrate:
+            from .migrations import upgrade
+
+            upgrade(self.engine)
 
     def close(self) -> None:
         self.engine.dispose()
@@ -105,7 +121,7 @@ class JobStore:
         return JobRow(id=m["id"], state=m["state"], kind=m["kind"], input_dir=m["input_dir"],
                       options=json.loads(m["options"] or "{}"), progress=m["progress"],
                       stage=m["stage"], error=m["error"], has_result=bool(m["has_result"]),
-                      attempts=m["attempts"], created_at=_utc(m["created_at"]),
+                      attempts=m["attempts"], claim=m["claim"], created_at=_utc(m["created_at"]),
                       started_at=_utc(m["started_at"]), finished_at=_utc(m["finished_at"]))
 
     def _select(self):
@@ -158,42 +174,62 @@ class JobStore:
                 done = conn.execute(
                     jobs_table.update().where(jobs_table.c.id == job_id, jobs_table.c.state == "queued")
                     .values(state="running", started_at=_now(), progress=0.0, stage="starting",
-                            attempts=jobs_table.c.attempts + 1))
+                            attempts=jobs_table.c.attempts + 1, claim=uuid.uuid4().hex))
                 if done.rowcount == 1:
                     break
         return self.get(job_id)
 
-    def requeue_interrupted(self) -> list[str]:
-        """Jobs left ``running`` (the service stopped mid-job) go back to ``queued``."""
+    def requeue_interrupted(self, *, max_attempts: int | None = None) -> list[str]:
+        """Jobs left ``running`` (the service stopped mid-job) go back to ``queued``, their
+        claim withdrawn; one that has already run ``max_attempts`` times fails instead,
+        with the reason. Returns the ids re-queued."""
+        running = jobs_table.c.state == "running"
         with self.engine.begin() as conn:
-            ids = list(conn.execute(sa.select(jobs_table.c.id).where(jobs_table.c.state == "running")).scalars())
+            if max_attempts is not None:
+                conn.execute(jobs_table.update().where(running, jobs_table.c.attempts >= max_attempts)
+                             .values(state="failed", stage="failed", claim=None, finished_at=_now(),
+                                     error=f"interrupted {max_attempts} times (the service stopped or "
+                                           f"crashed while it ran): not retried (max_attempts = "
+                                           f"{max_attempts})"))
+            ids = list(conn.execute(sa.select(jobs_table.c.id).where(running)).scalars())
             if ids:
                 conn.execute(jobs_table.update().where(jobs_table.c.id.in_(ids))
                              .values(state="queued", progress=0.0, stage="requeued after restart",
-                                     started_at=None))
+                                     started_at=None, claim=None))
         return ids
 
-    def report(self, job_id: str, progress: float, stage: str) -> None:
-        """Progress of a running job; raises :class:`JobGone` if it is no longer running."""
+    def claimed(self, claim: str | None) -> "ClaimedJobs":
+        """This store as the run holding ``claim`` writes to it (None: any run, as before claims)."""
+        return ClaimedJobs(self, claim)
+
+    def report(self, job_id: str, progress: float, stage: str, *, claim: str | None = None) -> None:
+        """Progress of a running job; raises :class:`JobGone` if it is no longer running
+        (or, with ``claim``, no longer held under that claim)."""
         with self.engine.begin() as conn:
             done = conn.execute(
-                jobs_table.update().where(jobs_table.c.id == job_id, jobs_table.c.state == "running")
+                jobs_table.update().where(*self._owned(job_id, claim))
                 .values(progress=float(min(max(progress, 0.0), 1.0)), stage=stage))
         if done.rowcount != 1:
             raise JobGone(job_id)
 
-    def finish(self, job_id: str, result: dict) -> bool:
-        """Store the result of a running job; False if it was cancelled or deleted meanwhile."""
-        return self._end(job_id, state="done", result=json.dumps(result), progress=1.0, stage="done")
+    def finish(self, job_id: str, result: dict, *, claim: str | None = None) -> bool:
+        """Store the result of a running job; False if it was cancelled, deleted or re-queued meanwhile."""
+        return self._end(job_id, claim, state="done", result=json.dumps(result), progress=1.0, stage="done")
 
-    def fail(self, job_id: str, error: str) -> bool:
-        return self._end(job_id, state="failed", error=error, stage="failed")
+    def fail(self, job_id: str, error: str, *, claim: str | None = None) -> bool:
+        return self._end(job_id, claim, state="failed", error=error, stage="failed")
 
-    def _end(self, job_id: str, **values: Any) -> bool:
+    @staticmethod
+    def _owned(job_id: str, claim: str | None) -> list:
+        where = [jobs_table.c.id == job_id, jobs_table.c.state == "running"]
+        if claim is not None:
+            where.append(jobs_table.c.claim == claim)
+        return where
+
+    def _end(self, job_id: str, claim: str | None, **values: Any) -> bool:
         with self.engine.begin() as conn:
-            done = conn.execute(
-                jobs_table.update().where(jobs_table.c.id == job_id, jobs_table.c.state == "running")
-                .values(finished_at=_now(), **values))
+            done = conn.execute(jobs_table.update().where(*self._owned(job_id, claim))
+                                .values(finished_at=_now(), **values))
         return done.rowcount == 1
 
     def cancel(self, job_id: str) -> JobRow | None:
@@ -211,6 +247,23 @@ class JobStore:
             with self.engine.begin() as conn:
                 conn.execute(jobs_table.delete().where(jobs_table.c.id == job_id))
         return row
+
+
+class ClaimedJobs:
+    """A :class:`JobStore` as one run of a job writes to it: every write names the run's claim,
+    and is refused once the job was cancelled, deleted or re-queued (another run holds it)."""
+
+    def __init__(self, store: JobStore, claim: str | None) -> None:
+        self.store, self.claim = store, claim
+
+    def report(self, job_id: str, progress: float, stage: str) -> None:
+        self.store.report(job_id, progress, stage, claim=self.claim)
+
+    def finish(self, job_id: str, result: dict) -> bool:
+        return self.store.finish(job_id, result, claim=self.claim)
+
+    def fail(self, job_id: str, error: str) -> bool:
+        return self.store.fail(job_id, error, claim=self.claim)
 
 
 def _sqlite_pragmas(dbapi_conn, _record) -> None:

@@ -1,4 +1,6 @@
-"""Upload size limit as ASGI middleware: 413 before the body is parsed.
+"""Upload limits: the body size as ASGI middleware (413 before the body is parsed),
+and :class:`UploadLimits`, what the intake (:func:`service.worker.stage_upload`)
+checks before it spends memory or CPU on an upload.
 
 A declared ``Content-Length`` above the limit is refused at once; a body sent
 without one (chunked) is counted while it streams and refused when it passes
@@ -8,10 +10,37 @@ the limit. The limit is read from the running app's settings.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 
 from fastapi import HTTPException
 
-__all__ = ["UploadLimitMiddleware"]
+__all__ = ["UploadLimitMiddleware", "UploadLimits"]
+
+
+@dataclass(frozen=True)
+class UploadLimits:
+    """What one upload may hold (``Settings.upload_limits()``; docs/SERVICE.md, "Limits and refusals").
+
+    Every limit is checked from headers (zip directory, PNG ``IHDR``, video
+    container) before the data it describes is unpacked or decoded.
+    """
+
+    body_bytes: int  # the request body
+    unpacked_bytes: int  # a zip's members, summed (declared sizes, and counted while extracting)
+    max_frames: int  # frames per camera: frame numbers of PNG names, a video's frame count
+    max_cameras: int  # cameras in rig.json, videos per upload
+    max_image_side: int  # width and height of a frame, a PNG and rig.json's image_size
+    max_image_pixels: int  # width x height of the same
+    decoded_bytes: int  # PNG pixels of a sequence folder, summed (what reading it holds in memory)
+    max_json_bytes: int = 16 << 20  # rig.json, truth.json
+
+    def image_refusal(self, width: int, height: int) -> str | None:
+        """Why a ``width`` x ``height`` image is too large, or None if it is not."""
+        if width > self.max_image_side or height > self.max_image_side:
+            return f"{width}x{height} exceeds the largest side of {self.max_image_side} pixels"
+        if width * height > self.max_image_pixels:
+            return f"{width}x{height} exceeds the limit of {self.max_image_pixels} pixels"
+        return None
 
 
 class UploadLimitMiddleware:

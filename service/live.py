@@ -9,7 +9,12 @@ Per rig:
    frame (Zenoh keeps each publisher's order), or after ``max_wait_ms``; missing
    cameras then count as "no data". Late messages (for a closed frame) and
    duplicates are dropped and counted. A camera silent for ``camera_timeout_s``
-   is no longer waited for; an agent restart (new epoch) resets the rig.
+   is no longer waited for (and shows as ``stale`` in the rig's summary). An
+   index-synchronised agent that restarts (new epoch) numbers its frames from 0
+   again: its indices are re-based onto the rig's (an offset per camera run,
+   from the other cameras' newest frame and frame period at the message's
+   capture time), so its frames join the current frame sets; with no other
+   camera live, or ``sync="time"``, the rig's assembly starts over instead.
 2. :class:`WindowBuffer` cuts windows of ``window_length`` frame sets every
    ``window_hop``; a jump in frame index larger than half a window starts over.
 3. Windows wait in a bounded queue (oldest dropped on overflow); consumer
@@ -19,6 +24,13 @@ Per rig:
 4. Feedback (§7.1, ``feedback``): the window's estimate predicts the next
    ``feedback_ahead`` frames of every camera; their rendered, registered priors
    go to ``posecal/<rig>/<camera>/feedback`` ahead of the frames they are for.
+
+Before a message touches a rig it must be believable (docs/SERVICE.md, "Limits
+and refusals"): the receiver rejects clocks from the future; a new rig beyond
+``max_rigs`` or a new camera beyond ``max_cameras`` is refused unless a silent
+one can make room; a ``frame_index`` further than ``max_index_ahead`` ahead of
+the rig's is dropped until a few in a row agree. Rigs and cameras silent for
+``rig_expiry_s`` are forgotten, with their metrics.
 
 The Zenoh callback thread only does bookkeeping; nothing blocks the event loop.
 """
@@ -52,6 +64,9 @@ from .worker import StageBundle, estimate_window, predict_feedback, register_sta
 __all__ = ["FrameAssembler", "FrameSet", "LiveService", "WindowBuffer"]
 
 log = logging.getLogger(__name__)
+
+_REBASE_AFTER = 5  # frames in a row, each ahead of the rig but agreeing, that move it there
+_EXPIRE_EVERY_S = 1.0
 
 
 # ---------------------------------------------------------------------------- frame sets
@@ -226,13 +241,29 @@ class WindowBuffer:
 @dataclass
 class CameraState:
     frames: int = 0
-    last_index: int = -1
+    last_index: int = -1  # the rig's frame index of the camera's last frame (its own + index_offset)
     last_seen_ns: int = 0
     epoch_ns: int = 0
     sync: str = "time"
     image_size: tuple[int, int] = (0, 0)
     n_candidates: int | None = None  # person-sized components in the last frame (None: not reported)
     quality: Quality | None = None  # the agent's latest quality figures (sent every few frames)
+    index_offset: int = 0  # added to this run's frame indices: non-zero once a restart was realigned
+    last_capture_ns: int = 0
+    period_ns: float | None = None  # capture time per frame index (moving average), to realign others
+
+    def observe(self, msg: SilhouetteMessage, receive_ns: int) -> None:
+        """Count one message of the camera's current run (``msg.frame_index`` the rig's)."""
+        step = msg.frame_index - self.last_index
+        if self.frames and step > 0 and self.last_capture_ns and msg.epoch_ns == self.epoch_ns:
+            period = (msg.capture_ns - self.last_capture_ns) / step
+            if period > 0:
+                old = self.period_ns
+                self.period_ns = period if old is None else old + 0.1 * (period - old)
+        self.frames += 1
+        self.last_index, self.last_seen_ns, self.last_capture_ns = msg.frame_index, receive_ns, msg.capture_ns
+        self.epoch_ns, self.sync, self.image_size = msg.epoch_ns, msg.sync, msg.image_size
+        self.report(msg)
 
     def report(self, msg: SilhouetteMessage) -> None:
         """Keep what the agent reports about its segmentation (older agents report nothing)."""
@@ -241,10 +272,12 @@ class CameraState:
         if msg.quality is not None:
             self.quality = msg.quality
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, *, age_s: float | None, stale: bool, in_windows: bool) -> dict[str, Any]:
         """The camera's entry in the rig summary (``schemas.CameraOut``)."""
         out = dataclasses.asdict(self)
+        del out["last_capture_ns"], out["period_ns"]
         out["image_size"] = list(self.image_size)
+        out.update(last_seen_s_ago=age_s, stale=stale, in_windows=in_windows)
         return out
 
 
@@ -284,6 +317,53 @@ class RigState:
     feedback_lag_s: float | None = None  # last frame's capture to its window's priors published (EMA)
     publisher: Any = None
     feedback: dict[str, Any] = field(default_factory=dict)  # camera -> feedback publisher
+    heard: dict[str, float] = field(default_factory=dict)  # camera -> monotonic time of its last frame
+    rig_acc: Any = None  # estimator.rig.RigAccumulator: postures of recent windows (the live rig)
+    calibration: dict | None = None  # the live rig's latest calibration (GET /v1/rigs/{rig}/calibration)
+    moves_seen: int = 0  # camera moves detected so far: a new one restarts the live rig
+    rig_generation: int = 0  # raised when the live rig restarts (postures measured before it are dropped)
+    index_ahead: int = 0  # frames dropped: frame_index too far ahead of the rig
+    realigned: int = 0  # restarted index-synchronised cameras re-based onto the rig's indices
+    pending_ahead: dict[str, tuple[int, int]] = field(default_factory=dict)  # camera -> (index, run)
+
+    def silent_for(self, now: float) -> float:
+        """Seconds since any camera of the rig was heard from."""
+        return now - max(self.heard.values(), default=now)
+
+    def age(self, camera: str, now: float, timeout: float) -> tuple[float | None, bool]:
+        """Seconds since ``camera``'s last frame (None if never heard) and whether it is stale
+        (silent beyond ``timeout``: no longer waited for, its viewpoint no longer current)."""
+        heard = self.heard.get(camera)
+        if heard is None:
+            return None, True
+        age = max(0.0, now - heard)
+        return round(age, 3), age > timeout
+
+    def realign(self, msg: SilhouetteMessage, now: float, timeout: float) -> int | None:
+        """The offset that puts a restarted index-synchronised camera's frame indices onto the
+        rig's: the rig's index at ``msg.capture_ns``, from the newest frame of the other
+        index-synchronised cameras heard within ``timeout`` and their frame period (without a
+        period yet: their newest index); None when no other camera is live."""
+        others = [c for name, c in self.cameras.items()
+                  if name != msg.camera and c.sync == "index" and c.frames
+                  and now - self.heard.get(name, -np.inf) <= timeout]
+        if not others:
+            return None
+        ref = max(others, key=lambda c: c.last_index)
+        index = ref.last_index
+        periods = [c.period_ns for c in others if c.period_ns]
+        if periods and ref.last_capture_ns:
+            index += int(round((msg.capture_ns - ref.last_capture_ns) / float(np.median(periods))))
+        return index - msg.frame_index
+
+    def reference_index(self, msg: SilhouetteMessage, now: float, timeout: float) -> int | None:
+        """The frame index ``msg`` is judged against: the newest of the rig's index-synchronised
+        cameras heard within ``timeout`` (time-synchronised: the camera's own), None if none."""
+        own = msg.sync != "index"
+        refs = [c.last_index for name, c in self.cameras.items()
+                if c.frames and now - self.heard.get(name, -np.inf) <= timeout
+                and (name == msg.camera if own else c.sync == "index")]
+        return max(refs, default=None)
 
 
 class LiveService:
@@ -291,14 +371,18 @@ class LiveService:
 
     def __init__(self, session: zenoh.Session, pool: concurrent.futures.Executor, settings: Settings,
                  metrics: Metrics, rerun=None,
-                 feedback_pool: concurrent.futures.Executor | None = None) -> None:
+                 feedback_pool: concurrent.futures.Executor | None = None,
+                 rig_pool: concurrent.futures.Executor | None = None) -> None:
         self.session, self.pool, self.settings = session, pool, settings
         self.metrics, self.rerun = metrics, rerun
         self.feedback_pool = feedback_pool if settings.feedback else None
+        self.rig_pool = rig_pool if settings.live_rig else None
         self._lock = threading.Lock()
         self._rigs: dict[str, RigState] = {}
         self._queue: queue.Queue[Window] = queue.Queue(maxsize=settings.queue_limit)
         self._stop = threading.Event()
+        self._expired_at = time.monotonic()
+        self._retired: list = []  # publishers of forgotten rigs and cameras, undeclared by _tick
         self._threads = [threading.Thread(target=self._consume, name=f"live-estimate-{i}", daemon=True)
                          for i in range(settings.live_workers)]
         self._threads.append(threading.Thread(target=self._tick, name="live-tick", daemon=True))
@@ -311,9 +395,14 @@ class LiveService:
         if self.feedback_pool is not None:
             self._threads.append(threading.Thread(target=self._feedback_loop, name="live-feedback",
                                                   daemon=True))
+        self._rig_todo: dict[str, tuple] = {}  # newest window per rig whose postures are to be measured
+        if self.rig_pool is not None:
+            self._threads.append(threading.Thread(target=self._rig_loop, name="live-rig", daemon=True))
         for t in self._threads:
             t.start()
-        self.receiver = SilhouetteReceiver(session, on_message=self._on_message)
+        self.receiver = SilhouetteReceiver(session, on_message=self._on_message,
+                                           max_clock_ahead_s=settings.max_clock_ahead_s,
+                                           epoch_silence_s=settings.camera_timeout_s)
         metrics.watch_receiver(self.receiver.stats)
 
     # -- ingest (Zenoh callback thread) ---------------------------------------------------
@@ -330,22 +419,113 @@ class LiveService:
                                               recent=collections.deque(maxlen=s.history))
         return rig
 
+    # -- admission: caps, expiry, plausible frame indices -----------------------------------
+    def _admit(self, msg: SilhouetteMessage, now: float) -> RigState | None:
+        """The message's rig, made if need be; None if a cap refuses it (counted)."""
+        s = self.settings
+        rig = self._rigs.get(msg.rig)
+        if rig is None:
+            if len(self._rigs) >= s.max_rigs and not self._make_room(now):
+                self.metrics.live_refused.labels("rig_limit").inc()
+                return None
+            rig = self._rig(msg.rig)
+        if msg.camera not in rig.cameras and len(rig.cameras) >= s.max_cameras:
+            silent = [c for c in rig.cameras if now - rig.heard.get(c, -np.inf) > s.camera_timeout_s]
+            if not silent:
+                self.metrics.live_refused.labels("camera_limit").inc()
+                return None
+            self._forget_camera(rig, min(silent, key=lambda c: rig.heard.get(c, -np.inf)))
+        return rig
+
+    def _make_room(self, now: float) -> bool:
+        """Forget the rig silent longest among those silent beyond ``camera_timeout_s``,
+        rigs that never had a window estimated first; False if every rig is live."""
+        silent = [r for r in self._rigs.values() if r.silent_for(now) > self.settings.camera_timeout_s]
+        if not silent:
+            return False
+        self._forget_rig(min(silent, key=lambda r: (r.estimated > 0, -r.silent_for(now))))
+        return True
+
+    def _forget_rig(self, rig: RigState) -> None:
+        del self._rigs[rig.name]
+        self._feedback_todo.pop(rig.name, None)
+        self._retired += [rig.publisher, *rig.feedback.values()]
+        self.metrics.forget_rig(rig.name, list(rig.cameras))
+        log.info("rig %s forgotten (silent %.0f s)", rig.name, rig.silent_for(time.monotonic()))
+
+    def _forget_camera(self, rig: RigState, cam: str) -> None:
+        for table in (rig.cameras, rig.heard, rig.tracks, rig.pending_ahead, rig.assembler.last_seen,
+                      rig.assembler.lag):
+            table.pop(cam, None)
+        self._retired.append(rig.feedback.pop(cam, None))
+        self.metrics.forget_camera(rig.name, cam)
+
+    def _expire(self, now: float) -> None:
+        """Forget rigs, and cameras of a rig, silent for ``rig_expiry_s`` (under the lock)."""
+        limit = self.settings.rig_expiry_s
+        for rig in list(self._rigs.values()):
+            if rig.silent_for(now) > limit:
+                self._forget_rig(rig)
+                continue
+            for cam in [c for c, t in rig.heard.items() if now - t > limit]:
+                self._forget_camera(rig, cam)
+
+    def _too_far_ahead(self, rig: RigState, msg: SilhouetteMessage, now: float) -> bool:
+        """Whether ``msg`` is further than ``max_index_ahead`` ahead of its rig (drop it).
+
+        One forged index far in the future would otherwise close a frame set
+        there and make every later frame of the rig late. A rig that really
+        jumped (a source that skipped) is followed once ``_REBASE_AFTER``
+        consecutive frames of a camera agree with each other.
+        """
+        limit = self.settings.max_index_ahead
+        ref = rig.reference_index(msg, now, self.settings.camera_timeout_s)
+        if ref is None or msg.frame_index <= ref + limit:
+            rig.pending_ahead.pop(msg.camera, None)
+            return False
+        last, run = rig.pending_ahead.get(msg.camera, (None, 0))
+        run = run + 1 if last is not None and 0 < msg.frame_index - last <= limit else 1
+        if run >= _REBASE_AFTER:
+            rig.pending_ahead.pop(msg.camera, None)
+            return False
+        rig.pending_ahead[msg.camera] = (msg.frame_index, run)
+        rig.index_ahead += 1
+        return True
+
     def _on_message(self, item: Received) -> None:
         msg = item.message
         now = time.monotonic()
         with self._lock:
-            rig = self._rig(msg.rig)
+            rig = self._admit(msg, now)
+            if rig is None:
+                return
             cam = rig.cameras.get(msg.camera)
-            if item.new_epoch and cam is not None:  # an agent restarted: frame indices start over
+            restarted = cam is not None and msg.epoch_ns != cam.epoch_ns  # indices start over
+            offset = cam.index_offset if cam is not None else 0
+            if restarted:  # None: start the rig's assembly over (time-synchronised, or alone)
+                offset = rig.realign(msg, now, self.settings.camera_timeout_s) if msg.sync == "index" else None
+                if offset is not None and msg.frame_index + offset < 0:  # a clock far behind the rig's
+                    offset = None
+            if offset:
+                msg = dataclasses.replace(msg, frame_index=msg.frame_index + offset)
+            if self._too_far_ahead(rig, msg, now):
+                self.metrics.frames_dropped.labels(rig.name, "index_ahead").inc()
+                return
+            if restarted:
                 rig.restarts += 1
-                rig.assembler = self._assembler()
-                rig.buffer.clear()
+                cam.index_offset = offset or 0
+                if offset is None:  # no other camera live: the rig's assembly starts over
+                    rig.assembler = self._assembler()
+                    rig.buffer.clear()
+                else:  # joined onto the rig's frames; its lag is learned anew
+                    rig.realigned += 1
+                    rig.assembler.lag.pop(msg.camera, None)
+                    log.info("%s/%s restarted at frame %d: re-based onto the rig's frame %d",
+                             rig.name, msg.camera, msg.frame_index - offset, msg.frame_index)
             if cam is None:
                 cam = rig.cameras[msg.camera] = CameraState()
-            cam.frames += 1
-            cam.last_index, cam.last_seen_ns = msg.frame_index, item.receive_ns
-            cam.epoch_ns, cam.sync, cam.image_size = msg.epoch_ns, msg.sync, msg.image_size
-            cam.report(msg)
+            rig.heard[msg.camera] = now
+            cam.observe(msg, item.receive_ns)
             before = (rig.assembler.late, rig.assembler.duplicate, rig.assembler.missing)
             closed = rig.assembler.add(msg, item.receive_ns, now)
             self._count_drops(rig, before)
@@ -374,17 +554,23 @@ class LiveService:
         return out
 
     def _tick(self) -> None:
-        """Close frame sets whose missing cameras did not come in time."""
+        """Close frame sets whose missing cameras did not come in time; forget silent rigs."""
         while not self._stop.wait(0.01):
             now = time.monotonic()
             windows = []
             with self._lock:
+                if now - self._expired_at > _EXPIRE_EVERY_S:
+                    self._expired_at = now
+                    self._expire(now)
+                retired, self._retired = self._retired, []
                 for rig in self._rigs.values():
                     before = (rig.assembler.late, rig.assembler.duplicate, rig.assembler.missing)
                     closed = rig.assembler.poll(now)
                     if closed:
                         self._count_drops(rig, before)
                         windows += self._windows(rig, closed)
+            for pub in retired:
+                _undeclare(pub)
             for w in windows:
                 self._enqueue(w)
 
@@ -403,7 +589,9 @@ class LiveService:
     def _count(self, rig: str, outcome: str) -> None:
         """One window of ``rig`` ended as ``outcome`` (skipped, failed, dropped): state and metric."""
         with self._lock:
-            state = self._rigs[rig]
+            state = self._rigs.get(rig)
+            if state is None:  # forgotten meanwhile: its metrics are gone too
+                return
             setattr(state, outcome, getattr(state, outcome) + 1)
         self.metrics.windows.labels(rig, outcome).inc()
 
@@ -443,11 +631,12 @@ class LiveService:
         bundle_from = None
         if self.rerun is not None:
             with self._lock:
-                last = self._rigs[w.rig].last_logged_index
+                rig = self._rigs.get(w.rig)
+                last = -1 if rig is None else rig.last_logged_index
             bundle_from = sum(1 for i in w.indices if i <= last)
         feedback = self.feedback_pool is not None
         future = self.pool.submit(estimate_window, tracks, w.indices, sizes, bundle_from=bundle_from,
-                                  keep_estimate=feedback)
+                                  keep_estimate=feedback or self.rig_pool is not None)
         try:
             result, bundle, seconds, est = future.result(timeout=60)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
@@ -455,7 +644,9 @@ class LiveService:
             self._count(w.rig, "skipped")
             return
         with self._lock:
-            rig = self._rigs[w.rig]
+            rig = self._rigs.get(w.rig)
+            if rig is None:  # forgotten while its window was estimated
+                return
             smoothed = {}
             for cam, c in result["cameras"].items():
                 track = rig.tracks.get(cam)
@@ -498,22 +689,81 @@ class LiveService:
                 if w.rig in self._feedback_todo:
                     self.metrics.feedback_superseded.labels(w.rig).inc()
                 self._feedback_todo[w.rig] = (w, est, tracks, sizes)
-                self._feedback_ready.notify()
+                self._feedback_ready.notify_all()  # the rig loop waits on it too
+        if self.rig_pool is not None and est is not None:
+            moves = sum(len(sm.get("changes", [])) for sm in smoothed.values())
+            with self._lock:
+                if moves > rig.moves_seen:  # a camera moved: the rig is another one
+                    rig.moves_seen, rig.rig_acc, rig.calibration = moves, None, None
+                    rig.rig_generation += 1
+                self._rig_todo[w.rig] = (w, est)  # supersedes an older window not yet measured
+                self._feedback_ready.notify_all()
 
     def _feedback_loop(self) -> None:
         """Make and publish priors, newest window of each rig first; never blocks estimation."""
+        self._newest_first(self._feedback_todo, self._feedback, "feedback priors")
+
+    def _rig_loop(self) -> None:
+        """Measure postures of the newest window of each rig and recalibrate its rig now and then,
+        in the low-priority rig process; a window that comes while one is measured supersedes the
+        one waiting (the rig lags the viewpoints by a window or so, see ``calibration``)."""
+        self._newest_first(self._rig_todo, self._update_rig, "live rig")
+
+    def _newest_first(self, todo: dict[str, tuple], handle, what: str) -> None:
+        """Until close(): take a rig's waiting job from ``todo`` (rig -> arguments, newest only) and
+        ``handle(*arguments)`` it; a failure is logged and loses that window's work only."""
         while True:
             with self._lock:
-                while not self._feedback_todo and not self._stop.is_set():
+                while not todo and not self._stop.is_set():
                     self._feedback_ready.wait(timeout=0.1)
                 if self._stop.is_set():
                     return
-                rig = next(iter(self._feedback_todo))
-                job = self._feedback_todo.pop(rig)
+                rig = next(iter(todo))
+                job = todo.pop(rig)
             try:
-                self._feedback(*job)
-            except Exception:  # keep the loop alive; this window's priors are lost
-                log.exception("feedback priors for %s failed", rig)
+                handle(*job)
+            except Exception:  # keep the loop alive
+                log.exception("%s for %s failed", what, rig)
+
+    def _result(self, future: concurrent.futures.Future, timeout_s: float):
+        """The future's result, waited for in slices so that close() need not wait for it;
+        None (and the call cancelled) on close or after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                return future.result(timeout=0.1)
+            except concurrent.futures.TimeoutError:
+                if self._stop.is_set() or time.monotonic() > deadline:
+                    future.cancel()
+                    return None
+
+    def _update_rig(self, w: Window, est) -> None:
+        from estimator.rig import RigAccumulator, RigConfig
+
+        from .worker import update_rig
+
+        s = self.settings
+        with self._lock:
+            rig = self._rigs.get(w.rig)
+            if rig is None:
+                return
+            acc = rig.rig_acc or RigAccumulator(RigConfig(height_m=s.live_rig_height_m),
+                                                frames_per_window=s.live_rig_frames)
+            calibrate = (acc.windows + 1) % s.live_rig_every == 0 or rig.calibration is None
+            generation = rig.rig_generation
+        t0 = time.perf_counter()
+        done = self._result(self.rig_pool.submit(update_rig, acc, est, w.indices[0], calibrate), 120)
+        if done is None:
+            return
+        acc, cal = done
+        self.metrics.rig_seconds.observe(time.perf_counter() - t0)
+        with self._lock:
+            if self._rigs.get(w.rig) is not rig or rig.rig_generation != generation:
+                return  # forgotten, or a camera moved while this was measured
+            rig.rig_acc = acc
+            if cal is not None:
+                rig.calibration = {"rig": w.rig, "window_seq": w.seq, "last_index": w.indices[-1],
+                                   "updated_ns": time.time_ns(), **cal}
 
     def _feedback(self, w: Window, est, tracks: dict[str, CameraTrack],
                   sizes: dict[str, tuple[int, int]]) -> None:
@@ -525,27 +775,24 @@ class LiveService:
         """
         t0 = time.perf_counter()
         with self._lock:
-            lag_s = self._rigs[w.rig].feedback_lag_s
+            rig = self._rigs.get(w.rig)
+            if rig is None:
+                return
+            lag_s = rig.feedback_lag_s
         # Frames captured before these priors can arrive need none: skip them.
         period_s = _frame_period_s(w.frames)
         skip = 0 if period_s is None or lag_s is None else int(lag_s / period_s)
-        future = self.feedback_pool.submit(predict_feedback, est, tracks, w.indices, sizes,
-                                           self.settings.feedback_ahead, skip)
-        deadline = time.monotonic() + 60
-        while True:  # in slices, so that close() need not wait for it
-            try:
-                priors = future.result(timeout=0.1)
-                break
-            except concurrent.futures.TimeoutError:
-                if self._stop.is_set() or time.monotonic() > deadline:
-                    future.cancel()
-                    return
+        priors = self._result(self.feedback_pool.submit(predict_feedback, est, tracks, w.indices, sizes,
+                                                        self.settings.feedback_ahead, skip), 60)
+        if priors is None:
+            return
         # The run whose frame indices the window holds (not a run that started since).
         epochs = {cam: m.epoch_ns for fs in w.frames for cam, m in fs.parts.items()}
         with self._lock:
-            if self._stop.is_set():
+            if self._stop.is_set() or self._rigs.get(w.rig) is not rig:
                 return
-            rig = self._rigs[w.rig]
+            # A realigned camera's priors name its own frame indices, not the rig's.
+            offsets = {cam: c.index_offset for cam, c in rig.cameras.items() if c.epoch_ns == epochs.get(cam)}
             publishers = {}
             for cam in priors:
                 pub = rig.feedback.get(cam)
@@ -557,7 +804,7 @@ class LiveService:
         sent = 0
         for cam, items in priors.items():
             for index, box, mask in items:
-                msg = FeedbackMessage(rig=w.rig, camera=cam, frame_index=index, box=Box(*box),
+                msg = FeedbackMessage(rig=w.rig, camera=cam, frame_index=index - offsets.get(cam, 0), box=Box(*box),
                                       image_size=sizes[cam], mask=mask, issued_ns=time.time_ns(),
                                       epoch_ns=epochs.get(cam, 0))
                 publishers[cam].put(encode(msg))
@@ -601,15 +848,21 @@ class LiveService:
                 return None
             a = rig.assembler
             latest = rig.recent[-1] if rig.recent else None
+            now, timeout = time.monotonic(), self.settings.camera_timeout_s
+            current = set(latest["window"]["cameras"]) if latest is not None else set()
+            ages = {c: rig.age(c, now, timeout) for c in set(rig.cameras) | set(rig.tracks)}
             return {
                 "rig": rig.name,
-                "cameras": {c: s.to_dict() for c, s in sorted(rig.cameras.items())},
+                "cameras": {c: s.to_dict(age_s=ages[c][0], stale=ages[c][1], in_windows=c in current)
+                            for c, s in sorted(rig.cameras.items())},
                 "windows": {"seq": rig.window_seq, "estimated": rig.estimated, "skipped": rig.skipped,
                             "failed": rig.failed, "dropped": rig.dropped},
                 "feedback": {"enabled": self.feedback_pool is not None, "priors_sent": rig.priors_sent},
                 "frames": {"late": a.late, "duplicate": a.duplicate, "missing": a.missing,
-                           "restarts": rig.restarts, "gaps": rig.buffer.resets},
-                "viewpoints": {c: t.state() for c, t in sorted(rig.tracks.items())},
+                           "restarts": rig.restarts, "realigned": rig.realigned, "gaps": rig.buffer.resets,
+                           "index_ahead": rig.index_ahead},
+                "viewpoints": {c: {**t.state(), "last_seen_s_ago": ages[c][0], "stale": ages[c][1]}
+                               for c, t in sorted(rig.tracks.items())},
                 "latest_seq": None if latest is None else latest["window"]["seq"],
             }
 
@@ -624,6 +877,15 @@ class LiveService:
             if rig is None:
                 return None
             return [r for r in rig.recent if r["window"]["seq"] > seq][:limit]
+
+    def calibration(self, name: str) -> dict | None:
+        """The live rig's latest calibration with how many windows it lags the estimates; None
+        before the first (or since a camera moved)."""
+        with self._lock:
+            rig = self._rigs.get(name)
+            if rig is None or rig.calibration is None:
+                return None
+            return {**rig.calibration, "lag_windows": max(0, rig.window_seq - rig.calibration["window_seq"])}
 
     def has_rig(self, name: str) -> bool:
         with self._lock:
@@ -640,8 +902,14 @@ class LiveService:
         with self._lock:
             for rig in self._rigs.values():
                 for pub in [rig.publisher, *rig.feedback.values()]:
-                    if pub is not None:
-                        try:
-                            pub.undeclare()
-                        except Exception:
-                            pass
+                    _undeclare(pub)
+
+
+def _undeclare(publisher) -> None:
+    """Undeclare a Zenoh publisher (None: nothing), whatever state the session is in."""
+    if publisher is None:
+        return
+    try:
+        publisher.undeclare()
+    except Exception:  # the session may already be closed
+        pass

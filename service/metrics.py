@@ -2,7 +2,9 @@
 
 Frames in, drops by reason, windows by outcome, latency histograms (window
 end-to-end, estimation, jobs), jobs by state (read from the store at scrape
-time) and the receiver's reject counters.
+time) and the receiver's reject counters. Every label value is bounded: a
+rig's series go when the rig is forgotten (:meth:`Metrics.forget_rig`), and
+reasons are fixed words.
 """
 
 from __future__ import annotations
@@ -13,7 +15,12 @@ from prometheus_client import CollectorRegistry, Counter, Histogram, generate_la
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-__all__ = ["Metrics"]
+from capture.receiver import REJECT_CODES
+
+__all__ = ["DROP_REASONS", "Metrics", "WINDOW_OUTCOMES"]
+
+DROP_REASONS = ("late", "duplicate", "index_ahead")  # posecal_frames_dropped_total{reason}
+WINDOW_OUTCOMES = ("estimated", "skipped", "failed", "dropped")
 
 _LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0, 5.0)
 _JOB_BUCKETS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 30.0, 60.0, 300.0)
@@ -37,8 +44,13 @@ class Metrics:
         self.frames_in = Counter("posecal_frames_in", "silhouette messages accepted",
                                  ["rig", "camera"], registry=r)
         self.frames_dropped = Counter("posecal_frames_dropped", "silhouette messages dropped "
-                                      "(late, duplicate, stale epoch, queue overflow)",
-                                      ["rig", "reason"], registry=r)
+                                      "(late, duplicate, index_ahead: further ahead of the rig "
+                                      "than max_index_ahead)", ["rig", "reason"], registry=r)
+        self.live_refused = Counter("posecal_live_refused", "silhouettes refused before touching "
+                                    "any rig: a new rig beyond max_rigs (rig_limit) or a new camera "
+                                    "beyond max_cameras (camera_limit)", ["reason"], registry=r)
+        self.rigs_forgotten = Counter("posecal_rigs_forgotten", "rigs forgotten: silent for "
+                                      "rig_expiry_s, or replaced by a new rig at max_rigs", registry=r)
         self.frames_missing = Counter("posecal_frames_missing", "camera frames absent when a "
                                       "synchronized frame set was closed", ["rig"], registry=r)
         self.windows = Counter("posecal_windows", "sliding windows by outcome "
@@ -55,6 +67,9 @@ class Metrics:
                                            ["rig"], registry=r)
         self.feedback_seconds = Histogram("posecal_feedback_seconds", "rendering and publishing "
                                           "one window's priors", registry=r)
+        self.rig_seconds = Histogram("posecal_live_rig_seconds", "measuring one live window's postures "
+                                     "(and recalibrating the rig, every live_rig_every windows)",
+                                     buckets=(0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32), registry=r)
         self.rerun_skipped = Counter("posecal_rerun_windows_skipped", "live windows not drawn in "
                                      "Rerun because drawing fell behind (estimates unaffected)",
                                      ["rig"], registry=r)
@@ -76,22 +91,48 @@ class Metrics:
         self.registry.register(_Callback(families))
 
     def watch_receiver(self, stats: Callable[[], object]) -> None:
-        """Export the Zenoh receiver's counters (rejected, lost, restarts, overflow)."""
+        """Export the Zenoh receiver's counters (rejected, by reason too; lost, restarts, overflow)."""
         def families():
             s = stats()
             if s is None:
                 return
+            c = CounterMetricFamily("posecal_receiver_rejected_by_reason", "rejected silhouette "
+                                    "messages by reason (the wire's: envelope, header, field, image, "
+                                    "key; the receiver's: epoch_future, capture_future; internal)",
+                                    labels=["reason"])
+            for code in REJECT_CODES:
+                c.add_metric([code], s.codes.get(code, 0))
+            yield c
             for name, doc, value in (
                 ("posecal_receiver_rejected", "malformed silhouette messages", s.rejected),
                 ("posecal_receiver_lost", "sequence gaps within an agent epoch", s.lost),
                 ("posecal_receiver_restarts", "agent restarts (new epochs)", s.restarts),
                 ("posecal_receiver_overflow", "messages dropped by a full queue", s.overflow),
                 ("posecal_receiver_stale", "messages from an older epoch", s.stale),
+                ("posecal_receiver_readopted", "older epochs taken back after the newer one "
+                 "fell silent", s.readopted),
             ):
                 c = CounterMetricFamily(name, doc)
                 c.add_metric([], value)
                 yield c
         self.registry.register(_Callback(families))
+
+    def forget_rig(self, rig: str, cameras: list[str]) -> None:
+        """Remove every series labelled with ``rig`` (the rig was forgotten)."""
+        for cam in cameras:
+            self.frames_in.remove(rig, cam)
+        for reason in DROP_REASONS:
+            self.frames_dropped.remove(rig, reason)
+        for outcome in WINDOW_OUTCOMES:
+            self.windows.remove(rig, outcome)
+        for counter in (self.frames_missing, self.feedback_priors, self.feedback_superseded,
+                        self.rerun_skipped):
+            counter.remove(rig)
+        self.rigs_forgotten.inc()
+
+    def forget_camera(self, rig: str, camera: str) -> None:
+        """Remove the series of one forgotten camera of a rig."""
+        self.frames_in.remove(rig, camera)
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

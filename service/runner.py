@@ -3,7 +3,9 @@
 An asyncio task of the lifespan. It polls the store (so jobs queued before a
 restart, or by another API instance on the same database, are picked up) and
 is woken at once when a job is submitted. At most ``job_workers`` jobs run at a
-time; each waits on a pool future, so the event loop stays free.
+time; each waits on a pool future, so the event loop stays free. A job runs
+under the claim token its claim wrote (:meth:`JobStore.claim_next`): what a
+run writes after the job was re-queued or cancelled is refused.
 """
 
 from __future__ import annotations
@@ -45,7 +47,8 @@ class JobRunner:
                 job = await asyncio.to_thread(self.store.claim_next)
                 if job is None:
                     break
-                task = asyncio.create_task(self._run_one(job.id, job.kind, job.input_dir, job.options))
+                task = asyncio.create_task(self._run_one(job.id, job.kind, job.input_dir, job.options,
+                                                         job.claim))
                 self._running.add(task)
                 task.add_done_callback(self._running.discard)
             self._wake.clear()
@@ -54,10 +57,10 @@ class JobRunner:
             except TimeoutError:
                 pass
 
-    async def _run_one(self, job_id: str, kind: str, input_dir: str, options: dict) -> None:
+    async def _run_one(self, job_id: str, kind: str, input_dir: str, options: dict, claim: str | None) -> None:
         t0 = time.perf_counter()
         call = functools.partial(run_job, job_id, self.store.url, kind, input_dir, options,
-                                 want_bundle=self.rerun is not None)
+                                 want_bundle=self.rerun is not None, claim=claim)
         try:
             # Submitted from a thread: after a worker died, submit starts a new pool.
             future = await asyncio.to_thread(self.pool.submit, call)
@@ -69,7 +72,8 @@ class JobRunner:
             raise  # shutdown: the row stays "running" and is re-queued on the next start
         except Exception as exc:
             log.exception("job %s crashed", job_id)
-            await asyncio.to_thread(self.store.fail, job_id, f"internal error: {type(exc).__name__}: {exc}")
+            await asyncio.to_thread(self.store.fail, job_id, f"internal error: {type(exc).__name__}: {exc}",
+                                    claim=claim)
         row = await asyncio.to_thread(self.store.get, job_id)
         if row is not None:
             self.metrics.jobs_finished.labels(row.state).inc()

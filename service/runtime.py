@@ -2,8 +2,10 @@
 
 :meth:`Runtime.start` builds everything from one :class:`~service.settings.Settings`
 and :meth:`Runtime.stop` closes it in reverse order. Jobs left running by the
-previous process are re-queued at start; a job running at stop is interrupted
-(its worker is terminated) and re-queued by the next start.
+previous process are re-queued at start (up to ``max_attempts`` runs); a job
+running at stop is interrupted (its worker is terminated) and re-queued by the
+next start. Worker processes die with the service, even when it is killed
+(:func:`service.worker.make_pool`). The store's schema is migrated at start.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from .runner import JobRunner
 from .settings import Settings
 from .worker import WorkerPool, make_pool
 
-__all__ = ["Runtime", "resolve_model_path", "shutdown_pool"]
+__all__ = ["Runtime", "make_storage", "resolve_model_path", "shutdown_pool"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +52,14 @@ def resolve_model_path(settings: Settings) -> Path:
     return path
 
 
+def make_storage(settings: Settings) -> None:
+    """Create the upload folder and, for a SQLite database, its folder (by default both
+    under :func:`service.settings.data_home`)."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    if "://" not in settings.db:
+        Path(settings.db).expanduser().parent.mkdir(parents=True, exist_ok=True)
+
+
 def shutdown_pool(pool: WorkerPool | None) -> None:
     """Stop a pool now: queued calls are cancelled, running workers terminated."""
     if pool is not None:
@@ -66,18 +76,21 @@ class Runtime:
     live_pool: WorkerPool | None
     runner: JobRunner
     feedback_pool: WorkerPool | None = None
+    rig_pool: WorkerPool | None = None
     session: object | None = None
     live: object | None = None
     rerun: object | None = None
+    api_tokens: tuple[bytes, ...] = ()  # accepted REST bearer tokens (empty: open)
 
     @classmethod
     async def start(cls, settings: Settings) -> "Runtime":
+        api_tokens = settings.api_tokens()  # a bad token file fails the start, with its reason
         model_path = await asyncio.to_thread(resolve_model_path, settings)
-        store = JobStore(settings.db_url)
-        requeued = await asyncio.to_thread(store.requeue_interrupted)
+        make_storage(settings)
+        store = await asyncio.to_thread(JobStore, settings.db_url)  # migrates the schema
+        requeued = await asyncio.to_thread(store.requeue_interrupted, max_attempts=settings.max_attempts)
         if requeued:
             log.info("re-queued %d interrupted job(s): %s", len(requeued), ", ".join(requeued))
-        settings.data_dir.mkdir(parents=True, exist_ok=True)
         metrics = Metrics()
         metrics.watch_jobs(store.counts)
         rerun = None
@@ -89,15 +102,17 @@ class Runtime:
                 log.info("Rerun: connect a viewer with `rerun %s`", rerun.uri)
         # Feedback priors render in a process of their own, so that they never
         # hold up the next window's estimate.
-        job_pool, live_pool, feedback_pool = await asyncio.gather(
+        # The live rig's postures run at low priority: they may lag, the viewpoints may not.
+        job_pool, live_pool, feedback_pool, rig_pool = await asyncio.gather(
             asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
             asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none(),
             asyncio.to_thread(make_pool, 1, None, renderer=True)  # rendering needs no model
-            if settings.live and settings.feedback else _none())
+            if settings.live and settings.feedback else _none(),
+            asyncio.to_thread(make_pool, 1, None, nice=10) if settings.live and settings.live_rig else _none())
         runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
                            rerun=rerun if settings.rerun_jobs else None)
         rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner,
-                 feedback_pool=feedback_pool, rerun=rerun)
+                 feedback_pool=feedback_pool, rig_pool=rig_pool, rerun=rerun, api_tokens=api_tokens)
         if settings.live:
             import zenoh
 
@@ -107,10 +122,10 @@ class Runtime:
 
             conf = build_config(mode=settings.zenoh_mode, connect=settings.zenoh_connect,
                                 listen=settings.zenoh_listen, config_file=settings.zenoh_config,
-                                multicast=settings.zenoh_multicast)
+                                multicast=settings.zenoh_multicast, access=settings.zenoh_access)
             rt.session = await asyncio.to_thread(zenoh.open, conf)
             rt.live = LiveService(rt.session, live_pool, settings, metrics, rerun=rerun,
-                                  feedback_pool=feedback_pool)
+                                  feedback_pool=feedback_pool, rig_pool=rig_pool)
         return rt
 
     async def stop(self) -> None:
@@ -122,6 +137,7 @@ class Runtime:
         await asyncio.to_thread(shutdown_pool, self.job_pool)
         await asyncio.to_thread(shutdown_pool, self.live_pool)
         await asyncio.to_thread(shutdown_pool, self.feedback_pool)
+        await asyncio.to_thread(shutdown_pool, self.rig_pool)
         if self.rerun is not None:
             await asyncio.to_thread(self.rerun.close)
         self.store.close()

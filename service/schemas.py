@@ -5,11 +5,12 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from .jobs import JobRow
 
-__all__ = ["Health", "JobList", "JobOut", "RigList", "RigOut", "job_out"]
+__all__ = ["ErrorOut", "EstimatesOut", "Health", "JobList", "JobOut", "LiveCalibration", "LiveEstimate", "Result", "RigList", "RigOut",
+           "error_responses", "job_out"]
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 
@@ -60,8 +61,15 @@ class CameraQuality(BaseModel):
 
 class CameraOut(BaseModel):
     frames: int
-    last_index: int
-    last_seen_ns: int
+    last_index: int = Field(description="the rig's frame index of the camera's last frame (the agent's "
+                            "own index plus index_offset)")
+    last_seen_ns: int = Field(description="when its last frame arrived (the service's clock, ns)")
+    last_seen_s_ago: float | None = Field(None, description="seconds since its last frame arrived")
+    stale: bool = Field(False, description="silent for longer than camera_timeout_s: no longer waited "
+                        "for, left out of new windows")
+    in_windows: bool = Field(False, description="the rig's latest estimated window includes it")
+    index_offset: int = Field(0, description="added to the agent's frame indices: non-zero after a "
+                              "restarted index-synchronised agent was re-based onto the rig's frames")
     epoch_ns: int
     sync: str
     image_size: list[int]
@@ -85,7 +93,11 @@ class FrameCounts(BaseModel):
     duplicate: int
     missing: int = Field(description="camera frames absent when a frame set closed")
     restarts: int = Field(description="agent restarts (new epochs)")
+    realigned: int = Field(0, description="restarts of index-synchronised agents whose frame indices were "
+                           "re-based onto the rig's (the others kept theirs: no window lost)")
     gaps: int = Field(description="frame index jumps that restarted the window")
+    index_ahead: int = Field(0, description="silhouettes dropped: frame_index too far ahead of the rig's "
+                             "(max_index_ahead), until a few in a row agree")
 
 
 class FeedbackCounts(BaseModel):
@@ -100,6 +112,9 @@ class SmoothedViewpoint(BaseModel):
     pending_outliers: int
     outliers: int
     changes: list[dict[str, Any]] = Field(description="detected camera moves: frame_index, from, to")
+    last_seen_s_ago: float | None = Field(None, description="seconds since the camera's last frame")
+    stale: bool = Field(False, description="the camera has been silent for longer than camera_timeout_s: "
+                        "this is its last viewpoint, not a current one")
 
 
 class RigOut(BaseModel):
@@ -124,3 +139,209 @@ class Health(BaseModel):
     rerun: str | None
     model: str
     jobs: dict[str, int]
+
+
+# ----------------------------------------------------------------------------- results (docs/FORMATS.md, Result)
+# These models publish the result's JSON Schema in OpenAPI (``responses=``); the routes return the
+# stored dict as it is (no validation per request). ``tests/test_schemas.py`` validates real results
+# against them with unknown keys forbidden, so a key the code writes and this file lacks fails there.
+
+Joint2D = list[float]
+Joint3D = list[float]
+
+
+class _Open(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+class MotionCue(_Open):
+    growth_per_frame: float = Field(description="relative change of the walker's image size per frame, > 0 approaching")
+    growth_se: float | None = Field(description="standard error of growth_per_frame")
+    growth_from: Literal["height", "head", "head+height"]
+    travel_heights_per_frame: float = Field(description="horizontal motion per frame in body heights, > 0 rightwards")
+
+
+class ResultCamera(_Open):
+    """A camera's viewpoint relative to the walker (docs/FORMATS.md, cameras)."""
+
+    azimuth_deg: float | None = Field(description="null when the camera saw no silhouette")
+    elevation_deg: float | None
+    spread_deg: float | None
+    covariance_deg2: list[list[float]] | None
+    flip: str = Field(description="how ahead/behind was settled: motion, majority or none")
+    flip_margin: float | None
+    n_samples: int
+    motion_cue: MotionCue | None
+    notes: list[str]
+    decoded_frames: int | None = Field(None, description="videos: frames that decoded")
+    header_frames: int | None = Field(None, description="videos: frames the header counts (0: none given)")
+
+
+class ResultFrame(_Open):
+    """One frame (docs/FORMATS.md, frames)."""
+
+    index: int
+    phase: float | None = Field(description="walking phase in cycles [0, 1), the HMM's Viterbi path")
+    seen_by: list[str] | None = Field(None, description="cameras with a silhouette in this frame")
+    predicted: bool | None = Field(None, description="no camera observed the phase here: the HMM's prediction")
+    phase_confidence: float | None = Field(None, description="posterior mass within one state of phase")
+    phase_posterior: list[float] | None = Field(None, description="posterior over the HMM's 20 states")
+    joints3d: list[Joint3D] | None = Field(description="the gait model at the phase, person frame, metres")
+    person_joints3d: list[Joint3D | None] | None = Field(
+        None, description="the person's posture from the self-calibrated rig, person frame, metres")
+    joints2d: dict[str, list[Joint2D]] = Field(description="camera -> 13 joints, full-frame pixels")
+    observed_phase: dict[str, float | None]
+    model_joints2d: dict[str, list[Joint2D]] | None = None
+    segment: int | None = None
+
+
+class Hmm(_Open):
+    log_prob: float | None
+    half_cycle_margin: float | None
+
+
+class RigCamera(_Open):
+    rotation: list[list[float]] | None = Field(description="R_c R_ref^T; null for a camera left out of the rig")
+    rotvec: list[float] | None = Field(description="the rotation as a rotation vector (radians)")
+    euler_xyz_deg: list[float] | None
+    scale: float | None
+    focal_px: float | None = None
+    centre_m: list[float] | None = None
+    euler_xyz_std_deg: list[float] | None = None
+    scale_std: float | None = None
+
+
+class RigResult(_Open):
+    """The calibrated rig (docs/FORMATS.md, rig)."""
+
+    reference: str
+    source: Literal["self-calibration", "viewpoints"]
+    cameras: dict[str, RigCamera]
+
+
+class BodySegment(_Open):
+    metres: float
+    relative: float
+
+
+class Body(_Open):
+    stature_m: float
+    segments: dict[str, BodySegment]
+
+
+class WindowViewpoint(_Open):
+    azimuth_deg: float | None
+    elevation_deg: float | None
+
+
+class SegmentOut(_Open):
+    first_index: int
+    last_index: int
+    windows: int
+    cameras: dict[str, ResultCamera] | None = None
+    hmm: Hmm | None = None
+    notes: list[str] | None = None
+    rig: RigResult | None = None
+    body: Body | None = None
+    error: str | None = None
+
+
+class WindowOut(_Open):
+    first_index: int
+    last_index: int
+    segment: int
+    cameras: dict[str, WindowViewpoint | None] | None = None
+    error: str | None = None
+
+
+class _ResultBase(_Open):
+    schema_version: int = Field(description="version of this layout (docs/FORMATS.md)")
+    units: dict[str, str]
+    coordinate_frames: dict[str, str]
+    joint_names: list[str]
+    cameras: dict[str, ResultCamera]
+    frames: list[ResultFrame]
+    hmm: Hmm
+    notes: list[str]
+
+
+class Result(_ResultBase):
+    """A batch result: ``posecal estimate`` and ``GET /v1/jobs/{id}/result`` (docs/FORMATS.md, Result)."""
+
+    rig: RigResult | None = None
+    body: Body | None = None
+    segments: list[SegmentOut] | None = None
+    windows: list[WindowOut] | None = None
+    sequence: dict[str, Any] | None = Field(None, description="posecal estimate: fps, image_size, frames")
+    fps: float | None = Field(None, description="jobs: the input's frame rate")
+    timing: dict[str, float] | None = None
+    truth_cameras: dict[str, WindowViewpoint] | None = None
+    refined: dict[str, Any] | None = None
+
+
+class LiveWindow(_Open):
+    seq: int
+    first_index: int
+    last_index: int
+    frames: int
+    cameras: list[str]
+
+
+class LiveEstimate(_ResultBase):
+    """A live window's result (docs/FORMATS.md, Live windows)."""
+
+    rig: str = Field(description="the rig's name (not the rig object of a batch result)")
+    window: LiveWindow
+    smoothed: dict[str, dict[str, Any]]
+    latency_ms: dict[str, float]
+    published_ns: int
+
+
+class LiveCalibration(BaseModel):
+    """A live rig's calibration (``GET /v1/rigs/{rig}/calibration``)."""
+
+    rig: str = Field(description="the rig's name")
+    source: Literal["self-calibration", "viewpoints"] = Field(
+        description="viewpoints: too few postures yet, the rig is the viewpoints' (notes say why)")
+    frames: int = Field(description="frames with measured postures it was calibrated on")
+    windows: int = Field(description="windows that gave postures since the start or the last camera move")
+    window_seq: int = Field(description="the window after which it was calibrated")
+    last_index: int = Field(description="that window's last frame index")
+    lag_windows: int = Field(description="windows estimated since (the rig lags the viewpoints by this)")
+    updated_ns: int
+    calibration: RigResult = Field(description="the rig, as a batch result's rig")
+    body: Body | None
+    notes: list[str]
+
+
+class EstimatesOut(BaseModel):
+    rig: str
+    since: int
+    estimates: list[LiveEstimate]
+    next_since: int
+
+
+class ErrorOut(BaseModel):
+    """Every error answer: FastAPI's ``{"detail": ...}``."""
+
+    detail: str | list[dict[str, Any]] = Field(description="the reason, in words (a list for 422)")
+
+
+_ERRORS = {
+    400: "bad form fields or an input that cannot be read",
+    401: "a bearer token is required (the service has api_token set) and was missing or wrong",
+    404: "no such job or rig, or nothing estimated yet",
+    409: "the job is not in a state that allows this",
+    413: "the upload exceeds a limit",
+    415: "an upload of a type that is not accepted",
+    422: "a parameter or an upload's content that fails validation",
+    507: "no space left to unpack the upload",
+}
+
+
+def error_responses(*codes: int, examples: dict[int, str] | None = None) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` for the error statuses a route answers, each with an example body."""
+    examples = examples or {}
+    return {code: {"model": ErrorOut, "description": _ERRORS[code],
+                   "content": {"application/json": {"example": {"detail": examples.get(code, _ERRORS[code])}}}}
+            for code in codes}

@@ -30,10 +30,16 @@ class BackgroundServer:
         self.settings = settings
         self.app: FastAPI = create_app()
         self.app.dependency_overrides[get_settings] = lambda: settings
-        self.host, self.port = host, port or free_port(host)
+        # The listening socket is bound here and handed to uvicorn: with no port given the OS picks
+        # one and nothing else (a Zenoh endpoint of the same test, say) can take it in between.
+        self._socket = socket.socket()
+        self._socket.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn's own
+        self._socket.bind((host, port or 0))
+        self.host, self.port = host, self._socket.getsockname()[1]
         self.server = uvicorn.Server(uvicorn.Config(self.app, host=self.host, port=self.port,
                                                     log_level=log_level, lifespan="on"))
-        self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self._socket]},
+                                       name="uvicorn", daemon=True)
         self.thread.start()
         deadline = time.monotonic() + start_timeout
         while not self.server.started:
@@ -55,6 +61,7 @@ class BackgroundServer:
     def stop(self) -> None:
         self.server.should_exit = True
         self.thread.join(timeout=60)
+        self._socket.close()
 
     def __enter__(self) -> "BackgroundServer":
         return self

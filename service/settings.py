@@ -7,15 +7,32 @@ with explicit settings (:func:`service.app.create_app`).
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["Settings", "get_settings", "parse_rerun_sink"]
+from capture.zconfig import ZenohAccess
+
+from .limits import UploadLimits
+
+__all__ = ["Settings", "data_home", "get_settings", "parse_rerun_sink"]
 
 DEFAULT_ZENOH_LISTEN = "tcp/127.0.0.1:7447"
+
+
+def data_home() -> Path:
+    """Where the service keeps its state unless told otherwise: ``$POSECAL_DATA``, else
+    ``$XDG_DATA_HOME/posecal``, else ``~/.local/share/posecal`` (XDG base directories:
+    a relative ``XDG_DATA_HOME`` is ignored). Never the working directory."""
+    own = os.environ.get("POSECAL_DATA")
+    if own:
+        return Path(own).expanduser()
+    xdg = os.environ.get("XDG_DATA_HOME", "")
+    base = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".local" / "share"
+    return base / "posecal"
 
 
 def parse_rerun_sink(spec: str | None) -> tuple[str, str | int] | None:
@@ -45,18 +62,33 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="POSECAL_", frozen=True)
 
-    # storage
-    db: str = Field("posecal.db", description="SQLite file path, or a SQLAlchemy URL "
-                    "(e.g. postgresql+psycopg://user@host/posecal)")
-    data_dir: Path = Field(Path("posecal-data"), description="uploaded job inputs live here")
+    # storage (default: under data_home(), never the working directory)
+    db: str = Field(default_factory=lambda: str(data_home() / "posecal.db"),
+                    description="SQLite file path, or a SQLAlchemy URL (e.g. "
+                    "postgresql+psycopg://user@host/posecal); default: <data home>/posecal.db")
+    data_dir: Path = Field(default_factory=lambda: data_home() / "jobs",
+                           description="uploaded job inputs live here; default: <data home>/jobs")
     # model
     model_path: Path | None = Field(None, description="appearance model (.npz); default: the "
                                     "cached default model, built on first use")
     cache_dir: Path | None = Field(None, description="model cache (default: $POSECAL_CACHE or ~/.cache/posecal)")
     # jobs
     job_workers: int = Field(1, ge=0, description="processes that run jobs (0 = jobs stay queued)")
+    max_attempts: int = Field(3, ge=1, description="runs of a job that a stop or crash may "
+                              "interrupt; a job interrupted this often fails instead of being re-queued")
     upload_limit_mb: float = Field(200.0, gt=0, description="largest accepted upload (413 above)")
-    max_frames: int = Field(5000, ge=1, description="most frames per camera in one job")
+    max_frames: int = Field(5000, ge=1, description="most frames per camera in one job (a PNG "
+                            "named 5000.png or above, a video whose header counts more: 413)")
+    unpacked_limit_mb: float = Field(800.0, gt=0, description="a zip's members summed, as declared "
+                                     "and as extracted (413 above)")
+    max_decoded_mb: float = Field(1024.0, gt=0, description="PNG pixels of an uploaded sequence "
+                                  "summed, read from their headers before decoding (413 above)")
+    max_image_side: int = Field(4096, ge=16, description="largest width or height of a frame: "
+                                "uploaded PNGs, videos and rig.json's image_size (413 above)")
+    max_image_pixels: int = Field(4096 * 4096, ge=256, description="largest width x height of "
+                                  "the same (413 above)")
+    max_cameras: int = Field(16, ge=1, description="cameras per upload, and per live rig (more "
+                             "are refused and counted)")
     # live
     live: bool = Field(True, description="subscribe to silhouettes and estimate windows")
     live_workers: int = Field(1, ge=1, description="processes that estimate live windows")
@@ -78,18 +110,47 @@ class Settings(BaseSettings):
     change_windows: int = Field(3, ge=1, description="... and this many consecutive agreeing "
                                 "outliers mean the camera moved or the walker turned (a batch "
                                 "job starts a new segment there)")
+    # live: what a message must be to be believed (docs/SERVICE.md, "Limits and refusals")
+    max_rigs: int = Field(32, ge=1, description="live rigs kept; a new one beyond this replaces "
+                          "the longest-silent rig that is silent, else it is refused and counted")
+    rig_expiry_s: float = Field(600.0, gt=0, description="a rig (or a camera) silent this long "
+                                "is forgotten, with its metrics")
+    max_clock_ahead_s: float = Field(30.0, gt=0, description="a silhouette whose epoch_ns or "
+                                     "capture_ns is further ahead of the receiver's clock is "
+                                     "dropped and counted")
+    max_index_ahead: int = Field(150, ge=1, description="a silhouette whose frame_index is further "
+                                 "ahead of its rig's (sync=index) or its camera's latest is "
+                                 "dropped and counted, until a few in a row agree")
     # feedback (§7.1)
     feedback: bool = Field(True, description="publish silhouette priors to the segmenters "
                            "after each live window (in a process of its own)")
     feedback_ahead: int = Field(20, ge=1, description="frames predicted per window, after "
                                 "those captured while the priors are made: window_hop plus "
                                 "room for late priors")
+    # the live rig (Wang-Leow §3-4 over live windows)
+    live_rig: bool = Field(True, description="calibrate each live rig from the 2D postures (mNBP) of a few "
+                           "frames per window, in a low-priority process of its own: GET "
+                           "/v1/rigs/{rig}/calibration")
+    live_rig_frames: int = Field(2, ge=1, description="frames per window whose postures are measured "
+                                 "(mNBP costs about 60 ms per frame and camera)")
+    live_rig_every: int = Field(3, ge=1, description="recalibrate after this many windows with new postures")
+    live_rig_height_m: float = Field(1.75, ge=0.5, le=2.5, description="the walkers' stature, for the "
+                                     "metric scale of the live rig and body")
     # zenoh
     zenoh_mode: str = Field("peer", pattern="^(peer|client|router)$")
     zenoh_connect: list[str] = Field(default_factory=list)
     zenoh_listen: list[str] = Field(default_factory=lambda: [DEFAULT_ZENOH_LISTEN])
     zenoh_config: Path | None = Field(None, description="zenoh JSON5 config file (the fields above override it)")
     zenoh_multicast: bool = Field(False, description="multicast scouting (off: on-host only)")
+    zenoh_access: ZenohAccess = Field(default_factory=ZenohAccess, description="user/password and "
+                                      "TLS (POSECAL_ZENOH_USER, ..._TLS_CERTIFICATE, ...: capture.zconfig)")
+    # REST access (docs/SERVICE.md, "Access")
+    api_token: SecretStr | None = Field(None, description="bearer token: every /v1 route needs "
+                                        "'Authorization: Bearer <token>' (401 otherwise)")
+    api_token_file: Path | None = Field(None, description="a file of bearer tokens, one per line "
+                                        "('#' comments); any of them (or api_token) is accepted")
+    metrics_open: bool = Field(False, description="serve /metrics without a token even when tokens "
+                               "are set (/healthz is always open)")
     # rerun
     rerun: str | None = Field(None, description="save:PATH | serve[:PORT] | connect[:URL]")
     rerun_jobs: bool = Field(True, description="also log batch jobs to Rerun")
@@ -112,9 +173,35 @@ class Settings(BaseSettings):
             return self.db
         return f"sqlite:///{Path(self.db).expanduser().resolve()}"
 
+    def api_tokens(self) -> tuple[bytes, ...]:
+        """The accepted bearer tokens (empty: REST is open); ValueError for an unreadable or
+        empty token file."""
+        tokens = [] if self.api_token is None else [self.api_token.get_secret_value().strip()]
+        if self.api_token_file is not None:
+            try:
+                lines = Path(self.api_token_file).expanduser().read_text().splitlines()
+            except OSError as exc:
+                raise ValueError(f"cannot read the API token file {self.api_token_file}: {exc}") from None
+            found = [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+            if not found:
+                raise ValueError(f"the API token file {self.api_token_file} holds no token")
+            tokens += found
+        if any(len(t) < 16 for t in tokens):
+            raise ValueError("API tokens must be at least 16 characters (e.g. `openssl rand -hex 32`)")
+        return tuple(t.encode() for t in tokens)
+
     @property
     def upload_limit_bytes(self) -> int:
         return int(self.upload_limit_mb * 1024 * 1024)
+
+    def upload_limits(self) -> UploadLimits:
+        """What the intake checks before it spends (:class:`service.limits.UploadLimits`)."""
+        mb = 1024 * 1024
+        return UploadLimits(body_bytes=self.upload_limit_bytes,
+                            unpacked_bytes=int(self.unpacked_limit_mb * mb), max_frames=self.max_frames,
+                            max_cameras=self.max_cameras, max_image_side=self.max_image_side,
+                            max_image_pixels=self.max_image_pixels,
+                            decoded_bytes=int(self.max_decoded_mb * mb))
 
     @property
     def rerun_sink(self) -> tuple[str, str | int] | None:

@@ -15,25 +15,26 @@ Both can return a :class:`StageBundle`: the plain arrays of every stage that
 :mod:`service.rerun_log` draws (inputs, registration, matched cluster means,
 viewpoint clouds, phase observations, HMM path, joints).
 
-:func:`stage_upload` runs in the API's thread pool when a job is submitted: it
-unpacks and validates the upload so a bad one is answered with a 4xx at once.
+:func:`stage_upload` (:mod:`service.intake`, re-exported here) runs in the API's
+thread pool when a job is submitted: it unpacks and validates the upload so a bad
+one is answered with a 4xx at once.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import concurrent.futures.process
+import itertools
 import logging
 import multiprocessing
 import os
 import shutil
 import threading
 import time
-import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 
@@ -41,10 +42,12 @@ from estimator.appearance import AppearanceModel, load_model
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraTrack, WalkEstimate, crop_to_box, estimate_walk, pad_tracks,
                                 tracks_from_sequence)
-from estimator.rig import RigConfig
-from estimator.sequence import Sequence, SequenceError, read_sequence, write_sequence
+from estimator.rig import RigAccumulator, RigConfig
+from estimator.sequence import Sequence, read_sequence, write_sequence
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
+from .intake import VIDEO_EXTENSIONS, StagedInput, UploadError, stage_upload
+from .intake import _find_sequence_root  # noqa: F401  (tests and older callers import it from here)
 from .jobs import JobGone, JobStore
 
 __all__ = [
@@ -61,135 +64,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v")
-_MAX_ZIP_MEMBERS = 200_000
 _MAX_CLOUD = 1500  # viewpoint-cloud points kept per camera for drawing
-_NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
-
-
-# ----------------------------------------------------------------------- upload intake
-
-
-class UploadError(ValueError):
-    """A rejected upload: ``status`` is the HTTP code, ``str()`` the reason."""
-
-    def __init__(self, status: int, reason: str) -> None:
-        super().__init__(reason)
-        self.status = status
-
-
-@dataclass(frozen=True)
-class StagedInput:
-    """A validated job input on disk."""
-
-    kind: str  # "sequence" | "videos"
-    path: Path  # the sequence folder, or the folder of <camera>.<ext> videos
-    cameras: list[str]
-    n_frames: int
-
-
-def stage_upload(files: list[tuple[str, BinaryIO]], job_dir: Path, *, limit_bytes: int,
-                 max_frames: int) -> StagedInput:
-    """Unpack and validate an upload into ``job_dir``; raise :class:`UploadError` if bad.
-
-    ``files`` are ``(filename, file object)``: one ``.zip`` holding a sequence
-    folder (``rig.json`` at its top or in its single top folder), or one video
-    per camera named ``<camera>.<ext>``.
-    """
-    if not files:
-        raise UploadError(422, "no files uploaded: send one zipped sequence folder or one video per camera")
-    job_dir.mkdir(parents=True, exist_ok=True)
-    names = [Path(name or "").name for name, _ in files]
-    if len(files) == 1 and names[0].lower().endswith(".zip"):
-        return _stage_zip(files[0][1], job_dir, limit_bytes=limit_bytes, max_frames=max_frames)
-    if all(n.lower().endswith(VIDEO_EXTENSIONS) for n in names):
-        return _stage_videos(files, job_dir, max_frames=max_frames)
-    raise UploadError(415, f"expected one .zip sequence folder or videos ({', '.join(VIDEO_EXTENSIONS)}), "
-                           f"got {names}")
-
-
-def _stage_zip(fh: BinaryIO, job_dir: Path, *, limit_bytes: int, max_frames: int) -> StagedInput:
-    try:
-        zf = zipfile.ZipFile(fh)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise UploadError(400, f"the upload is not a readable zip file: {exc}") from None
-    with zf:
-        members = zf.infolist()
-        if not members:
-            raise UploadError(422, "the zip file is empty")
-        if len(members) > _MAX_ZIP_MEMBERS:
-            raise UploadError(413, f"the zip holds {len(members)} files, more than {_MAX_ZIP_MEMBERS}")
-        if sum(m.file_size for m in members) > 4 * limit_bytes:
-            raise UploadError(413, "the zip expands to more than 4x the upload limit")
-        out = job_dir / "input"
-        root = out.resolve()
-        for m in members:
-            target = (out / m.filename).resolve()
-            if not target.is_relative_to(root):
-                raise UploadError(400, f"zip member {m.filename!r} points outside the archive")
-        bad = None
-        try:
-            bad = zf.testzip()
-            zf.extractall(out)
-        except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError) as exc:
-            raise UploadError(400, f"corrupt zip file: {exc}") from None
-        if bad is not None:
-            raise UploadError(400, f"corrupt zip file: bad CRC in {bad}")
-    folder = _find_sequence_root(out)
-    try:
-        seq = read_sequence(folder)
-    except SequenceError as exc:
-        raise UploadError(422, str(exc).replace(str(out) + os.sep, "")) from None
-    if seq.n_frames > max_frames:
-        raise UploadError(413, f"{seq.n_frames} frames per camera exceed the limit of {max_frames}")
-    if all(s is None or not s.any() for sils in seq.silhouettes.values() for s in sils):
-        raise UploadError(422, "the sequence holds no silhouette pixels")
-    return StagedInput("sequence", folder, list(seq.cameras), seq.n_frames)
-
-
-def _find_sequence_root(out: Path) -> Path:
-    if (out / "rig.json").is_file():
-        return out
-    tops = [p for p in out.iterdir() if p.name != "__MACOSX"]
-    if len(tops) == 1 and tops[0].is_dir() and (tops[0] / "rig.json").is_file():
-        return tops[0]
-    raise UploadError(422, "no rig.json at the top of the zip (or in its single top folder): "
-                           "zip a sequence folder, see docs/FORMATS.md")
-
-
-def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, *, max_frames: int) -> StagedInput:
-    import cv2
-
-    folder = job_dir / "videos"
-    folder.mkdir(parents=True, exist_ok=True)
-    cameras, sizes, counts = [], {}, {}
-    for name, fh in files:
-        path = Path(Path(name).name)
-        cam = path.stem
-        if not cam or not set(cam) <= _NAME_OK or len(cam) > 64:
-            raise UploadError(422, f"video {path.name!r}: the file name (without extension) is the "
-                                   "camera name and must match [A-Za-z0-9_.-]{1,64}")
-        if cam in cameras:
-            raise UploadError(422, f"two videos for camera {cam!r}")
-        target = folder / f"{cam}{path.suffix.lower()}"
-        with open(target, "wb") as out:
-            shutil.copyfileobj(fh, out, 1 << 20)
-        cap = cv2.VideoCapture(str(target))
-        try:
-            ok, frame = cap.read() if cap.isOpened() else (False, None)
-            if not ok or frame is None:
-                raise UploadError(422, f"video {path.name!r} cannot be decoded")
-            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        finally:
-            cap.release()
-        cameras.append(cam)
-        sizes[cam] = (frame.shape[1], frame.shape[0])
-        counts[cam] = n
-    if len(set(sizes.values())) != 1:
-        raise UploadError(422, f"videos of one rig must have the same frame size, got {sizes}")
-    if max(counts.values()) > max_frames:
-        raise UploadError(413, f"{max(counts.values())} frames per camera exceed the limit of {max_frames}")
-    return StagedInput("videos", folder, cameras, max(counts.values()))
 
 
 # ---------------------------------------------------------------------------- the pool
@@ -199,10 +74,11 @@ _stores: dict[str, JobStore] = {}
 _renderer = None  # estimator.render.Renderer, made on first use (feedback priors)
 
 
-def make_pool(n: int, model_path: Path | None, *, renderer: bool = False) -> WorkerPool:
+def make_pool(n: int, model_path: Path | None, *, renderer: bool = False, nice: int = 0) -> WorkerPool:
     """A process pool whose workers hold the model (unless ``model_path`` is None) and a
     renderer for feedback priors (if asked); started (spawn), warmed up, and replaced if
-    a worker dies.
+    a worker dies. ``nice`` lowers the workers' scheduling priority (work that must not
+    slow the others down, as the live rig's postures).
 
     BLAS is kept to one thread per worker: the eq. 8 product is small, and
     OpenBLAS threads spinning against each other on a shared 2-core host made
@@ -210,16 +86,28 @@ def make_pool(n: int, model_path: Path | None, *, renderer: bool = False) -> Wor
     """
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    initargs = (None if model_path is None else str(model_path), renderer, nice, os.getpid())
 
-    def start() -> concurrent.futures.ProcessPoolExecutor:
+    def spawn() -> tuple[concurrent.futures.ProcessPoolExecutor, list[concurrent.futures.Future]]:
         pool = concurrent.futures.ProcessPoolExecutor(
             max_workers=n, mp_context=multiprocessing.get_context("spawn"),
-            initializer=init_worker, initargs=(None if model_path is None else str(model_path), renderer))
-        for f in [pool.submit(_ping) for _ in range(n)]:
+            initializer=init_worker, initargs=initargs)
+        return pool, [pool.submit(_ping) for _ in range(n)]  # n calls at once: n workers forked here
+
+    def start() -> concurrent.futures.ProcessPoolExecutor:
+        # Forked from one long-lived thread (a worker's parent-death signal follows the
+        # thread that forked it, see init_worker); warmed up in the caller's.
+        pool, pings = _SPAWNER.submit(spawn).result()
+        for f in pings:
             f.result()
         return pool
 
     return WorkerPool(start)
+
+
+# Every pool's processes are started by this thread, which lives as long as the service:
+# Linux sends a worker its parent-death signal when the *thread* that forked it ends.
+_SPAWNER = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="pool-spawner")
 
 
 class WorkerPool(concurrent.futures.Executor):
@@ -271,12 +159,19 @@ def _terminate(pool: concurrent.futures.ProcessPoolExecutor) -> None:
         p.join(timeout=5)
 
 
-def init_worker(model_path: str | None, renderer: bool = False) -> None:
-    """Pool initializer: load the model once per process (if given; and open the renderer)."""
+def init_worker(model_path: str | None, renderer: bool = False, nice: int = 0,
+                parent_pid: int | None = None) -> None:
+    """Pool initializer: die with the service (``parent_pid``), load the model once per
+    process (if given; and open the renderer)."""
     global _model
     import cv2
 
+    if parent_pid is not None:
+        _die_with_parent(parent_pid)
+
     cv2.setNumThreads(1)
+    if nice:
+        os.nice(nice)
     if model_path is not None:
         _model = load_model(model_path)
     if renderer:
@@ -285,6 +180,45 @@ def init_worker(model_path: str | None, renderer: bool = False) -> None:
 
 def _ping() -> int:
     return os.getpid()
+
+
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+_WATCH_PARENT_S = 0.5
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """End this worker when the service process ``parent_pid`` dies, even by SIGKILL.
+
+    Left alone, a worker of a killed service lives on (~700 MB with the model)
+    and finishes its job after the next service has re-queued it. On Linux the
+    kernel sends SIGKILL on the parent's death (``prctl(PR_SET_PDEATHSIG)``; the
+    pools' processes are started from one long-lived thread, see ``_SPAWNER``);
+    everywhere, a daemon thread checks every 0.5 s that the parent is still the
+    parent (an orphan is adopted by another process) and exits if not.
+    """
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
+                log.warning("prctl(PR_SET_PDEATHSIG) failed (errno %d); the watchdog remains",
+                            ctypes.get_errno())
+        except (OSError, AttributeError):
+            log.warning("prctl(PR_SET_PDEATHSIG) is not available; the watchdog remains")
+    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            time.sleep(_WATCH_PARENT_S)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
 def _get_model() -> AppearanceModel:
@@ -305,8 +239,8 @@ def _get_renderer():
 
 
 def _store(url: str) -> JobStore:
-    if url not in _stores:
-        _stores[url] = JobStore(url)
+    if url not in _stores:  # the service has migrated the schema before starting workers
+        _stores[url] = JobStore(url, migrate=False)
     return _stores[url]
 
 
@@ -466,11 +400,24 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
             for cam, ps in priors.items()}
 
 
+def update_rig(acc: RigAccumulator, est: WalkEstimate, first_index: int, calibrate: bool
+               ) -> tuple[RigAccumulator, dict | None]:
+    """Add a live window's postures to a rig's accumulator and, if asked, calibrate it (in a
+    worker): ``(accumulator, calibration or None)``; the accumulator travels to the worker and
+    back, so that the service process holds the state and the worker none."""
+    acc.add(est, first_index)
+    if not calibrate:
+        return acc, None
+    rig = acc.calibrate()
+    return acc, json_safe({"source": rig.source, "frames": acc.n_frames, "windows": acc.windows,
+                           "calibration": rig.to_dict(), "body": rig.body_dict(), "notes": rig.notes})
+
+
 # ---------------------------------------------------------------------------- batch jobs
 
 
 def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[str, Any],
-            *, want_bundle: bool = False) -> list[StageBundle] | None:
+            *, want_bundle: bool = False, claim: str | None = None) -> list[StageBundle] | None:
     """Run one claimed job to its end (in a worker).
 
     The recording is estimated window by window, one segment per heading of
@@ -480,10 +427,13 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
     (:func:`estimator.mnbp.measure_postures`), and the rig and the person's
     posture calibrated from them at ``options["height_m"]``
     (:func:`estimator.rig.calibrate_rig`). Writes progress and the
-    result (or the failure) to the store itself; raises nothing for bad input.
+    result (or the failure) to the store itself, as the run holding ``claim``
+    (every write is refused, and the run stops, once the job was cancelled or
+    re-queued: :meth:`JobStore.claimed`); raises nothing for bad input.
     Returns the stage bundles (one per segment) for Rerun when asked and done.
     """
-    store = _store(db_url)
+    store = _store(db_url).claimed(claim)
+    decoding: dict[str, dict[str, int]] = {}  # videos: frames decoded vs the header's count
     try:
         store.report(job_id, 0.05, "reading input")
         if kind == "sequence":
@@ -499,8 +449,9 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
 
             # One warm-up for all of the job's videos (staging counted their frames).
             warmup = options.get("warmup") or default_warmup(int(options.get("n_frames") or 0))
-            segmentations, image_size, fps = _segment_videos(
-                Path(input_dir), warmup=warmup, report=lambda p, s: store.report(job_id, 0.05 + 0.45 * p, s))
+            segmentations, image_size, fps, decoding = _segment_videos(
+                Path(input_dir), warmup=warmup, report=lambda p, s: store.report(job_id, 0.05 + 0.45 * p, s),
+                options=options)
             tracks = {c: track_from_segmentations(s) for c, s in segmentations.items()}
             truth = None
         else:
@@ -516,6 +467,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         store.report(job_id, 0.9, "writing result")
         result = json_safe(walk.to_result())
         result["fps"] = fps
+        _mark_decoding(result, decoding)
         result["timing"] = {"estimate_s": round(time.perf_counter() - t0, 4)}
         if truth is not None and "cameras" in truth:
             result["truth_cameras"] = {
@@ -600,25 +552,57 @@ def feedback_views(refined) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.n
     return out
 
 
-def _segment_videos(folder: Path, *, warmup: int, report) -> tuple[dict[str, list], dict, float]:
+def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any] | None = None
+                    ) -> tuple[dict[str, list], dict, float, dict[str, dict[str, int]]]:
     """Background subtraction (:func:`capture.refine.segment`) over each ``<camera>.<ext>`` video.
 
-    Returns the segmentations per camera, the frame sizes and the frame rate.
+    Returns the segmentations per camera, the frame sizes, the frame rate and per
+    camera ``{"decoded_frames", "header_frames"}``. At most ``options["max_frames"]``
+    frames are decoded per video (a header can lie); a video that decodes fewer
+    frames than its header counts and fewer than one window (``options["windows"]["length"]``)
+    is refused (ValueError naming it) rather than estimated from what is left.
     """
     from capture.refine import segment
     from capture.segment import SegmentSettings
     from capture.sources import VideoFileSource
 
+    options = options or {}
+    max_frames = int(options.get("max_frames") or 0) or None
+    header_frames = options.get("header_frames") or {}
+    min_frames = int((options.get("windows") or {}).get("length") or 1)
     videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
     settings = SegmentSettings(warmup_frames=warmup)
-    segmentations, sizes, fps = {}, {}, 0.0
+    segmentations, sizes, decoding, fps = {}, {}, {}, 0.0
     for i, path in enumerate(videos):
         with VideoFileSource(path) as source:
             fps = fps or source.fps or 0.0
             sizes[path.stem] = source.size
-            segs = segment((frame.image for frame in source), settings)
+            header = int(header_frames.get(path.stem) or source.frame_count() or 0)
+            frames = itertools.islice((frame.image for frame in source), max_frames)
+            segs = segment(frames, settings)
         if not segs:
             raise ValueError(f"video {path.name} has no decodable frames")
+        decoding[path.stem] = {"decoded_frames": len(segs), "header_frames": header}
+        if header and len(segs) < header and len(segs) < min_frames:
+            raise ValueError(f"video {path.name}: only {len(segs)} of the {header} frames its header "
+                             f"counts decode, fewer than one window ({min_frames} frames): truncated "
+                             "or damaged")
         segmentations[path.stem] = segs
         report((i + 1) / len(videos), f"segmented {path.name}")
-    return segmentations, sizes, fps or 15.0
+    return segmentations, sizes, fps or 15.0, decoding
+
+
+def _mark_decoding(result: dict[str, Any], decoding: dict[str, dict[str, int]]) -> None:
+    """Each video camera's decoded and announced frame counts in ``result["cameras"]``, and a
+    note (camera and top level) for a video that decoded fewer frames than its header counts."""
+    for cam, counts in decoding.items():
+        entry = result.get("cameras", {}).get(cam)
+        if entry is not None:
+            entry.update(counts)
+        decoded, header = counts["decoded_frames"], counts["header_frames"]
+        if header and decoded != header:
+            note = (f"{cam}: {decoded} frames decoded, its video's header counts {header}: "
+                    "truncated or damaged; estimated from the frames that decoded")
+            if entry is not None:
+                entry.setdefault("notes", []).append(note)
+            result.setdefault("notes", []).append(note)

@@ -191,7 +191,7 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
     # not asserted here: with CI's two cores shared by the agents, the service and the estimates, one
     # camera's frame came more than the default 120 ms after the other's (one frame of 182, once).
     settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
-                             feedback=feedback, max_wait_ms=400.0)
+                             feedback=feedback, max_wait_ms=400.0, live_rig=False)  # the rig: its own test
     endpoint = settings.zenoh_listen[0]
     with ServerThread(settings) as srv, zenoh.open(build_config(connect=[endpoint])) as session:
         published = []
@@ -236,11 +236,13 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
             assert rig["feedback"]["priors_sent"] > 0
             for cam, st in stats.items():
                 assert st.priors > 0 and st.prior_use.used > 0, (cam, st.prior_use, rig["feedback"])
-                # Priors are predicted for frames still to come: some arrived before their
-                # frame. How many is a timing figure (95 % target, bench/bench_feedback_live.py,
-                # 96.3 % on an idle machine), not asserted here: under CPU contention from other
-                # processes it dropped below one half once. None came for another run.
-                assert st.prior_ahead_fraction > 0 and st.priors_other_epoch == 0, (cam, st)
+                # Priors are predicted for frames still to come and were used on them (above).
+                # How many arrived before their frame's capture time is a timing figure (95 %
+                # target, bench/bench_feedback_live.py, 96.3 % on an idle machine), not asserted
+                # here: under CPU contention it dropped below one half, and to 0 with the load
+                # at 4 on two cores (priors then come after capture but before segmentation,
+                # and are still used). None came for another run.
+                assert st.priors_other_epoch == 0, (cam, st)
         else:
             assert rig["feedback"]["priors_sent"] == 0
             assert all(st.priors == 0 and st.prior_use.used == 0 for st in stats.values())
@@ -272,7 +274,7 @@ def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, r
     (the tracked walker is still the one estimated)."""
     cameras = {**rendered, "c0": [_with_bystander(f) for f in rendered["c0"]]}
     settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
-                             feedback=False)
+                             feedback=False, live_rig=False)
     with ServerThread(settings) as srv:
         stats = _run_agents(settings.zenoh_listen[0], cameras, quality_every=1)
         rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["windows"]["estimated"] >= 3 and r,
@@ -291,3 +293,32 @@ def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, r
         assert not any(several in n for n in e["cameras"]["c1"]["notes"])
     az, _ = TRUTH["c0"]  # the bystander did not take the walker's place
     assert abs((est[-1]["smoothed"]["c0"]["azimuth_deg"] - az + 180) % 360 - 180) < 45
+
+
+def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, rendered):
+    """GET /v1/rigs/{rig}/calibration: the rig from the mNBP postures of 6 frames per window,
+    recalibrated after every window, in its own low-priority process; the viewpoints go on."""
+    from estimator._selfcal_core import geodesic_deg
+    from estimator.rig import rotations_from_viewpoints
+
+    settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
+                             feedback=False, max_wait_ms=400.0, live_rig_frames=6, live_rig_every=1)
+    with ServerThread(settings) as srv:
+        assert srv.client.get(f"/v1/rigs/{RIG}/calibration").status_code == 404  # no such rig yet
+        _run_agents(settings.zenoh_listen[0], rendered)
+        rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["windows"]["estimated"] >= 3 and r,
+                       timeout=20, what="three estimated windows")
+        # Windows that come while one is measured supersede each other: at least two are measured.
+        cal = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}/calibration")).status_code == 200
+                       and (c := r.json())["frames"] >= 8 and c,
+                       timeout=90, what="a calibration on 8 frames")
+        metrics = srv.client.get("/metrics").text
+    assert cal["rig"] == RIG and cal["frames"] >= 8 and 0 <= cal["lag_windows"] <= rig["windows"]["estimated"]
+    assert cal["source"] == "self-calibration", cal["notes"]
+    r = np.array(cal["calibration"]["cameras"]["c1"]["rotation"])
+    truth = rotations_from_viewpoints([TRUTH["c0"], TRUTH["c1"]])[1]
+    # The cameras face each other (180 deg apart); the small test model and a dozen frames of postures
+    # give a rough rig: within 30 deg, not swapped or mirrored.
+    assert geodesic_deg(r, truth) < 30.0, (geodesic_deg(r, truth), cal["notes"])
+    assert cal["body"]["stature_m"] == 1.75
+    assert "posecal_live_rig_seconds_count" in metrics

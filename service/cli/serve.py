@@ -24,8 +24,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default: 8000)")
     p.add_argument("--rerun", metavar="SINK",
                    help="save:PATH (.rrd file) | serve[:PORT] (gRPC on 127.0.0.1) | connect[:URL]")
-    p.add_argument("--db", metavar="PATH|URL", help="SQLite file or SQLAlchemy URL (default: posecal.db)")
-    p.add_argument("--data-dir", metavar="DIR", help="where job uploads are kept (default: posecal-data)")
+    p.add_argument("--db", metavar="PATH|URL", help="SQLite file or SQLAlchemy URL (default: posecal.db in "
+                   "$POSECAL_DATA, else $XDG_DATA_HOME/posecal, else ~/.local/share/posecal)")
+    p.add_argument("--data-dir", metavar="DIR", help="where job uploads are kept (default: jobs/ in that "
+                   "same directory)")
     p.add_argument("--model", metavar="PATH", help="appearance model (default: the cached default model)")
     p.add_argument("--window", type=int, metavar="N", help="frames per live window (default: 20)")
     p.add_argument("--hop", type=int, metavar="N", help="frames between windows (default: 10)")
@@ -33,6 +35,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-live", action="store_true", help="REST jobs only: no Zenoh subscription")
     p.add_argument("--no-feedback", action="store_true",
                    help="do not send silhouette priors back to the capture agents (section 7.1)")
+    p.add_argument("--no-live-rig", action="store_true",
+                   help="do not calibrate the live rigs from postures (GET /v1/rigs/{rig}/calibration); "
+                        "saves a low-priority process")
     add_zenoh_arguments(p)
     p.set_defaults(func=run_serve)
 
@@ -52,6 +57,8 @@ def settings_from_args(args: argparse.Namespace):
         given["live"] = False
     if args.no_feedback:
         given["feedback"] = False
+    if args.no_live_rig:
+        given["live_rig"] = False
     if args.mode != "peer":
         given["zenoh_mode"] = args.mode
     if args.multicast:

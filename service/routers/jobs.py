@@ -7,15 +7,16 @@ import uuid
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Query, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
-from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep
+from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep, bearer_scheme
 from ..jobs import ACTIVE, STATES
-from ..schemas import JobList, JobOut, job_out
+from ..schemas import JobList, JobOut, Result, error_responses, job_out
 from ..worker import UploadError, stage_upload
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(bearer_scheme)],
+                   responses=error_responses(401))
 
 
 def _job_or_404(store: StoreDep, job_id: str):
@@ -25,7 +26,12 @@ def _job_or_404(store: StoreDep, job_id: str):
     return row
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(
+    400, 413, 415, 422, 507, examples={
+        400: "corrupt zip file: walk/c1/000010.png: Bad CRC-32",
+        413: "c1/000003.png: the PNG header says 100000x100000, which exceeds the limit of 4096x4096",
+        415: "expected one .zip sequence folder or videos (.mp4, .avi, ...), got ['walk.tar']",
+        422: "rig.json: image_size must be two positive integers"}))
 def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings: SettingsDep,
                metrics: MetricsDep,
                files: Annotated[list[UploadFile], File(description="one zipped sequence folder, "
@@ -47,15 +53,19 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
     job_id = uuid.uuid4().hex
     job_dir = settings.data_dir / job_id
     try:
-        staged = stage_upload([(f.filename or "", f.file) for f in files], job_dir,
-                              limit_bytes=settings.upload_limit_bytes, max_frames=settings.max_frames)
+        staged = stage_upload([(f.filename or "", f.file) for f in files], job_dir, settings.upload_limits())
     except UploadError as exc:
         shutil.rmtree(job_dir, ignore_errors=True)
         metrics.uploads_rejected.labels(str(exc.status)).inc()
         raise HTTPException(exc.status, str(exc)) from None
+    except BaseException:  # a bug (500): still nothing left behind
+        shutil.rmtree(job_dir, ignore_errors=True)
+        raise
     options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames,
                                "windows": settings.segment_options(), "posture": posture,
-                               "height_m": height_m}
+                               "height_m": height_m, "max_frames": settings.max_frames}
+    if staged.frame_counts:
+        options["header_frames"] = staged.frame_counts
     if warmup is not None:
         options["warmup"] = warmup
     if refine:
@@ -77,12 +87,13 @@ def list_jobs(store: StoreDep,
                    counts=store.counts())
 
 
-@router.get("/{job_id}", response_model=JobOut)
+@router.get("/{job_id}", response_model=JobOut, responses=error_responses(404))
 def get_job(job_id: str, store: StoreDep) -> JobOut:
     return job_out(_job_or_404(store, job_id))
 
 
-@router.get("/{job_id}/result")
+@router.get("/{job_id}/result", responses={200: {"model": Result}, **error_responses(
+    404, 409, examples={409: "job 3f2a... is running"})})
 def get_result(job_id: str, store: StoreDep) -> dict[str, Any]:
     """The result (docs/FORMATS.md) of a finished job; 409 while it is not done."""
     row = _job_or_404(store, job_id)
@@ -96,7 +107,7 @@ def get_result(job_id: str, store: StoreDep) -> dict[str, Any]:
 
 
 @router.get("/{job_id}/silhouettes", response_class=FileResponse,
-            responses={200: {"content": {"application/zip": {}}}})
+            responses={200: {"content": {"application/zip": {}}}, **error_responses(404, 409)})
 def get_silhouettes(job_id: str, store: StoreDep) -> FileResponse:
     """The refined silhouettes of a job submitted with ``refine=true``, as a zipped
     sequence folder; 404 if it was not asked for, 409 while the job is not done."""
@@ -112,7 +123,7 @@ def get_silhouettes(job_id: str, store: StoreDep) -> FileResponse:
     return FileResponse(path, media_type="application/zip", filename=f"{job_id}-silhouettes.zip")
 
 
-@router.post("/{job_id}/cancel", response_model=JobOut)
+@router.post("/{job_id}/cancel", response_model=JobOut, responses=error_responses(404, 409))
 def cancel_job(job_id: str, store: StoreDep) -> JobOut:
     """Cancel a queued or running job; 409 if it already ended."""
     row = _job_or_404(store, job_id)
@@ -121,7 +132,7 @@ def cancel_job(job_id: str, store: StoreDep) -> JobOut:
     return job_out(store.cancel(job_id))
 
 
-@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT)
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404))
 def delete_job(job_id: str, store: StoreDep, settings: SettingsDep) -> Response:
     """Forget a job and its files (a running one is cancelled first)."""
     _job_or_404(store, job_id)

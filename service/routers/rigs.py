@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, Depends, HTTPException, Query
 
-from ..deps import LiveDep, RuntimeDep
-from ..schemas import RigList, RigOut
+from ..deps import LiveDep, RuntimeDep, bearer_scheme
+from ..schemas import EstimatesOut, LiveCalibration, LiveEstimate, RigList, RigOut, error_responses
 
-router = APIRouter(prefix="/v1/rigs", tags=["rigs"])
+router = APIRouter(prefix="/v1/rigs", tags=["rigs"], dependencies=[Depends(bearer_scheme)],
+                   responses=error_responses(401))
 
 
 def _unknown_rig(rig: str) -> HTTPException:
@@ -29,7 +30,8 @@ def list_rigs(rt: RuntimeDep) -> RigList:
     return RigList(live=True, rigs=[RigOut(**s) for n in live.rig_names() if (s := live.summary(n))])
 
 
-@router.get("/{rig}", response_model=RigOut)
+@router.get("/{rig}", response_model=RigOut,
+            responses=error_responses(404, examples={404: "unknown rig 'lab': no silhouettes received for it"}))
 def get_rig(rig: str, live: LiveDep) -> RigOut:
     summary = live.summary(rig)
     if summary is None:
@@ -37,7 +39,8 @@ def get_rig(rig: str, live: LiveDep) -> RigOut:
     return RigOut(**summary)
 
 
-@router.get("/{rig}/estimate")
+@router.get("/{rig}/estimate", responses={200: {"model": LiveEstimate}, **error_responses(
+    404, examples={404: "rig 'lab' has no estimated window yet"})})
 def latest_estimate(rig: str, live: LiveDep) -> dict[str, Any]:
     """The latest window's result (the docs/FORMATS.md result plus rig, window, smoothed, latency_ms)."""
     _rig_or_404(live, rig)
@@ -47,7 +50,8 @@ def latest_estimate(rig: str, live: LiveDep) -> dict[str, Any]:
     return latest
 
 
-@router.get("/{rig}/estimates")
+@router.get("/{rig}/estimates", responses={200: {"model": EstimatesOut}, **error_responses(
+    404, 422, examples={404: "unknown rig 'lab': no silhouettes received for it"})})
 def estimates_since(rig: str, live: LiveDep,
                     since: int = Query(0, ge=0, description="return windows with seq > since"),
                     limit: int = Query(100, ge=1, le=1000)) -> dict[str, Any]:
@@ -56,3 +60,20 @@ def estimates_since(rig: str, live: LiveDep,
     items = live.since(rig, since, limit) or []
     return {"rig": rig, "since": since, "estimates": items,
             "next_since": items[-1]["window"]["seq"] if items else since}
+
+
+@router.get("/{rig}/calibration", response_model=LiveCalibration, responses=error_responses(
+    404, examples={404: "rig 'lab' has no calibration yet: it needs postures on 8 frames seen by two cameras"}))
+def live_calibration(rig: str, live: LiveDep) -> dict[str, Any]:
+    """The rig calibrated from the live windows so far (Wang–Leow §3-4 on a few frames per window).
+
+    Cameras are taken as fixed: the rig is solved over the postures of recent
+    windows (at most ``max_frames`` frames), recalibrated every few windows, and
+    restarted when a camera moves. ``lag_windows`` says how far it is behind the
+    latest estimate."""
+    _rig_or_404(live, rig)
+    cal = live.calibration(rig)
+    if cal is None:
+        raise HTTPException(404, f"rig {rig!r} has no calibration yet: it needs postures on 8 frames seen by "
+                                 "two cameras (live_rig off, or too few windows since the start or a camera move)")
+    return cal
