@@ -2,9 +2,10 @@
 and :class:`UploadLimits`, what the intake (:func:`service.worker.stage_upload`)
 checks before it spends memory or CPU on an upload.
 
-A declared ``Content-Length`` above the limit is refused at once; a body sent
-without one (chunked) is counted while it streams and refused when it passes
-the limit. The limit is read from the running app's settings.
+A declared ``Content-Length`` above the limit is refused without being stored
+(read and dropped up to ``DRAIN_BYTES``, so that the client gets the answer); a
+body sent without one (chunked) is counted while it streams and refused when
+it passes the limit. The limit is read from the running app's settings.
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ class UploadLimitMiddleware:
         headers = dict(scope.get("headers") or [])
         declared = headers.get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > limit:
+            await _drain(receive, DRAIN_BYTES)
             await _reject(send, f"upload of {int(declared)} bytes exceeds the limit of {limit} bytes")
             return
         seen = 0
@@ -72,6 +74,24 @@ class UploadLimitMiddleware:
             return message
 
         await self.app(scope, counting_receive, send)
+
+
+DRAIN_BYTES = 32 << 20
+"""A refused upload's body is read (and dropped) up to this much before the 413 is sent: a client
+still sending when the connection closes sees a reset, not the answer. A larger body gets the
+answer and the close after this much (its sender may then see the reset)."""
+
+
+async def _drain(receive, cap: int) -> None:
+    """Read and drop the request body, at most ``cap`` bytes of it."""
+    seen = 0
+    while seen <= cap:
+        message = await receive()
+        if message["type"] != "http.request":
+            return
+        seen += len(message.get("body", b""))
+        if not message.get("more_body", False):
+            return
 
 
 async def _reject(send, reason: str) -> None:

@@ -87,3 +87,32 @@ def test_estimate_reads_a_folder_of_videos(small_model_path, tmp_path, capsys):
     empty.mkdir()
     assert main(["estimate", str(empty), "--model", small_model_path]) == 2  # neither videos nor a sequence
     assert "empty" in capsys.readouterr().err
+
+
+def test_serve_refuses_to_listen_beyond_loopback_without_tokens(tmp_path, capsys):
+    from service.cli.serve import check_exposure, settings_from_args
+
+    parser = build_parser()
+
+    def settings(*extra):
+        args = parser.parse_args(["serve", "--db", str(tmp_path / "j.db"), "--data-dir", str(tmp_path / "d"),
+                                  *extra])
+        return args, settings_from_args(args)
+
+    args, s = settings("--host", "0.0.0.0")
+    with pytest.raises(Exception, match="beyond this machine without API tokens"):
+        check_exposure(args.host, s, args.insecure)
+    args, s = settings("--host", "0.0.0.0", "--insecure")
+    check_exposure(args.host, s, args.insecure)  # told to
+    for host in ("127.0.0.1", "localhost", "::1"):
+        check_exposure(host, s, False)  # loopback is fine without tokens
+    tokens = tmp_path / "tokens"
+    tokens.write_text("# lab\n" + "a" * 32 + "\n")
+    args, s = settings("--host", "0.0.0.0", "--api-token-file", str(tokens))
+    check_exposure(args.host, s, args.insecure)
+    assert s.api_tokens() == (b"a" * 32,)
+    tokens.write_text("# nothing\n")
+    with pytest.raises(Exception, match="holds no token"):
+        check_exposure("127.0.0.1", s, False)
+    assert main(["serve", "--host", "0.0.0.0", "--db", str(tmp_path / "j.db")]) == 2
+    assert "--insecure" in capsys.readouterr().err

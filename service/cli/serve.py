@@ -35,6 +35,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-live", action="store_true", help="REST jobs only: no Zenoh subscription")
     p.add_argument("--no-feedback", action="store_true",
                    help="do not send silhouette priors back to the capture agents (section 7.1)")
+    p.add_argument("--api-token-file", metavar="PATH",
+                   help="bearer tokens, one per line ('#' comments): every /v1 route then needs "
+                        "'Authorization: Bearer <token>' (docs/SERVICE.md, Access)")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow --host beyond loopback without API tokens (anyone who reaches the port "
+                        "can list, submit and delete jobs)")
     p.add_argument("--no-live-rig", action="store_true",
                    help="do not calibrate the live rigs from postures (GET /v1/rigs/{rig}/calibration); "
                         "saves a low-priority process")
@@ -52,7 +58,7 @@ def settings_from_args(args: argparse.Namespace):
         ("rerun", args.rerun), ("db", args.db), ("data_dir", args.data_dir), ("model_path", args.model),
         ("window_length", args.window), ("window_hop", args.hop), ("job_workers", args.job_workers),
         ("zenoh_connect", args.connect), ("zenoh_listen", args.listen),
-        ("zenoh_config", args.zenoh_config)) if value is not None}
+        ("zenoh_config", args.zenoh_config), ("api_token_file", args.api_token_file)) if value is not None}
     if args.no_live:
         given["live"] = False
     if args.no_feedback:
@@ -70,6 +76,23 @@ def settings_from_args(args: argparse.Namespace):
         raise CliError(f"invalid settings: {problems}") from None
 
 
+def check_exposure(host: str, settings, insecure: bool) -> None:
+    """Refuse (exit 2) to listen beyond loopback without API tokens, unless ``insecure``."""
+    import ipaddress
+
+    try:
+        tokens = settings.api_tokens()
+    except ValueError as exc:  # an unreadable or empty token file
+        raise CliError(str(exc)) from None
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: not known to be loopback
+        loopback = False
+    if not loopback and not tokens and not insecure:
+        raise CliError(f"--host {host} listens beyond this machine without API tokens: give "
+                       "--api-token-file (or POSECAL_API_TOKEN), or --insecure to do it anyway")
+
+
 def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -79,6 +102,7 @@ def run_serve(args: argparse.Namespace) -> int:
     from .model import model_from_arg
 
     settings = settings_from_args(args)
+    check_exposure(args.host, settings, args.insecure)
     if settings.model_path is not None:  # a bad --model is a CLI error (exit 2), before uvicorn starts
         model_from_arg(str(settings.model_path))
     app = create_app()
