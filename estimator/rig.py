@@ -109,6 +109,10 @@ class RigConfig:
     polish : MNBPConfig or None
     converged_deg : float
         Stop the rounds when no camera turns more than this.
+    consecutive : bool
+        The estimate's frames are consecutive frames of one recording (false for frames gathered
+        from many windows, :class:`RigAccumulator`): only then does the self-calibration use that
+        the tracks are a smooth motion (its temporal prior), and only on frames it takes in a row.
     """
 
     height_m: float = 1.75
@@ -126,6 +130,7 @@ class RigConfig:
                                            step_angle_deg=(8.0, 3.0), step_length=(0.05, 0.02), explore=0.0,
                                            prior_sigma=0.05)
     converged_deg: float = 0.2
+    consecutive: bool = True
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
@@ -340,8 +345,10 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     frames = frames[::int(np.ceil(len(frames) / config.max_frames))]  # evenly, at most max_frames
     views = from_views[use] @ from_views[use[0]].T
     try:
+        smooth = config.consecutive and len(frames) > 1 and bool(np.all(np.diff(frames) == 1))
         cal = self_calibrate(tracks[use][:, frames], refine=True, upright=config.upright,
-                             initial_rotations=views if np.all(np.isfinite(views)) else None)
+                             initial_rotations=views if np.all(np.isfinite(views)) else None,
+                             temporal_prior=None if smooth else False)
     except (ValueError, np.linalg.LinAlgError) as exc:
         cal = None
         fallback.notes.append(f"rig from the viewpoints: self-calibration failed ({exc})")
@@ -446,7 +453,7 @@ class RigAccumulator:
     camera moved.
     """
 
-    config: RigConfig = field(default_factory=RigConfig)
+    config: RigConfig = field(default_factory=lambda: RigConfig(consecutive=False))
     posture: MNBPConfig = field(default_factory=MNBPConfig)
     frames_per_window: int = 2
     _parts: list[WalkEstimate] = field(default_factory=list, repr=False)
@@ -476,7 +483,7 @@ class RigAccumulator:
         """The rig over the frames kept (the viewpoints' rig, with a note, while they are too few)."""
         if not self._parts:
             raise ValueError("no window added yet")
-        return calibrate_rig(concat_estimates(self._parts), self.config)
+        return calibrate_rig(concat_estimates(self._parts), replace(self.config, consecutive=False))
 
     def reset(self) -> None:
         """Forget every frame (a camera moved: the rig is another one)."""
