@@ -334,8 +334,10 @@ def take_frames(estimate: WalkEstimate, frames: np.ndarray) -> WalkEstimate:
 
 def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
     """Estimates of successive stretches of one walk joined in time (e.g. frames of several live
-    windows, for a rig solved over all of them with fixed cameras). Each camera's viewpoint and
-    notes are the last estimate's that has it; a camera absent from a stretch has no data there."""
+    windows, for a rig solved over all of them with fixed cameras). Each camera's viewpoint is the
+    medoid of the stretches' (the one nearest all the others: a stretch whose viewpoint flipped
+    does not decide it), its notes the last stretch's; a camera absent from a stretch has no data
+    there."""
     if not estimates:
         raise ValueError("nothing to join")
     names = list(dict.fromkeys(n for e in estimates for n in e.cameras))
@@ -354,7 +356,8 @@ def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
         last = next(e.cameras[name] for e in reversed(estimates) if name in e.cameras)
         measured = any(name in e.cameras and e.cameras[name].model_joints2d is not None for e in estimates)
         cams[name] = replace(
-            last, labels=per_camera(name, lambda c: c.labels, (), -1).astype(int),
+            last, viewpoint=_medoid([e.cameras[name].viewpoint for e in estimates if name in e.cameras]),
+            labels=per_camera(name, lambda c: c.labels, (), -1).astype(int),
             observations=per_camera(name, lambda c: c.observations, ()),
             joints2d=per_camera(name, lambda c: c.joints2d, (N_JOINTS, 2)),
             model_joints2d=per_camera(name, lambda c: c.model_joints2d, (N_JOINTS, 2)) if measured else None)
@@ -376,6 +379,17 @@ def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
         log_prob=float(sum(e.log_prob for e in estimates)), half_cycle_margin=estimates[-1].half_cycle_margin,
         notes=list(estimates[-1].notes), tracks=tracks,
         phase_posterior=np.concatenate(posts) if all(p is not None for p in posts) else None)
+
+
+def _medoid(viewpoints: list[Viewpoint]) -> Viewpoint:
+    """The viewpoint with the least summed angular distance (azimuth on the circle, elevation) to the others."""
+    ok = [v for v in viewpoints if np.isfinite(v.azimuth_deg) and np.isfinite(v.elevation_deg)]
+    if not ok:
+        return viewpoints[-1]
+    az = np.array([v.azimuth_deg for v in ok])
+    el = np.array([v.elevation_deg for v in ok])
+    cost = np.abs(azimuth_difference_deg(az[:, None], az[None, :])) + np.abs(el[:, None] - el[None, :])
+    return ok[int(np.argmin(cost.sum(axis=1)))]
 
 
 def _abs_az_diff(a: np.ndarray, b: float) -> np.ndarray:

@@ -109,6 +109,11 @@ class RigConfig:
     polish : MNBPConfig or None
     converged_deg : float
         Stop the rounds when no camera turns more than this.
+    max_disagreement_deg : float
+        A self-calibrated rig with a camera further than this from the viewpoints' rig is taken as
+        a wrong solution (a depth flip, a diverged fit: seen 134 deg off on 18 live frames) and the
+        viewpoints' rig stands, with a note. On the evaluation walks both are right within 13 deg
+        (CMU) and 20 deg (stylised) at worst, so they disagree by at most 25-33 deg there. 0: off.
     consecutive : bool
         The estimate's frames are consecutive frames of one recording (false for frames gathered
         from many windows, :class:`RigAccumulator`): only then does the self-calibration use that
@@ -131,6 +136,7 @@ class RigConfig:
                                            prior_sigma=0.05)
     converged_deg: float = 0.2
     consecutive: bool = True
+    max_disagreement_deg: float = 45.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
@@ -361,6 +367,14 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     changes = None
     if pinhole is not None and config.rounds > 1:
         pinhole, changes = iterate_rounds(estimate, [names[c] for c in use], frames, pinhole, config)
+    final = fused if pinhole is None else pinhole.rotations
+    if np.all(np.isfinite(views)) and config.max_disagreement_deg > 0:
+        apart = max(float(geodesic_deg(a, b)) for a, b in zip(final, views))
+        if apart > config.max_disagreement_deg:  # a wrong basin (e.g. a depth flip), not a few degrees
+            fallback.notes.append(f"rig from the viewpoints: the self-calibrated rig is {apart:.0f} deg from the "
+                                  f"viewpoints' (more than {config.max_disagreement_deg:.0f}): taken as a wrong "
+                                  "solution")
+            return fallback
     joints3d = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
     measured = _median_lengths(joints3d)
     k = _scale_for(measured, config.height_m)

@@ -238,3 +238,29 @@ def test_a_rig_accumulated_over_windows(walk):
     assert short.n_frames == 0 and short.windows == 0
     with pytest.raises(ValueError, match="no window"):
         short.calibrate()
+
+
+def test_a_rig_far_from_the_viewpoints_is_taken_as_wrong(walk):
+    """The self-calibrated rig is cross-checked against the viewpoints' (an independent estimate): past
+    max_disagreement_deg the viewpoints' rig stands, with a note saying why."""
+    _, _, measured = walk
+    rig = calibrate_rig(measured)
+    apart = max(geodesic_deg(a, b) for a, b in zip(rig.rotations, viewpoint_rotations(measured)))
+    assert rig.source == "self-calibration" and apart < 45.0
+    strict = calibrate_rig(measured, RigConfig(max_disagreement_deg=0.5 * apart))
+    assert strict.source == "viewpoints" and strict.joints3d is None
+    assert any("taken as a wrong solution" in n for n in strict.notes)
+
+
+def test_joined_stretches_take_the_medoid_viewpoint(walk):
+    """A stretch whose viewpoint flipped front/back does not decide the joined estimate's."""
+    from estimator.pipeline import concat_estimates, take_frames
+
+    _, est, _ = walk
+    parts = [take_frames(est, np.arange(a, a + 6)) for a in (0, 6, 12)]
+    vp = parts[2].cameras["c0"].viewpoint
+    flipped = replace(vp, azimuth_deg=(vp.azimuth_deg + 180.0) % 360.0)
+    parts[2] = replace(parts[2], cameras={**parts[2].cameras, "c0": replace(parts[2].cameras["c0"], viewpoint=flipped)})
+    joined = concat_estimates(parts)
+    assert joined.cameras["c0"].viewpoint.azimuth_deg == pytest.approx(vp.azimuth_deg)
+    assert len(joined.phase) == 18 and joined.cameras["c1"].joints2d.shape == (18, N_JOINTS, 2)

@@ -114,13 +114,27 @@ def run_demo(args: argparse.Namespace) -> int:
                 raise CliError(f"no silhouettes reached the service; see the agent logs in {workdir}")
             summary = rig.json()
             estimates = client.get("/v1/rigs/demo/estimates", params={"limit": 1000}).json()["estimates"]
+            # The live rig lags the windows (its postures run at low priority): give it a few
+            # seconds to catch up, as long as it still does.
+            calibration, waited = None, 0
+            while waited < 10:
+                got = client.get("/v1/rigs/demo/calibration")
+                latest = got.json() if got.status_code == 200 else None
+                if latest is not None and calibration is not None and latest["lag_windows"] in (
+                        0, calibration["lag_windows"]) and waited >= 3:
+                    calibration = latest
+                    break
+                calibration = latest or calibration
+                time.sleep(1.0)
+                waited += 1
         finally:
             client.close()
             for a in agents:
                 if a.poll() is None:
                     a.kill()
         _report(summary, estimates, cams)
-        print(f"\nREST: {url}/v1/rigs/demo/estimate   (API docs: {url}/docs)")
+        _report_rig(calibration, cams)
+        print(f"\nREST: {url}/v1/rigs/demo/estimate, /v1/rigs/demo/calibration   (API docs: {url}/docs)")
         if args.keep:
             print("serving until Ctrl-C ...", flush=True)
             try:
@@ -150,3 +164,33 @@ def _report(summary: dict, estimates: list[dict], cams) -> None:
         est = "     not estimated       " if eaz is None else f"{eaz:7.1f} / {eel:5.1f}           "
         print(f"c{k}      {az:6.1f} / {el:5.1f}    {est}   {_angle(eaz, az)} / "
               f"{'n/a' if eel is None else f'{eel - el:+5.1f}'}    {sm.get('windows', 0)}")
+
+
+def _report_rig(calibration: dict | None, cams) -> None:
+    """The live rig: each camera's rotation from the reference and its error against the truth."""
+    import numpy as np
+
+    from estimator._selfcal_core import geodesic_deg
+    from estimator.rig import rotations_from_viewpoints
+
+    if calibration is None:
+        print("\nlive rig: not calibrated yet (too few windows with postures)")
+        return
+    rig = calibration["calibration"]
+    ref = int(rig["reference"][1:])
+    truth = rotations_from_viewpoints([cams[ref]] + list(cams))[1:]
+    print(f"\nlive rig ({calibration['source']}, postures on {calibration['frames']} frames of "
+          f"{calibration['windows']} windows, {calibration['lag_windows']} windows behind), rotations from "
+          f"{rig['reference']}:")
+    for k in range(len(cams)):
+        cam = rig["cameras"].get(f"c{k}", {})
+        if k == ref or cam.get("rotation") is None:
+            continue
+        r = np.array(cam["rotation"])
+        extra = f", focal {cam['focal_px']:.0f} px" if cam.get("focal_px") else ""
+        print(f"  c{k}: {geodesic_deg(r, np.eye(3)):6.1f} deg{extra}   off the truth by "
+              f"{geodesic_deg(r, truth[k]):.1f} deg")
+    if calibration.get("body"):
+        thigh = calibration["body"]["segments"].get("left_thigh", {})
+        print(f"  body at a stature of {calibration['body']['stature_m']} m: left thigh "
+              f"{thigh.get('metres', float('nan')):.2f} m")
