@@ -116,3 +116,12 @@ def test_serve_refuses_to_listen_beyond_loopback_without_tokens(tmp_path, capsys
         check_exposure("127.0.0.1", s, False)
     assert main(["serve", "--host", "0.0.0.0", "--db", str(tmp_path / "j.db")]) == 2
     assert "--insecure" in capsys.readouterr().err
+
+
+def test_docs_lists_and_prints_the_pages_shipped(capsys):
+    assert main(["docs"]) == 0
+    listing = capsys.readouterr().out
+    assert "formats" in listing and "service" in listing
+    assert main(["docs", "FORMATS"]) == 0
+    assert capsys.readouterr().out.startswith("# posecal formats and conventions")
+    assert main(["docs", "nope"]) == 2 and "formats" in capsys.readouterr().err

@@ -224,3 +224,10 @@ def test_an_unreliable_pinhole_rig_is_written_and_exits_1(tmp_path, tracks, caps
     assert main(["selfcal", str(write(tmp_path, as_doc(tracks), "t2.json")), "--out", str(good),
                  "--image-size", "640,480"]) == 0
     assert json.loads(good.read_text())["reliable"] is True
+
+
+def test_rotations_also_as_rotation_vectors(tmp_path, tracks):
+    out = tmp_path / "result.json"
+    assert main(["selfcal", str(write(tmp_path, as_doc(tracks))), "--out", str(out)]) == 0
+    cam = json.loads(out.read_text())["cameras"]["right"]
+    assert np.allclose(Rotation.from_rotvec(cam["rotvec"]).as_matrix(), cam["rotation"], atol=1e-9)

@@ -11,13 +11,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 __all__ = ["CliError", "main", "positive_int"]
 
 # Modules that provide sub-commands, imported lazily so that ``posecal synth``
 # never pays for importing the web stack.
-_COMMANDS = ("synth", "estimate", "refine", "model", "selfcal", "capture", "serve", "demo")
+_COMMANDS = ("synth", "estimate", "refine", "model", "selfcal", "capture", "serve", "demo", "docs")
 
 
 class CliError(Exception):
@@ -84,3 +85,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # the reader went away (`posecal docs | head`): not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0

@@ -170,6 +170,7 @@ def result_to_json(result, cameras: list[str]) -> dict:
         "cameras": {
             name: {
                 "rotation": result.rotations[c].tolist(),
+                "rotvec": Rotation.from_matrix(result.rotations[c]).as_rotvec().tolist(),
                 "euler_xyz_deg": euler[c].tolist(),
                 "scale": float(result.scales[c]),
             }
@@ -390,7 +391,9 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
                reliable=not _fit_notes(pin, tracks))
     cams = {}
     for c, name in enumerate(cameras[1:], 1):
-        cams[name] = {"rotation": pin.rotations[c].tolist(), "euler_xyz_deg": euler[c].tolist(),
+        cams[name] = {"rotation": pin.rotations[c].tolist(),
+                      "rotvec": Rotation.from_matrix(pin.rotations[c]).as_rotvec().tolist(),
+                      "euler_xyz_deg": euler[c].tolist(),
                       "scale": float(pin.scales[c]), "focal_px": float(pin.focal_px[c]),
                       "centre_m": (pin.centres[c] * k).tolist()}
     doc["cameras"] = cams
