@@ -236,14 +236,21 @@ def joints_from_states(states: list[np.ndarray]) -> np.ndarray:
     return out
 
 
+def part_points(joints: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+    """The points that place each part, from 13 joints (2D or 3D): the torso's left and right
+    shoulder and hip, a limb's (and the head's) proximal and distal points."""
+    j = {name: joints[k] for name, k in _J.items()}
+    points = {"neck": 0.5 * (j["left_shoulder"] + j["right_shoulder"]), **j}
+    out = [(j["left_shoulder"], j["right_shoulder"], j["left_hip"], j["right_hip"])]
+    for part in PARTS_2D[1:]:
+        out.append((points[_ATTACH.get(part.name) or _proximal_joint(part)], j[part.distal]))
+    return out
+
+
 def states_from_joints(joints: np.ndarray, height: float) -> list[np.ndarray]:
     """Each part's state from 13 joints (the inverse of :func:`joints_from_states`)."""
-    j = {name: joints[k] for name, k in _J.items()}
-    states = [torso_state(j["left_shoulder"], j["right_shoulder"], j["left_hip"], j["right_hip"], height)]
-    points = {"neck": 0.5 * (j["left_shoulder"] + j["right_shoulder"]), **j}
-    for part in PARTS_2D[1:]:
-        states.append(limb_state(points[_ATTACH.get(part.name) or _proximal_joint(part)], j[part.distal], height))
-    return states
+    torso, *limbs = part_points(joints)
+    return [torso_state(*torso, height)] + [limb_state(*ends, height) for ends in limbs]
 
 
 def torso_state(ls: np.ndarray, rs: np.ndarray, lh: np.ndarray, rh: np.ndarray, height: float) -> np.ndarray:

@@ -34,8 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from .joints import JOINT_INDEX, N_JOINTS
 from .pinhole import PinholeCameras, project
-from .mnbp import (_ATTACH, _INDEX, PARTS_2D, MNBPConfig, SilhouetteView, _Beliefs, _proximal_joint, anneal,
-                   image_height, limb_state, torso_state)
+from .mnbp import (_ATTACH, _INDEX, PARTS_2D, MNBPConfig, SilhouetteView, _Beliefs, anneal, image_height,
+                   limb_state, part_points, torso_state)
 
 __all__ = ["MNBP3DConfig", "Posture3D", "estimate_posture3d", "joints_from_states3d", "part_lengths",
            "posture_sequence3d", "states_from_joints3d"]
@@ -50,14 +50,15 @@ class MNBP3DConfig:
 
     ``mnbp`` holds the shared settings (particles, iterations, annealing,
     steps); the 3D round starts near its answer (round one's 3D joints), so
-    it runs fewer iterations with smaller first steps than the 2D round.
+    it runs fewer iterations with smaller first steps than the 2D round. The
+    torso is held as in the 2D round (``mnbp.torso_prior_sigma``, 0.003 of the
+    stature): at the truth with true cameras a free torso (0.02) drifted 0.03
+    of the stature, a held one 0.01.
     """
 
     mnbp: MNBPConfig = MNBPConfig(n_iterations=4, joint_sigma=(0.04, 0.012), step_position=(0.015, 0.004),
                                   step_angle_deg=(12.0, 3.0), step_length=(0.05, 0.02), explore=0.25,
                                   explore_deg=45.0, prior_sigma=0.1)
-    torso_prior_sigma: float = 0.003  # held, as in the 2D round: its outline is too crude to place it (at the
-    # truth with true cameras, a free torso (0.02) drifted 0.03 of the stature, a held one 0.01)
     length_tolerance: float = 0.15  # a limb's length within this of the person's own
 
 
@@ -71,12 +72,7 @@ class Posture3D:
 
 def states_from_joints3d(joints: np.ndarray) -> list[np.ndarray]:
     """Each part's 3D state from 13 joints (13, 3): the torso's four points, a limb's two."""
-    j = {name: joints[k] for name, k in _J.items()}
-    points = {"neck": 0.5 * (j["left_shoulder"] + j["right_shoulder"]), **j}
-    states = [np.concatenate([j[n] for n in _TORSO])]
-    for part in PARTS_2D[1:]:
-        states.append(np.concatenate([points[_ATTACH.get(part.name) or _proximal_joint(part)], j[part.distal]]))
-    return states
+    return [np.concatenate(points) for points in part_points(joints)]
 
 
 def joints_from_states3d(states: list[np.ndarray]) -> np.ndarray:
@@ -159,7 +155,7 @@ def _to_view(i: int, x: np.ndarray, camera: PinholeCameras, origin: np.ndarray, 
 
 def _prior_energy3d(i: int, x: np.ndarray, centre: np.ndarray, stature: float, config: MNBP3DConfig) -> np.ndarray:
     """Unary prior: mean squared distance of the part's points from the start's, over 2 sigma^2."""
-    sigma = (config.torso_prior_sigma if i == 0 else config.mnbp.prior_sigma) * stature
+    sigma = (config.mnbp.torso_prior_sigma if i == 0 else config.mnbp.prior_sigma) * stature
     d = ((x - centre[None]).reshape(len(x), -1, 3) ** 2).sum(-1).mean(-1)
     return 0.5 * d / sigma ** 2
 

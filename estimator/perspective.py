@@ -33,6 +33,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from ._selfcal_core import triangulate
+from .pinhole import PinholeCameras
 
 __all__ = ["PerspectiveConfig", "PerspectiveRig", "perspective_refine"]
 
@@ -97,6 +98,8 @@ class PerspectiveRig:
         (about its relative error; Laplace approximation at the optimum, image
         noise = the rms reprojection error, the focal prior included); None
         when the focal lengths were given.
+    principal_px : ndarray of shape (C, 2) or None
+        The principal points the cameras were adjusted with.
     """
 
     rotations: np.ndarray
@@ -106,6 +109,12 @@ class PerspectiveRig:
     rmse_px: float
     scales: np.ndarray
     focal_log_std: np.ndarray | None = None
+    principal_px: np.ndarray | None = None
+
+    def cameras(self, scale: float = 1.0) -> PinholeCameras:
+        """These cameras as matrices (:class:`estimator.pinhole.PinholeCameras`), their centres
+        times ``scale`` (e.g. metres per unit)."""
+        return PinholeCameras.from_centres(self.focal_px, self.principal_px, self.rotations, self.centres * scale)
 
 
 def _project(x: np.ndarray, rotvec: np.ndarray, centre: np.ndarray, focal: np.ndarray,
@@ -144,25 +153,11 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     observed = np.all(np.isfinite(y), axis=-1)
     f0 = _per_camera(config.focal_px, (n_cam,), "focal_px",
                      config.focal_start * np.asarray(image_sizes, float)[:, 0])
-    # Start: each camera's pixels per unit s_c (camera 0: 1), the walker at depth f_0 in camera 0
-    # (1 unit = 1 pixel of camera 0 at the walker), centred where camera 0 sees its centroid.
-    count = observed.sum(axis=2)[..., None]  # (C, T, 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        centroid = np.where(observed[..., None], y, 0.0).sum(axis=2) / count  # (C, T, 2), NaN where none
-    filled = np.where(np.isfinite(centroid), centroid, np.nanmean(centroid, axis=1, keepdims=True))
-    depth0 = f0[0]
-    ray0 = np.concatenate([(filled[0] - principal[0]) / f0[0], np.ones((t, 1))], axis=1) * depth0  # (T, 3)
-    # The body about its centroid through the scaled-orthographic cameras, placed on camera 0's ray.
-    x0 = ray0[:, None, :] + triangulate(y, observed, rotations @ rotations[0].T, scales, filled)
-    walker = x0.reshape(-1, 3).mean(axis=0)
-    centres = np.zeros((n_cam, 3))
-    for c in range(1, n_cam):
-        d = f0[c] / scales[c]  # depth at which camera c sees 1 unit as s_c pixels
-        p_cam = np.append((np.nanmean(filled[c], axis=0) - principal[c]) / f0[c], 1.0) * d
-        centres[c] = walker - rotations[c].T @ p_cam
-    focal = f0
     if initial is not None:
         rotations, centres, x0, focal = initial.rotations, initial.centres, initial.joints3d, initial.focal_px
+    else:
+        centres, x0 = _start(y, observed, rotations, scales, f0, principal)
+        focal = f0
     ln = np.asarray(links, int).reshape(-1, 2)
     lengths0 = np.nanmedian(np.linalg.norm(x0[:, ln[:, 0]] - x0[:, ln[:, 1]], axis=-1), axis=0)
     free_focal = config.focal_px is None
@@ -201,7 +196,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     depth = np.einsum("ca,ca->c", rots[:, 2], x.reshape(-1, 3).mean(axis=0)[None] - ce)  # walker's mean depth
     size = fo / depth
     log_std = _focal_log_std(sol.jac, rmse / np.sqrt(2.0), o_f, n_f) if free_focal else None
-    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std)
+    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal)
 
 
 def _per_camera(value, shape: tuple[int, ...], name: str, default: np.ndarray) -> np.ndarray:
@@ -227,6 +222,28 @@ def _focal_log_std(jac, sigma_px: float, start: int, n: int) -> np.ndarray:
     rhs[start + np.arange(n), np.arange(n)] = 1.0
     cov = scipy.sparse.linalg.splu(h).solve(rhs)[start:start + n]
     return sigma_px * np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+def _start(y: np.ndarray, observed: np.ndarray, rotations: np.ndarray, scales: np.ndarray, f0: np.ndarray,
+           principal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres (C, 3) and joints (T, J, 3) from the scaled-orthographic rig: each camera's
+    pixels per unit s_c (camera 0: 1), the walker at depth f_0 in camera 0 (1 unit = 1 pixel of
+    camera 0 at the walker), centred where camera 0 sees its centroid."""
+    n_cam, t = y.shape[:2]
+    count = observed.sum(axis=2)[..., None]  # (C, T, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centroid = np.where(observed[..., None], y, 0.0).sum(axis=2) / count  # (C, T, 2), NaN where none
+    filled = np.where(np.isfinite(centroid), centroid, np.nanmean(centroid, axis=1, keepdims=True))
+    ray0 = np.concatenate([(filled[0] - principal[0]) / f0[0], np.ones((t, 1))], axis=1) * f0[0]  # (T, 3)
+    # The body about its centroid through the scaled-orthographic cameras, placed on camera 0's ray.
+    x0 = ray0[:, None, :] + triangulate(y, observed, rotations @ rotations[0].T, scales, filled)
+    walker = x0.reshape(-1, 3).mean(axis=0)
+    centres = np.zeros((n_cam, 3))
+    for c in range(1, n_cam):
+        d = f0[c] / scales[c]  # depth at which camera c sees 1 unit as s_c pixels
+        p_cam = np.append((np.nanmean(filled[c], axis=0) - principal[c]) / f0[c], 1.0) * d
+        centres[c] = walker - rotations[c].T @ p_cam
+    return centres, x0
 
 
 def _sparsity(n_cam, t, j, ln, obs_c, obs_t, obs_j, free_focal, o_c, o_f, o_x, o_l):

@@ -34,7 +34,7 @@ from .mnbp import MNBPConfig, measure_postures, posture_sequence
 from .mnbp3d import MNBP3DConfig, posture_sequence3d
 from .pipeline import WalkEstimate, concat_estimates, take_frames
 from .perspective import PerspectiveConfig, PerspectiveRig, perspective_refine
-from .pinhole import PinholeCameras, project
+from .pinhole import project
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
@@ -467,7 +467,7 @@ class RigAccumulator:
     camera moved.
     """
 
-    config: RigConfig = field(default_factory=lambda: RigConfig(consecutive=False))
+    config: RigConfig = field(default_factory=RigConfig)  # calibrated with consecutive=False, whatever it says
     posture: MNBPConfig = field(default_factory=MNBPConfig)
     frames_per_window: int = 2
     _parts: list[WalkEstimate] = field(default_factory=list, repr=False)
@@ -526,7 +526,7 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
     stature = config.height_m / stature_scale(pinhole.joints3d, config.height_m)
     changes = []
     for r in range(1, config.rounds):
-        cams = PinholeCameras.from_centres(pinhole.focal_px, sizes / 2, pinhole.rotations, pinhole.centres)
+        cams = pinhole.cameras()
         joints3d, _ = posture_sequence3d(sils, boxes, cams, pinhole.joints3d, stature=stature,
                                          config=config.round3d, seed=1000 * r)
         tracks = project(cams, joints3d)

@@ -31,9 +31,11 @@ from estimator.pinhole import PinholeCameras
 
 __all__ = ["TRC_MARKERS", "write_calibration_toml", "write_trc"]
 
-TRC_MARKERS: tuple[str, ...] = ("Head", "LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist",
-                                "LHip", "RHip", "LKnee", "RKnee", "LAnkle", "RAnkle")
-"""The 13 joints' marker names in the TRC, Pose2Sim's spelling, in DESIGN.md order."""
+TRC_MARKERS: tuple[str, ...] = tuple(
+    {"left": "L", "right": "R"}.get(name.partition("_")[0], "") + name.rpartition("_")[2].title()
+    for name in JOINT_NAMES)
+"""The 13 joints' marker names in the TRC, in :data:`estimator.joints.JOINT_NAMES` order, Pose2Sim's
+spelling: ``Head``, ``LShoulder``, ``RShoulder``, ... ``RAnkle``."""
 
 
 def _num(v: float) -> str:

@@ -30,10 +30,16 @@ from estimator.sequence import read_sequence
 
 from .limits import UploadLimits
 
-__all__ = ["VIDEO_EXTENSIONS", "StagedInput", "UploadError", "stage_upload"]
+__all__ = ["VIDEO_EXTENSIONS", "StagedInput", "UploadError", "list_videos", "stage_upload"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v")
 _MAX_ZIP_MEMBERS = 200_000
+
+
+def list_videos(folder: str | Path) -> dict[str, Path]:
+    """The videos of a folder of one video per camera: camera name (the file's stem) -> path, sorted."""
+    return {p.stem: p for p in sorted(Path(folder).iterdir())
+            if p.suffix.lower() in VIDEO_EXTENSIONS and p.is_file()}
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # camera names (as on the wire)
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHUNK = 1 << 20

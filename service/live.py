@@ -391,7 +391,7 @@ class LiveService:
             self._threads.append(threading.Thread(target=self._draw, name="live-rerun", daemon=True))
         # Newest window per rig whose priors are still to be made (an older one is superseded).
         self._feedback_todo: dict[str, tuple] = {}
-        self._feedback_ready = threading.Condition(self._lock)
+        self._todo_ready = threading.Condition(self._lock)  # feedback and live-rig work waiting
         if self.feedback_pool is not None:
             self._threads.append(threading.Thread(target=self._feedback_loop, name="live-feedback",
                                                   daemon=True))
@@ -449,6 +449,7 @@ class LiveService:
     def _forget_rig(self, rig: RigState) -> None:
         del self._rigs[rig.name]
         self._feedback_todo.pop(rig.name, None)
+        self._rig_todo.pop(rig.name, None)  # a rig of the same name that comes back starts afresh
         self._retired += [rig.publisher, *rig.feedback.values()]
         self.metrics.forget_rig(rig.name, list(rig.cameras))
         log.info("rig %s forgotten (silent %.0f s)", rig.name, rig.silent_for(time.monotonic()))
@@ -689,7 +690,7 @@ class LiveService:
                 if w.rig in self._feedback_todo:
                     self.metrics.feedback_superseded.labels(w.rig).inc()
                 self._feedback_todo[w.rig] = (w, est, tracks, sizes)
-                self._feedback_ready.notify_all()  # the rig loop waits on it too
+                self._todo_ready.notify_all()  # both loops wait on it
         if self.rig_pool is not None and est is not None:
             moves = sum(len(sm.get("changes", [])) for sm in smoothed.values())
             with self._lock:
@@ -697,7 +698,7 @@ class LiveService:
                     rig.moves_seen, rig.rig_acc, rig.calibration = moves, None, None
                     rig.rig_generation += 1
                 self._rig_todo[w.rig] = (w, est)  # supersedes an older window not yet measured
-                self._feedback_ready.notify_all()
+                self._todo_ready.notify_all()
 
     def _feedback_loop(self) -> None:
         """Make and publish priors, newest window of each rig first; never blocks estimation."""
@@ -715,7 +716,7 @@ class LiveService:
         while True:
             with self._lock:
                 while not todo and not self._stop.is_set():
-                    self._feedback_ready.wait(timeout=0.1)
+                    self._todo_ready.wait(timeout=0.1)
                 if self._stop.is_set():
                     return
                 rig = next(iter(todo))

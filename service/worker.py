@@ -46,8 +46,7 @@ from estimator.rig import RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
-from .intake import VIDEO_EXTENSIONS, StagedInput, UploadError, stage_upload
-from .intake import _find_sequence_root  # noqa: F401  (tests and older callers import it from here)
+from .intake import UploadError, list_videos, stage_upload
 from .jobs import JobGone, JobStore
 
 __all__ = [
@@ -522,7 +521,7 @@ def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: S
     own segmentations are the first pass (``capture.refine.refine_videos``)."""
     from capture.refine import refine_videos
 
-    videos = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_EXTENSIONS}
+    videos = list_videos(folder)
     return refine_videos(videos, model, renderer=_get_renderer(), warmup=warmup, fps=fps,
                          raw=segmentations, estimate=estimate)
 
@@ -570,7 +569,7 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     max_frames = int(options.get("max_frames") or 0) or None
     header_frames = options.get("header_frames") or {}
     min_frames = int((options.get("windows") or {}).get("length") or 1)
-    videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
+    videos = list(list_videos(folder).values())
     settings = SegmentSettings(warmup_frames=warmup)
     segmentations, sizes, decoding, fps = {}, {}, {}, 0.0
     for i, path in enumerate(videos):

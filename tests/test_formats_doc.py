@@ -181,7 +181,7 @@ def test_openapi_does_not_point_outside_the_repo():
 
 
 def test_upload_error_points_to_the_formats_doc(tmp_path):
-    from service.worker import UploadError, _find_sequence_root
+    from service.intake import UploadError, _find_sequence_root
 
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()

@@ -113,12 +113,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _videos(path: str) -> list[Path]:
     """The videos of a folder of one video per camera ([] for a sequence folder or anything else)."""
-    from service.intake import VIDEO_EXTENSIONS
+    from service.intake import list_videos
 
     folder = Path(path)
     if not folder.is_dir() or (folder / "rig.json").exists():
         return []
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS)
+    return list(list_videos(folder).values())
 
 
 def _video_tracks(args: argparse.Namespace, videos: list[Path], progress):
@@ -130,14 +130,14 @@ def _video_tracks(args: argparse.Namespace, videos: list[Path], progress):
     from estimator.pipeline import pad_tracks
     from service.worker import _segment_videos
 
-    counts = []
+    counts = {}
     for path in videos:
         with VideoFileSource(path) as source:
-            counts.append(source.frame_count() or 0)
-    warmup = args.warmup or default_warmup(min(counts))
-    segmentations, sizes, fps, decoding = _segment_videos(
+            counts[path.stem] = source.frame_count() or 0
+    warmup = args.warmup or default_warmup(min(counts.values()))
+    segmentations, sizes, fps, decoding = _segment_videos(  # the header counts read once, here
         Path(args.sequence), warmup=warmup, report=lambda f, _: progress(f),
-        options={"windows": {"length": args.window}})
+        options={"windows": {"length": args.window}, "header_frames": counts})
     tracks = pad_tracks({c: track_from_segmentations(s) for c, s in segmentations.items()})
     frames = max(len(t.silhouettes) for t in tracks.values())
     size = next(iter(sizes.values()))

@@ -41,14 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _videos(folder: str) -> dict[str, str]:
-    from service.worker import VIDEO_EXTENSIONS  # what a job accepts, the CLI accepts
+    from service.intake import list_videos  # what a job accepts, the CLI accepts
 
-    out = {}
-    for name in sorted(os.listdir(folder)):
-        stem, ext = os.path.splitext(name)
-        if ext.lower() in VIDEO_EXTENSIONS and os.path.isfile(os.path.join(folder, name)):
-            out[stem] = os.path.join(folder, name)
-    return out
+    return {cam: str(path) for cam, path in list_videos(folder).items()}
 
 
 def _has_png_cameras(folder: str) -> bool:

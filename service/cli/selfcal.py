@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 from estimator.keypoints import SKELETONS
 from estimator.perspective import PerspectiveConfig, perspective_refine
-from estimator.pinhole import PinholeCameras, floor_frame, triangulate
+from estimator.pinhole import floor_frame, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 
@@ -235,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
     if size is not None:
         out, pin, k = _with_pinhole(out, result, tracks[:, used], cameras, sizes, rig, pinhole_config)
         if exports:
-            _export(args, pin, k, tracks, keypoints, cameras, sizes, rig, pinhole_config)
+            _export(args, pin, k, tracks, keypoints, cameras, sizes, rig)
     for note in out["notes"]:
         print(f"posecal selfcal: warning: {note}", file=sys.stderr)
     for frame, index in zip(out["frames"], used):  # indices into the input's frames
@@ -288,11 +288,10 @@ def _calibration_frames(t: int, max_frames: int | None) -> np.ndarray:
 
 
 def _export(args: argparse.Namespace, pin, k: float, tracks: np.ndarray, keypoints: Keypoints | None,
-            cameras: list[str], sizes: np.ndarray, rig: RigConfig, config: PerspectiveConfig) -> None:
+            cameras: list[str], sizes: np.ndarray, rig: RigConfig) -> None:
     """Write --export-calibration and --export-trc: the pinhole rig in metres in a z-up world
     (:func:`estimator.pinhole.floor_frame`), every input frame triangulated."""
-    principal = sizes / 2 if config.principal_px is None else np.asarray(config.principal_px, float)
-    cams = PinholeCameras.from_centres(pin.focal_px, principal, pin.rotations, pin.centres * k)
+    cams = pin.cameras(k)
     weights = keypoints.confidence if keypoints is not None else None
     joints = triangulate(cams, tracks, weights)
     try:
@@ -377,7 +376,9 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
     k = stature_scale(pin.joints3d, rig.height_m)
     if not np.isfinite(k):
         raise CliError("the pinhole adjustment gave a body without length")
-    euler = Rotation.from_matrix(pin.rotations).as_euler("xyz", degrees=True)
+    rot = Rotation.from_matrix(pin.rotations)
+    euler, rotvec = rot.as_euler("xyz", degrees=True), rot.as_rotvec()
+    fit = _fit_notes(pin, tracks)
     doc = dict(doc, method=result.method + "+pinhole",
                joints3d_frame=f"camera {cameras[0]!r}: x right, y down, z forward (its optical axis); metres at a "
                               f"stature of {rig.height_m} m; origin at that camera's centre",
@@ -387,12 +388,12 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
                                            "scale": doc["cameras"][name]["scale"]} for name in cameras[1:]},
                reference_focal_px=float(pin.focal_px[0]),
                intrinsics="given" if config.focal_px is not None else "estimated",
-               notes=doc["notes"] + _focal_notes(pin, cameras) + _fit_notes(pin, tracks),
-               reliable=not _fit_notes(pin, tracks))
+               notes=doc["notes"] + _focal_notes(pin, cameras) + fit,
+               reliable=not fit)
     cams = {}
     for c, name in enumerate(cameras[1:], 1):
         cams[name] = {"rotation": pin.rotations[c].tolist(),
-                      "rotvec": Rotation.from_matrix(pin.rotations[c]).as_rotvec().tolist(),
+                      "rotvec": rotvec[c].tolist(),
                       "euler_xyz_deg": euler[c].tolist(),
                       "scale": float(pin.scales[c]), "focal_px": float(pin.focal_px[c]),
                       "centre_m": (pin.centres[c] * k).tolist()}
