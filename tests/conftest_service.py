@@ -55,6 +55,15 @@ class ServerThread(BackgroundServer):
         super().__init__(settings, start_timeout=60.0)
         self.client = httpx.Client(base_url=self.url, timeout=30.0)
 
+    def rig(self, name: str) -> dict:
+        """``GET /v1/rigs/{name}``, or ``{}`` while the service has not heard of the rig (404):
+        a poll that starts before the first silhouette arrives waits instead of failing."""
+        r = self.client.get(f"/v1/rigs/{name}")
+        if r.status_code == 404:
+            return {}
+        r.raise_for_status()
+        return r.json()
+
     def stop(self) -> None:
         self.client.close()
         super().stop()

@@ -133,7 +133,7 @@ def test_a_dead_camera_shows_its_age_and_is_stale(tmp_path, crops):
         streamer = threading.Thread(target=stream)
         streamer.start()
         try:
-            rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["cameras"]["c1"]["stale"]
+            rig = wait_for(lambda: (r := srv.rig(RIG)) and r["cameras"].get("c1", {}).get("stale")
                            and r["viewpoints"].get("c1") and r["latest_seq"]
                            and any(e["window"]["first_index"] > dies + 2 * FPS for e in _estimates_of(srv)) and r,
                            timeout=20, what="c1 stale, with a viewpoint, and windows after it died")

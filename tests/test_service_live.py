@@ -200,7 +200,7 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
         session.put(f"posecal/{RIG}/c0/silhouette", b"not a posecal message")
         time.sleep(0.5)  # let the agents' sessions find the service
         stats = _run_agents(endpoint, rendered)
-        rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["windows"]["estimated"] >= 3 and r,
+        rig = wait_for(lambda: (r := srv.rig(RIG)) and r["windows"]["estimated"] >= 3 and r,
                        timeout=20, what="three estimated windows")
         sent = EMPTY + WALK - WARMUP
         assert {c: v["frames"] for c, v in rig["cameras"].items()} == {"c0": sent, "c1": sent}
@@ -277,7 +277,7 @@ def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, r
                              feedback=False, live_rig=False)
     with ServerThread(settings) as srv:
         stats = _run_agents(settings.zenoh_listen[0], cameras, quality_every=1)
-        rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["windows"]["estimated"] >= 3 and r,
+        rig = wait_for(lambda: (r := srv.rig(RIG)) and r["windows"]["estimated"] >= 3 and r,
                        timeout=20, what="three estimated windows")
         est = srv.client.get(f"/v1/rigs/{RIG}/estimates", params={"since": 0}).json()["estimates"]
     assert rig["cameras"]["c0"]["n_candidates"] == 2 and rig["cameras"]["c1"]["n_candidates"] == 1
@@ -306,7 +306,7 @@ def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, ren
     with ServerThread(settings) as srv:
         assert srv.client.get(f"/v1/rigs/{RIG}/calibration").status_code == 404  # no such rig yet
         _run_agents(settings.zenoh_listen[0], rendered)
-        rig = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}").json())["windows"]["estimated"] >= 3 and r,
+        rig = wait_for(lambda: (r := srv.rig(RIG)) and r["windows"]["estimated"] >= 3 and r,
                        timeout=20, what="three estimated windows")
         # Windows that come while one is measured supersede each other: at least two are measured.
         cal = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}/calibration")).status_code == 200

@@ -202,7 +202,7 @@ def test_a_flood_of_forged_rigs_is_capped_and_expires(tmp_path, crops):
         rigs = wait_for(lambda: len(r := srv.client.get("/v1/rigs").json()["rigs"]) == 8 and r, timeout=10,
                         what="the rigs to fill up")
         assert RIG in [r["rig"] for r in rigs]
-        wait_for(lambda: len(srv.client.get(f"/v1/rigs/{RIG}").json()["cameras"]) == 4, timeout=10,
+        wait_for(lambda: len(srv.rig(RIG).get("cameras", ())) == 4, timeout=10,
                  what="the real rig's cameras to fill up")
         real.join(timeout=30)
         estimates = _windows_through(srv, N_FRAMES - 1)
