@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
-packages=(libegl1 libegl-mesa0 libgl1-mesa-dri)
+packages=(libegl1 libegl-mesa0 libgl1-mesa-dri openssl)  # openssl: deploy/make-lab-ca.sh (tests too)
 if command -v dpkg >/dev/null 2>&1 && ! dpkg -s "${packages[@]}" >/dev/null 2>&1; then
   sudo=""
   if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
@@ -19,5 +19,5 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check -U pip
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,eval]"
 echo "posecal is set up in $(pwd)/.venv"

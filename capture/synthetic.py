@@ -30,7 +30,7 @@ from estimator.synth import place_cameras, walk
 from .scene import textured_background
 from .sources import Frame, FrameSource, SourceError, parse_options
 
-__all__ = ["SyntheticSource", "SyntheticSpec"]
+__all__ = ["SyntheticSource", "SyntheticSpec", "composite", "write_recording"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,41 @@ class SyntheticSpec:
 
 
 _NOISE_BANK = 7
+
+
+def composite(background: np.ndarray, mask: np.ndarray, clothing: np.ndarray, contrast: float,
+              noise: np.ndarray) -> np.ndarray:
+    """The walker (``mask`` > 0) in ``clothing`` colour blended over ``background`` (float32
+    BGR) by ``contrast``, plus ``noise``: the uint8 frame."""
+    image = background.copy()
+    inside = mask > 0
+    image[inside] = (1 - contrast) * image[inside] + np.float32(contrast) * clothing
+    image += noise
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+def write_recording(path: str, silhouettes: list[np.ndarray | None], fps: float, *, seed: int = 0,
+                    empty: int = 0, contrast: float = 0.8, noise: float = 3.0) -> None:
+    """One camera's recording as a video (MJPG in .avi, else mp4v): full-frame silhouettes
+    (``estimator.synth``) drawn over a textured scene with sensor noise; the walker is out
+    of view in the first ``empty`` frames (the background is learned from them)."""
+    import cv2
+
+    h, w = next(s for s in silhouettes if s is not None).shape
+    rng = np.random.default_rng(seed)
+    background = textured_background(w, h, rng, saturation=0.35)
+    clothing = rng.uniform(20, 235, 3).astype(np.float32)
+    bank = rng.normal(0.0, noise, (_NOISE_BANK, h, w, 3)).astype(np.float32)
+    code = "MJPG" if str(path).endswith(".avi") else "mp4v"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*code), fps, (w, h))
+    if not writer.isOpened():
+        raise OSError(f"cannot write video {path} with {code}")
+    try:
+        for k, sil in enumerate(silhouettes):
+            mask = np.zeros((h, w), np.uint8) if sil is None or k < empty else sil
+            writer.write(composite(background, mask, clothing, contrast, bank[k % _NOISE_BANK]))
+    finally:
+        writer.release()
 _ALIASES = {"pass": "pass_frames", "az": "azimuth", "el": "elevation"}
 
 
@@ -152,11 +187,9 @@ class SyntheticSource(FrameSource):
             if self._renderer is None:
                 self._renderer = Renderer(self.shape, image_size=self.size)
             mask, _ = self._renderer.render(truth["joints"], self.camera)
-        image = self._background * np.float32(self.gain(index))
-        inside = mask > 0
-        image[inside] = (1 - spec.contrast) * image[inside] + np.float32(spec.contrast) * self._clothing
-        image += self._noise[(index * 7 + int(spec.azimuth)) % _NOISE_BANK]
-        return Frame(np.clip(image, 0, 255).astype(np.uint8), index, 0, mask)
+        image = composite(self._background * np.float32(self.gain(index)), mask, self._clothing, spec.contrast,
+                          self._noise[(index * 7 + int(spec.azimuth)) % _NOISE_BANK])
+        return Frame(image, index, 0, mask)
 
     def __iter__(self) -> Iterator[Frame]:
         index = 0

@@ -13,6 +13,14 @@ service, the agents and the router): user/password authentication
 (``tls/HOST:PORT`` endpoints; ``transport/link/tls``: the lab CA, this host's
 certificate and key, mutual TLS). Key names are Zenoh 1.x's
 (``DEFAULT_CONFIG.json5``; zenoh.io/docs/manual/tls, .../user-password).
+
+Access rules (``POSECAL_ZENOH_AGENTS``, :func:`access_rules`): on the node that
+the agents connect to (the service, or a router), Zenoh's ``access_control``
+with ``default_permission: deny``, generated from the rig's cameras: an agent may
+put only its own camera's silhouettes and subscribe only to its own camera's
+priors; names in ``POSECAL_ZENOH_TRUSTED`` (the service behind a router) may do
+everything; anyone else nothing. Zenoh enforces them on that node, for messages
+crossing its links (zenoh.io/docs/manual/access-control).
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -34,6 +43,7 @@ __all__ = [
     "DEFAULT_ENDPOINT",
     "LOOPBACK_ANY",
     "ZenohAccess",
+    "access_rules",
     "add_zenoh_arguments",
     "build_config",
     "config_from_args",
@@ -45,6 +55,10 @@ MODES = ("peer", "client", "router")
 _RETRY = {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2}
 USRPWD = "transport/auth/usrpwd"
 TLS = "transport/link/tls"
+_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # rig, camera and agent names (capture.wire's)
+# Every message kind Zenoh 1.x's access control knows (what a trusted name may send and receive).
+ACL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
+                "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
 
 
 class ZenohAccess(BaseSettings):
@@ -66,6 +80,13 @@ class ZenohAccess(BaseSettings):
                                          "tls/ listen endpoints, and presented when connecting with mTLS")
     tls_private_key: Path | None = Field(None, description="its private key (PEM)")
     mtls: bool = Field(False, description="mutual TLS: both sides present a certificate signed by the CA")
+    agents: dict[str, str] = Field(default_factory=dict, description="access rules on the node agents "
+                                   "connect to: agent name -> 'rig/camera' (JSON). The name is the "
+                                   "agent's certificate CN under mtls and its user name with a "
+                                   "dictionary file (both when both are set); it may publish only "
+                                   "that camera's silhouettes and read only its priors")
+    trusted: list[str] = Field(default_factory=list, description="names (CN / user, as for agents) that "
+                               "may do everything: the service, when the rules are on a router")
 
     @model_validator(mode="after")
     def _check(self) -> "ZenohAccess":
@@ -77,6 +98,19 @@ class ZenohAccess(BaseSettings):
             raise ValueError("a TLS certificate needs its private key, and a key its certificate")
         if self.mtls and (self.tls_certificate is None or self.tls_root_ca is None):
             raise ValueError("mutual TLS needs tls_root_ca, tls_certificate and tls_private_key")
+        if self.agents or self.trusted:
+            if not self.mtls and self.dictionary_file is None:
+                raise ValueError("zenoh access rules name agents by their certificate (mtls) or their "
+                                 "user name (dictionary_file): set one of them")
+            for name in (*self.agents, *self.trusted):
+                if not _NAME.match(name):
+                    raise ValueError(f"zenoh agent and trusted names must match {_NAME.pattern}, got {name!r}")
+            for name, place in self.agents.items():
+                rig, _, camera = place.partition("/")
+                if not (_NAME.match(rig) and _NAME.match(camera)):
+                    raise ValueError(f"zenoh agent {name!r}: give its camera as 'rig/camera', got {place!r}")
+            if both := set(self.agents) & set(self.trusted):
+                raise ValueError(f"zenoh names both an agent and trusted: {sorted(both)}")
         return self
 
     def secret(self) -> str | None:
@@ -105,7 +139,66 @@ class ZenohAccess(BaseSettings):
                         f"{TLS}/connect_certificate": cert, f"{TLS}/connect_private_key": key})
         if self.mtls:
             out[f"{TLS}/enable_mtls"] = True
+        if self.agents or self.trusted:
+            out["access_control"] = access_rules(self.agents, self.trusted, by_certificate=self.mtls,
+                                                 by_user=self.dictionary_file is not None)
         return out
+
+
+def access_rules(agents: dict[str, str], trusted: Sequence[str] = (), *, by_certificate: bool = True,
+                 by_user: bool = False) -> dict[str, object]:
+    """Zenoh 1.x ``access_control`` for a rig: deny by default; each agent may put its
+    camera's silhouettes and subscribe to its priors (and be sent those); trusted names
+    may do everything.
+
+    Parameters
+    ----------
+    agents : name -> ``"rig/camera"``; the name is a certificate CN (``by_certificate``)
+        and/or a user name (``by_user``; both must match when both are set).
+    trusted : names allowed every message both ways (the service behind a router).
+
+    The node enforcing them (the service, or a router) checks its links' messages:
+    ``ingress`` what arrives from the agent, ``egress`` what it sends to it. The
+    service's own subscription to every camera (``posecal/*/*/silhouette``) is sent to
+    the agents so that they publish at all; it tells them nothing else.
+    """
+    from .wire import feedback_key, silhouette_key
+
+    def subject(name: str) -> dict[str, object]:
+        out: dict[str, object] = {"id": name}
+        if by_certificate:
+            out["cert_common_names"] = [name]
+        if by_user:
+            out["usernames"] = [name]
+        if len(out) == 1:
+            raise ValueError("access rules need certificates (mtls) or user names to tell agents apart")
+        return out
+
+    def rule(rule_id: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> dict[str, object]:
+        return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": list(messages),
+                "key_exprs": list(keys)}
+
+    rules = [rule("hear-the-service", "egress", ["declare_subscriber"], [silhouette_key("*", "*")])]
+    subjects, policies = [], []
+    for name, place in sorted(agents.items()):
+        rig, _, camera = place.partition("/")
+        own, priors = silhouette_key(rig, camera), feedback_key(rig, camera)
+        rules += [rule(f"{name}-publish", "ingress", ["put"], [own]),
+                  rule(f"{name}-subscribe", "ingress", ["declare_subscriber"], [priors]),
+                  rule(f"{name}-receive", "egress", ["put"], [priors])]
+        subjects.append(subject(name))
+        policies.append({"id": f"agent-{name}", "subjects": [name],
+                         "rules": [f"{name}-publish", f"{name}-subscribe", f"{name}-receive",
+                                   "hear-the-service"]})
+    if trusted:
+        rules += [rule("everything-in", "ingress", ACL_MESSAGES, ["**"]),
+                  rule("everything-out", "egress", ACL_MESSAGES, ["**"])]
+        for name in sorted(trusted):
+            subjects.append(subject(name))
+        policies.append({"id": "trusted", "subjects": sorted(trusted),
+                         "rules": ["everything-in", "everything-out"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
 
 
 def _existing(path: Path | None, what: str) -> Path:
@@ -163,7 +256,8 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(
         "zenoh", "user/password authentication and TLS come from POSECAL_ZENOH_USER, "
         "POSECAL_ZENOH_PASSWORD_FILE, POSECAL_ZENOH_DICTIONARY_FILE, POSECAL_ZENOH_TLS_ROOT_CA, "
-        "POSECAL_ZENOH_TLS_CERTIFICATE, POSECAL_ZENOH_TLS_PRIVATE_KEY and POSECAL_ZENOH_MTLS "
+        "POSECAL_ZENOH_TLS_CERTIFICATE, POSECAL_ZENOH_TLS_PRIVATE_KEY and POSECAL_ZENOH_MTLS; access "
+        "rules on a listener from POSECAL_ZENOH_AGENTS and POSECAL_ZENOH_TRUSTED "
         "(docs/SERVICE.md, Access)")
     group.add_argument("--mode", choices=MODES, default="peer", help="session mode (default: peer)")
     group.add_argument("--connect", "-e", action="append", default=None, metavar="ENDPOINT",

@@ -29,22 +29,22 @@ import numpy as np
 __all__ = ["PhaseHMM", "cyclic_transitions", "phase_log_emission", "posterior", "viterbi"]
 
 
-def cyclic_transitions(n_states: int, probs: tuple[float, float, float, float]) -> np.ndarray:
+def cyclic_transitions(n_states: int, probs: tuple[float, ...]) -> np.ndarray:
     """Transition matrix of the cyclic feed-forward model, shape (p, p).
 
     Parameters
     ----------
     n_states : int
         Number of phases ``p``.
-    probs : (p_r, p_n, p_j, p_l)
-        Probabilities of staying and of moving 1, 2 or 3 states on; normalised
-        to sum to one.
+    probs : (p_r, p_n, p_j, p_l) or any tuple of two or more
+        Probabilities of staying and of moving 1, 2, 3, ... states on; normalised
+        to sum to one (the paper's model has the four).
     """
     probs = np.asarray(probs, dtype=float)
-    if probs.shape != (4,) or np.any(probs < 0) or probs.sum() <= 0:
-        raise ValueError(f"probs must be four non-negative numbers (p_r, p_n, p_j, p_l), got {probs}")
-    if n_states < 4:
-        raise ValueError(f"n_states must be at least 4, got {n_states}")
+    if probs.ndim != 1 or not 2 <= probs.size or np.any(probs < 0) or probs.sum() <= 0:
+        raise ValueError(f"probs must be two or more non-negative numbers (p_r, p_n, p_j, p_l, ...), got {probs}")
+    if n_states < max(4, probs.size):
+        raise ValueError(f"n_states must be at least 4 and at least len(probs), got {n_states}")
     probs = probs / probs.sum()
     A = np.zeros((n_states, n_states))
     i = np.arange(n_states)
@@ -180,13 +180,41 @@ class PhaseHMM:
     """
 
     n_states: int = 20
-    probs: tuple[float, float, float, float] = (0.1, 0.33, 0.32, 0.25)
+    probs: tuple[float, ...] = (0.1, 0.33, 0.32, 0.25)
     sigma: float = 0.075
     opposite_weight: float = 0.5
 
     def __post_init__(self) -> None:
         self.transmat_ = cyclic_transitions(self.n_states, self.probs)
         self.startprob_ = np.full(self.n_states, 1.0 / self.n_states)
+
+    def at_fps(self, fps: float, *, tuned_fps: float = 15.0) -> "PhaseHMM":
+        """The same walker at another frame rate (``probs`` hold per frame at ``tuned_fps``):
+        a 30 fps camera moves 0.86 states per frame on average, not 1.72."""
+        if not (np.isfinite(fps) and fps > 0):
+            raise ValueError(f"fps must be a positive number, got {fps}")
+        return self.scaled(tuned_fps / fps)
+
+    @property
+    def mean_advance(self) -> float:
+        """Expected states moved on per frame."""
+        p = np.asarray(self.probs, float)
+        return float((p * np.arange(len(p))).sum() / p.sum())
+
+    def scaled(self, factor: float) -> "PhaseHMM":
+        """Every step of ``probs`` times ``factor`` states, its mass split between the two
+        nearest whole steps: the mean advance per frame scales by ``factor``, the shape of
+        the step distribution is kept."""
+        if not (np.isfinite(factor) and factor > 0):
+            raise ValueError(f"factor must be a positive number, got {factor}")
+        steps = np.arange(len(self.probs)) * factor
+        lo = np.floor(steps).astype(int)
+        frac = steps - lo
+        probs = np.zeros(lo.max() + 2)
+        np.add.at(probs, lo, np.asarray(self.probs) * (1 - frac))
+        np.add.at(probs, lo + 1, np.asarray(self.probs) * frac)
+        probs = probs[:np.flatnonzero(probs > 1e-12).max() + 1]
+        return PhaseHMM(self.n_states, tuple(float(p) for p in probs), self.sigma, self.opposite_weight)
 
     def log_emission(self, observations: np.ndarray) -> np.ndarray:
         """(T, n_states) log-likelihoods of (T, c) phase observations (eq. 9)."""

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from .joints import N_JOINTS
 from .skeleton import FULL_JOINT_NAMES
 
-__all__ = ["Motion", "read_asf_amc", "read_bvh", "read_motion"]
+__all__ = ["Motion", "bvh_positions", "read_asf_amc", "read_bvh", "read_motion"]
 
 _INCH = 0.0254
 # Y-up recording frame -> Z-up posecal world (a proper rotation: +90 deg about x).
@@ -312,6 +312,24 @@ def read_bvh(path: str | os.PathLike, *, unit: float | None = None) -> Motion:
         Metres per file unit. By default it is chosen among metres, centimetres,
         inches and CMU's 1/0.45 inch so that the skeleton's height is plausible.
     """
+    joints, ends, frame_time = bvh_positions(path)
+    points: dict[str, np.ndarray] = {}
+    for name, pos in joints.items():
+        points.setdefault(_BVH_ALIASES.get(name.lower(), name.lower()), pos)
+    for name, pos in ends.items():
+        points.setdefault(f"{_BVH_ALIASES.get(name.lower(), name.lower())}_end", pos)
+    if "head_end" not in points and "head" in points:
+        points["head_end"] = points["head"]
+    if unit is None:
+        height = np.ptp(np.stack(list(points.values()), axis=1)[0] @ _Y_UP_TO_Z_UP.T, axis=0)[2]
+        candidates = np.array([1.0, 0.01, _INCH, _INCH / 0.45])
+        unit = float(candidates[np.argmin(np.abs(np.log(height * candidates / 1.7)))])
+    return _to_motion(points, 1.0 / frame_time, unit, os.path.basename(str(path)))
+
+
+def bvh_positions(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+    """Forward kinematics of a BVH file: each joint's position (T, 3) by its name in the file, each End
+    Site's by its joint's name, in the file's units and axes; and the frame time in seconds."""
     with open(path) as fh:
         tokens = fh.read().split()
     pos = 0
@@ -381,20 +399,13 @@ def read_bvh(path: str | os.PathLike, *, unit: float | None = None) -> Motion:
             glob_pos.append(glob_pos[p] + np.einsum("tij,tj->ti", glob_rot[p], translation))
             glob_rot.append(glob_rot[p] @ local)
 
-    points: dict[str, np.ndarray] = {}
+    joints: dict[str, np.ndarray] = {}
     for j, name in enumerate(names):
-        key = _BVH_ALIASES.get(name.lower(), name.lower())
-        points.setdefault(key, glob_pos[j])
+        joints.setdefault(name, glob_pos[j])
+    ends: dict[str, np.ndarray] = {}
     for j, offset in end_sites:
-        key = _BVH_ALIASES.get(names[j].lower(), names[j].lower())
-        points.setdefault(f"{key}_end", glob_pos[j] + np.einsum("tij,j->ti", glob_rot[j], offset))
-    if "head_end" not in points and "head" in points:
-        points["head_end"] = points["head"]
-    if unit is None:
-        height = np.ptp(np.stack(list(points.values()), axis=1)[0] @ _Y_UP_TO_Z_UP.T, axis=0)[2]
-        candidates = np.array([1.0, 0.01, _INCH, _INCH / 0.45])
-        unit = float(candidates[np.argmin(np.abs(np.log(height * candidates / 1.7)))])
-    return _to_motion(points, 1.0 / frame_time, unit, os.path.basename(str(path)))
+        ends.setdefault(names[j], glob_pos[j] + np.einsum("tij,j->ti", glob_rot[j], offset))
+    return joints, ends, frame_time
 
 
 def read_motion(path: str | os.PathLike, *, fps: float = 120.0) -> Motion:

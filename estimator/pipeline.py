@@ -225,6 +225,7 @@ class WalkEstimate:
     tracks: dict[str, CameraTrack] | None = None  # the tracks estimated from (after clean-up)
     rig: Any = None  # estimator.rig.Rig, once calibrated (estimator.rig.calibrate_rig)
     phase_posterior: np.ndarray | None = None  # (T, n_states): the HMM's posterior (forward-backward)
+    log_emission: np.ndarray | None = None  # (T, n_states): the phase evidence the HMM decoded
 
     def to_result(self, *, first_index: int = 0) -> dict:
         """The result format of DESIGN.md (JSON-able)."""
@@ -771,6 +772,7 @@ def estimate_walk(
         notes=[] if exemplars is not None else ["paper's path: cluster means only"],
         tracks=tracks,
         phase_posterior=phase_posterior,
+        log_emission=log_emission,
     )
 
 

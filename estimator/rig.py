@@ -163,6 +163,10 @@ class Rig:
     euler_std_deg, scale_std : ndarray or None
         Posterior standard deviations from the scaled-orthographic bundle
         adjustment (Laplace); None with pinhole cameras (not computed there).
+    rotvec_cov : ndarray of shape (C, 3, 3) or None
+        The same posterior as each rotation error's rotation-vector covariance,
+        radians squared (:attr:`estimator.selfcal.SelfCalibration.rotvec_cov`);
+        None where ``euler_std_deg`` is.
     joints3d : ndarray of shape (T, 13, 3) or None
         The person's posture in the person frame, metres, centred on the 13
         joints' centroid per frame; NaN where seen by fewer than two cameras.
@@ -177,6 +181,9 @@ class Rig:
         With pinhole cameras: focal lengths (C,), camera centres (C, 3) and the
         walker's mean position (3,), metres in camera 0's frame (x right, y
         down, z forward).
+    image_sizes : ndarray of shape (C, 2) or None
+        With pinhole cameras: each camera's image (width, height) in pixels,
+        whose centre is the principal point.
     """
 
     cameras: tuple[str, ...]
@@ -193,6 +200,8 @@ class Rig:
     centres_m: np.ndarray | None = None
     walker_m: np.ndarray | None = None  # the walker's mean position in camera 0's frame (pinhole rig)
     reference: str | None = None  # default: cameras[0]
+    rotvec_cov: np.ndarray | None = None
+    image_sizes: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.reference = self.reference or self.cameras[0]
@@ -208,15 +217,20 @@ class Rig:
             ok = bool(np.all(np.isfinite(r)))
             d = {"rotation": num(r, 6),
                  "rotvec": num(Rotation.from_matrix(r).as_rotvec(), 6) if ok else None,
+                 "quaternion_xyzw": num(Rotation.from_matrix(r).as_quat(canonical=True), 8) if ok else None,
                  "euler_xyz_deg": num(Rotation.from_matrix(r).as_euler("xyz", degrees=True), 3) if ok else None,
                  "scale": num(self.scales[k], 5)}
             if self.euler_std_deg is not None:
                 d["euler_xyz_std_deg"] = num(self.euler_std_deg[k], 3)
+            if self.rotvec_cov is not None:
+                d["rotvec_covariance_rad2"] = num(self.rotvec_cov[k], 9)
             if self.scale_std is not None:
                 d["scale_std"] = num(self.scale_std[k], 5)
             if self.focal_px is not None:
                 d["focal_px"] = num(self.focal_px[k], 1)
                 d["centre_m"] = num(self.centres_m[k], 3)
+            if self.image_sizes is not None and np.all(np.isfinite(self.image_sizes[k])):
+                d["image_size"] = [int(v) for v in self.image_sizes[k]]
             cams[name] = d
         return {"reference": self.reference, "source": self.source, "cameras": cams}
 
@@ -396,13 +410,15 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     start_used = cal.diagnostics.get("start", "closed form")
     if pinhole is None:
         rig = Rig(names, full(fused), full(cal.scales), "self-calibration", full(cal.euler_xyz_std_deg),
-                  full(cal.scale_std), joints, segments, config.height_m, reference=names[use[0]])
+                  full(cal.scale_std), joints, segments, config.height_m, reference=names[use[0]],
+                  rotvec_cov=full(cal.rotvec_cov))
         how = f"scaled orthographic bundle adjustment from the {start_used}" + (f"; {why_not}" if why_not else "")
     else:
         rig = Rig(names, full(pinhole.rotations), full(pinhole.scales), "self-calibration", None, None, joints,
                   segments, config.height_m, reference=names[use[0]],
                   focal_px=full(pinhole.focal_px), centres_m=full(pinhole.centres * k),
-                  walker_m=np.nanmean(pinhole.joints3d.reshape(-1, 3), axis=0) * k)
+                  walker_m=np.nanmean(pinhole.joints3d.reshape(-1, 3), axis=0) * k,
+                  image_sizes=full(np.array([estimate.tracks[names[c]].image_size for c in use], float)))
         how = (f"scaled orthographic bundle adjustment from the {start_used}, then pinhole cameras "
                f"(reprojection {pinhole.rmse_px:.1f} px rms)")
     rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {len(frames)} frames"
@@ -566,6 +582,7 @@ def _box_scales(estimate: WalkEstimate) -> np.ndarray:
     """Each camera's image scale relative to the first: ratio of median silhouette heights (1 without tracks)."""
     if estimate.tracks is None:
         return np.ones(len(estimate.cameras))
-    h = np.array([np.nanmedian(estimate.tracks[n].boxes[:, 3]) if n in estimate.tracks else np.nan
-                  for n in estimate.cameras])
+    heights = [estimate.tracks[n].boxes[:, 3] if n in estimate.tracks else np.array([np.nan])
+               for n in estimate.cameras]
+    h = np.array([np.nanmedian(b) if np.isfinite(b).any() else np.nan for b in heights])  # no box: unknown
     return np.where(np.isfinite(h), h / h[0], 1.0) if np.isfinite(h[0]) else np.ones(len(h))

@@ -132,14 +132,17 @@ class SelfCalibration:
     reflection_confidence : float
         Weighted share of knee/elbow bending votes that agree with the chosen
         depth orientation, in [0.5, 1]; 0.5 means the reflection is a guess.
-    euler_xyz_cov : ndarray of shape (C, 3, 3) or None
-        Posterior covariance of each camera's ``euler_xyz_deg`` (degrees
-        squared; zeros for camera 0, the reference), from the Laplace
-        approximation at the bundle adjustment's optimum
-        (:func:`_laplace_covariance`). None for the closed form alone
-        (``refine=False``; the §4.3 path always refines) and for windows
-        too long for it (:data:`LAPLACE_MAX_PARAMS`); NaN if the tracks do
-        not determine the rotation; zeros on noise-free tracks.
+    rotvec_cov : ndarray of shape (C, 3, 3) or None
+        Posterior covariance of each camera's rotation error as a rotation
+        vector, **radians squared**: ``omega`` in ``R_true = exp([omega]x) R``
+        (``R`` = ``rotations[c]``; ``omega`` in camera c's axes: x image u,
+        y image v, z viewing direction), zeros for camera 0 (the reference);
+        from the Laplace approximation at the bundle adjustment's optimum
+        (:func:`_laplace_covariance`). Free of gimbal lock, unlike
+        :attr:`euler_xyz_cov`. None for the closed form alone
+        (``refine=False``; the §4.3 path always refines) and for windows too
+        long for it (:data:`LAPLACE_MAX_PARAMS`); NaN if the tracks do not
+        determine the rotation; zeros on noise-free tracks.
     scale_std : ndarray of shape (C,) or None
         Posterior standard deviation of ``scales`` (fixed scales with
         ``refine`` only; None otherwise, NaN where undetermined).
@@ -171,7 +174,7 @@ class SelfCalibration:
     method: str = "wang-leow"
     reason: str = ""
     diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
-    euler_xyz_cov: np.ndarray | None = None
+    rotvec_cov: np.ndarray | None = None
     scale_std: np.ndarray | None = None
     start: str = ""
     notes: tuple[str, ...] = ()
@@ -203,6 +206,15 @@ class SelfCalibration:
         if self.rotations is None:
             raise ValueError(f"no rotations: self-calibration failed ({self.reason})")
         return Rotation.from_matrix(self.rotations).as_euler("xyz", degrees=True)
+
+    @property
+    def euler_xyz_cov(self) -> np.ndarray | None:
+        """Posterior covariance of each camera's ``euler_xyz_deg`` (C, 3, 3), degrees squared, or None:
+        :attr:`rotvec_cov` through the Jacobian of ``as_euler`` (kept for the Euler outputs; it blows
+        up near gimbal lock, y = +-90 deg)."""
+        if self.rotvec_cov is None:
+            return None
+        return _euler_covariance(self.rotations, scipy.linalg.block_diag(*self.rotvec_cov[1:]))
 
     @property
     def euler_xyz_std_deg(self) -> np.ndarray | None:
@@ -684,7 +696,7 @@ def self_calibrate(
         rots, joints, conf, flip = _apply_reflection(rots, joints)
         diag["reflected"] = flip
         starts = [(start, rots, sc, joints / fact.norm, tr_n)]
-    frame_scales, euler_cov, scale_std = None, None, None
+    frame_scales, rot_cov, scale_std = None, None, None
     if refine:
         sigma = noise_sigma(fact)
         if initial_rotations is not None:
@@ -703,14 +715,14 @@ def self_calibrate(
         rots, sc_t, joints_n, cov, info = ba
         sc = sc_t[:, 0] / sc_t[0, 0]
         if cov is not None:
-            euler_cov = _euler_covariance(rots, cov)
+            rot_cov = _rotvec_blocks(cov, n_cam)
             scale_std = np.concatenate([[0.0], sc[1:] * np.sqrt(np.diag(cov)[3 * (n_cam - 1):])])
         joints = joints_n * fact.norm * sc_t[0, 0]
         _, conf = kinematic_reflection(joints)
         diag.update(bundle=info)
         method += "+ba"
     joints = _mask_unseen(joints, fact.observed)
-    return SelfCalibration(rots, sc, joints, frame_scales, conf, method, "", diag, euler_cov, scale_std,
+    return SelfCalibration(rots, sc, joints, frame_scales, conf, method, "", diag, rot_cov, scale_std,
                            start=start, notes=tuple(input_warnings(y, rots, joints)))
 
 
@@ -971,7 +983,7 @@ def _varying(y: np.ndarray, links: list, ratios: list, *, rank_tol: float, max_n
             "temporal_prior": prior_diag}
     joints = _mask_unseen(joints, fact.observed)
     return SelfCalibration(rots, np.median(frame_scales, axis=0), joints, frame_scales, conf, method, "", diag,
-                           None if cov is None else _euler_covariance(rots, cov), start="per-frame closed forms",
+                           None if cov is None else _rotvec_blocks(cov, len(rots)), start="per-frame closed forms",
                            notes=tuple(input_warnings(y, rots, joints)))
 
 
@@ -1442,6 +1454,15 @@ def _local_rotation_jacobian(rotvecs: np.ndarray) -> np.ndarray:
         r0 = Rotation.from_rotvec(rv).inv()
         out[3 * c:3 * c + 3, 3 * c:3 * c + 3] = _central_jacobian(
             lambda d, rv=rv, r0=r0: (Rotation.from_rotvec(rv[None] + d) * r0).as_rotvec(), 3)
+    return out
+
+
+def _rotvec_blocks(cov: np.ndarray, n_cam: int) -> np.ndarray:
+    """Each camera's (3, 3) block of the rotation errors' covariance (the first ``3 (C - 1)`` rows and
+    columns of the bundle adjustment's, radians^2), zeros for camera 0: shape (C, 3, 3)."""
+    out = np.zeros((n_cam, 3, 3))
+    for c in range(1, n_cam):
+        out[c] = cov[3 * (c - 1):3 * c, 3 * (c - 1):3 * c]
     return out
 
 

@@ -23,7 +23,7 @@ from .render import Renderer
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, GaitAngles, forward_kinematics
 
-__all__ = ["SynthSpec", "place_cameras", "synthesize", "synthesize_turns", "walk"]
+__all__ = ["SynthSpec", "place_cameras", "synthesize", "synthesize_recordings", "synthesize_turns", "walk"]
 
 ELEVATION_RANGE = (-20.0, 35.0)
 """Elevations drawn by default: the appearance model's grid (paper: -20 .. +40)."""
@@ -48,6 +48,11 @@ class SynthSpec:
         (width, height).
     distance : float, optional
         Camera distance in metres (default: 8–12 m at random, more if the path is long).
+    cadence_variation : float
+        Relative amplitude of slow changes of the walker's cadence (and speed
+        with it: the stride stays), as people speed up and slow down; 0 (the
+        default) walks at a constant cadence. Offline synchronisation needs
+        them to tell whole gait cycles apart (:mod:`estimator.sync`).
     """
 
     n_cameras: int = 2
@@ -60,6 +65,7 @@ class SynthSpec:
     style: GaitStyle | None = None
     image_size: tuple[int, int] = (640, 480)
     distance: float | None = None
+    cadence_variation: float = 0.0
 
     def __post_init__(self) -> None:
         if self.n_cameras < 1:
@@ -68,6 +74,8 @@ class SynthSpec:
             raise ValueError(f"n_frames must be at least 1, got {self.n_frames}")
         if self.fps <= 0:
             raise ValueError(f"fps must be positive, got {self.fps}")
+        if not 0.0 <= self.cadence_variation < 0.5:
+            raise ValueError(f"cadence_variation must lie in [0, 0.5), got {self.cadence_variation}")
         for name in ("azimuths", "elevations"):
             values = getattr(self, name)
             if values is not None and len(values) != self.n_cameras:
@@ -111,6 +119,82 @@ def _recorded_walk(motion: Motion, spec: SynthSpec, shape: BodyShape, rng: np.ra
     poses = forward_kinematics(angles, shape)
     poses[..., 0] += x[:, None]
     return poses, motion_phase(motion)[idx]
+
+
+def _draw(spec: SynthSpec, rng: np.random.Generator
+          ) -> tuple[BodyShape, GaitStyle, tuple[float, ...], tuple[float, ...]]:
+    """The walker's body and style and the cameras' viewpoints: from ``spec``, else drawn
+    from ``rng`` (in this order, which fixes every seed's walk)."""
+    shape = spec.shape or BodyShape.random(rng)
+    style = spec.style or GaitStyle.random(rng)
+    azimuths = spec.azimuths or tuple(float(a) for a in rng.uniform(0.0, 360.0, spec.n_cameras))
+    elevations = spec.elevations or tuple(float(e) for e in rng.uniform(*ELEVATION_RANGE, spec.n_cameras))
+    return shape, style, azimuths, elevations
+
+
+def _gait_clock(spec: SynthSpec, style: GaitStyle, phase0: float, time_s: np.ndarray, t0: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Phase (cycles, wrapped) at ``time_s`` and the time a constant-cadence walker needs to
+    cover the same ground (what :func:`walk` places the body by); ``phase0`` at ``t0``.
+
+    With ``spec.cadence_variation`` = a, the cadence is ``cadence * (1 + a * v(t))`` where
+    ``v`` is a sum of three sinusoids of periods 2-6 s drawn from the seed (|v| <= 1),
+    integrated exactly.
+    """
+    if spec.cadence_variation == 0.0:
+        return (phase0 + style.cadence * (time_s - t0)) % 1.0, time_s
+    rng = np.random.default_rng([spec.seed, 0x5C])  # its own stream: the other draws are unchanged
+    periods, offsets, weights = rng.uniform(2.0, 6.0, 3), rng.uniform(0.0, 2 * np.pi, 3), rng.dirichlet(np.ones(3))
+
+    def integral(t: np.ndarray) -> np.ndarray:  # of 1 + a v(t) dt
+        w = 2 * np.pi / periods
+        return t + spec.cadence_variation * np.sum(-weights / w * np.cos(w * t[..., None] + offsets), axis=-1)
+
+    walked = integral(np.asarray(time_s, float)) - integral(np.asarray([t0], float))[0] + t0
+    return (phase0 + style.cadence * (walked - t0)) % 1.0, walked
+
+
+def synthesize_recordings(spec: SynthSpec, clocks: dict[str, np.ndarray], *, gait: GaitModel | None = None
+                          ) -> dict[str, Sequence]:
+    """One camera's recording per entry of ``clocks``: the same walk seen by unsynchronized cameras.
+
+    ``clocks[name]`` holds the times (s, on the walk's own clock, increasing) at which that
+    camera took its frames: its start and frame rate are its own (phones, webcams). The
+    cameras (``spec.n_cameras`` = len(clocks); viewpoints, body and style from ``spec``)
+    keep the whole walk in frame. Each :class:`Sequence` has one camera, ``fps`` from its
+    clock's median interval, and ``truth`` with ``clock`` = ``{"start_s", "fps"}`` and per
+    frame ``time_s`` and ``phase``.
+    """
+    if len(clocks) != spec.n_cameras:
+        raise ValueError(f"spec.n_cameras is {spec.n_cameras}, {len(clocks)} clocks given")
+    times = {name: np.asarray(t, float) for name, t in clocks.items()}
+    if any(t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0) for t in times.values()):
+        raise ValueError("each clock needs two or more increasing times")
+    rng = np.random.default_rng(spec.seed)
+    gait = gait or load_gait()
+    shape, style, azimuths, elevations = _draw(spec, rng)
+    every = np.unique(np.concatenate(list(times.values())))
+    t_mid = 0.5 * (every[0] + every[-1])
+    phase, walked = _gait_clock(spec, style, float(rng.uniform()), every - t_mid, 0.0)
+    world = walk(phase, shape, style, gait, time_s=walked)
+    centroids = world[:, :N_JOINTS].mean(axis=1)
+    cameras = place_cameras(azimuths, elevations, centroids=centroids, stature=shape.height,
+                            image_size=spec.image_size, distance=spec.distance or float(rng.uniform(8.0, 12.0)))
+    out = {}
+    with Renderer(shape, image_size=spec.image_size) as renderer:
+        for (name, t), cam in zip(times.items(), cameras.values()):
+            cam = _keep_in_frame(cam, world, shape.height)
+            rows = np.searchsorted(every, t)
+            silhouettes = [renderer.render(world[k], cam)[0] for k in rows]
+            fps = float(1.0 / np.median(np.diff(t)))
+            truth = {"clock": {"start_s": float(t[0]), "fps": fps},
+                     "cameras": {name: {"azimuth_deg": cam.azimuth_deg, "elevation_deg": cam.elevation_deg}},
+                     "frames": [{"index": i, "time_s": round(float(t[i]), 6), "phase": float(phase[k])}
+                                for i, k in enumerate(rows)],
+                     "seed": spec.seed}
+            out[name] = Sequence(fps=fps, cameras=[name], image_size=spec.image_size,
+                                 silhouettes={name: silhouettes}, truth=truth)
+    return out
 
 
 def place_cameras(
@@ -178,15 +262,12 @@ def synthesize(
     """
     rng = np.random.default_rng(spec.seed)
     gait = gait or load_gait()
-    shape = spec.shape or BodyShape.random(rng)
-    style = spec.style or GaitStyle.random(rng)
-    azimuths = spec.azimuths or tuple(float(a) for a in rng.uniform(0.0, 360.0, spec.n_cameras))
-    elevations = spec.elevations or tuple(float(e) for e in rng.uniform(*ELEVATION_RANGE, spec.n_cameras))
+    shape, style, azimuths, elevations = _draw(spec, rng)
     time_s = np.arange(spec.n_frames) / spec.fps
     time_s = time_s - time_s.mean()
     if motion is None:
-        phase = (rng.uniform() + style.cadence * (time_s - time_s[0])) % 1.0
-        world = walk(phase, shape, style, gait, time_s=time_s)
+        phase, walked = _gait_clock(spec, style, float(rng.uniform()), time_s, time_s[0])
+        world = walk(phase, shape, style, gait, time_s=walked)
     else:
         world, phase = _recorded_walk(motion, spec, shape, rng)
     centroids = world[:, :N_JOINTS].mean(axis=1)

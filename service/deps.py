@@ -44,7 +44,8 @@ def get_live(request: Request) -> LiveService:
 # body is read); routers declare this scheme so that OpenAPI shows it.
 bearer_scheme = HTTPBearer(auto_error=False, description="when the service has api_token or api_token_file "
                            "set: every /v1 route (and /metrics, unless metrics_open) needs "
-                           "'Authorization: Bearer <token>', else 401")
+                           "'Authorization: Bearer <token>', else 401; a token without the route's "
+                           "scope (read: GET, submit: POST /v1/jobs, admin: cancel, delete) gets 403")
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

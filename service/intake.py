@@ -82,7 +82,12 @@ def stage_upload(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: Uploa
     """
     if not files:
         raise UploadError(422, "no files uploaded: send one zipped sequence folder or one video per camera")
-    job_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        job_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # no inode left for the folder
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise UploadError(507, "no space left to store the upload") from None
+        raise
     names = [Path(name or "").name for name, _ in files]
     if len(files) == 1 and names[0].lower().endswith(".zip"):
         return _stage_zip(files[0][1], job_dir, limits)
@@ -298,8 +303,13 @@ def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: Uplo
         if cam in cameras:
             raise UploadError(422, f"two videos for camera {cam!r}")
         target = folder / f"{cam}{path.suffix.lower()}"
-        with open(target, "wb") as out:
-            shutil.copyfileobj(fh, out, _CHUNK)
+        try:
+            with open(target, "wb") as out:
+                shutil.copyfileobj(fh, out, _CHUNK)
+        except OSError as exc:  # writing: a full disk is ours (507); the caller removes the folder
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise UploadError(507, f"no space left to store video {path.name}") from None
+            raise
         sizes[cam], counts[cam] = probe_video(target, path.name, limits)
         cameras.append(cam)
     if len(set(sizes.values())) != 1:

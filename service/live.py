@@ -667,7 +667,10 @@ class LiveService:
         result.update({
             "rig": w.rig,
             "window": {"seq": w.seq, "first_index": w.indices[0], "last_index": w.indices[-1],
-                       "frames": len(w.frames), "cameras": sorted(tracks)},
+                       "frames": len(w.frames), "cameras": sorted(tracks),
+                       # the window's frames that lack a camera's message (no frame of it lost unseen)
+                       "missing": {cam: gaps for cam in sorted(tracks)
+                                   if (gaps := [fs.index for fs in w.frames if cam not in fs.parts])}},
             "smoothed": smoothed,
             "latency_ms": {"estimate": round(seconds * 1e3, 2), "last_frame_to_result": round(latency * 1e3, 2)},
             "published_ns": done_ns,

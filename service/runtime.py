@@ -15,6 +15,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+from .auth import ApiToken
 from .jobs import JobStore
 from .metrics import Metrics
 from .runner import JobRunner
@@ -80,7 +81,7 @@ class Runtime:
     session: object | None = None
     live: object | None = None
     rerun: object | None = None
-    api_tokens: tuple[bytes, ...] = ()  # accepted REST bearer tokens (empty: open)
+    api_tokens: tuple[ApiToken, ...] = ()  # accepted REST bearer tokens and scopes (empty: open)
 
     @classmethod
     async def start(cls, settings: Settings) -> "Runtime":

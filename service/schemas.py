@@ -203,11 +203,18 @@ class Hmm(_Open):
 class RigCamera(_Open):
     rotation: list[list[float]] | None = Field(description="R_c R_ref^T; null for a camera left out of the rig")
     rotvec: list[float] | None = Field(description="the rotation as a rotation vector (radians)")
+    quaternion_xyzw: list[float] | None = Field(None, description="the rotation as a unit quaternion, scalar "
+                                                "last (x, y, z, w), w >= 0")
     euler_xyz_deg: list[float] | None
     scale: float | None
     focal_px: float | None = None
     centre_m: list[float] | None = None
+    image_size: list[int] | None = Field(None, description="pinhole cameras: [width, height] in pixels; the "
+                                         "principal point is its centre")
     euler_xyz_std_deg: list[float] | None = None
+    rotvec_covariance_rad2: list[list[float]] | None = Field(
+        None, description="scaled-orthographic self-calibration: posterior covariance (radians^2) of the "
+        "rotation error as a rotation vector in this camera's axes (no gimbal lock, unlike euler_xyz_std_deg)")
     scale_std: float | None = None
 
 
@@ -265,6 +272,23 @@ class _ResultBase(_Open):
     notes: list[str]
 
 
+class SyncCamera(_Open):
+    offset_s: float | None = Field(description="the reference's time of this camera's first frame (s)")
+    offset_frames: float | None = Field(description="the same in frames of this camera")
+    fps: float | None
+    uncertainty_s: float | None = Field(description="standard error of offset_s (s)")
+    margin: float | None = Field(description="cost margin to the best fit at another part of the gait cycle")
+    ambiguous: bool = Field(description="whole gait cycles could not be told apart (or the rate is too low)")
+
+
+class SyncOut(_Open):
+    """Offline synchronisation of recorded videos (docs/SYNC.md)."""
+
+    reference: str
+    cameras: dict[str, SyncCamera]
+    notes: list[str]
+
+
 class Result(_ResultBase):
     """A batch result: ``posecal estimate`` and ``GET /v1/jobs/{id}/result`` (docs/FORMATS.md, Result)."""
 
@@ -277,6 +301,7 @@ class Result(_ResultBase):
     timing: dict[str, float] | None = None
     truth_cameras: dict[str, WindowViewpoint] | None = None
     refined: dict[str, Any] | None = None
+    sync: SyncOut | None = Field(None, description="videos: each camera's time offset, found from the walk")
 
 
 class LiveWindow(_Open):
@@ -285,6 +310,9 @@ class LiveWindow(_Open):
     last_index: int
     frames: int
     cameras: list[str]
+    missing: dict[str, list[int]] = Field(default_factory=dict, description=(
+        "per camera of the window, the frame indices of the window without its message "
+        "(cameras that are in every frame are left out)"))
 
 
 class LiveEstimate(_ResultBase):
@@ -330,12 +358,14 @@ class ErrorOut(BaseModel):
 _ERRORS = {
     400: "bad form fields or an input that cannot be read",
     401: "a bearer token is required (the service has api_token set) and was missing or wrong",
+    403: "the bearer token lacks the scope this route needs (read: GET, submit: POST jobs, admin: the rest)",
     404: "no such job or rig, or nothing estimated yet",
     409: "the job is not in a state that allows this",
     413: "the upload exceeds a limit",
     415: "an upload of a type that is not accepted",
     422: "a parameter or an upload's content that fails validation",
-    507: "no space left to unpack the upload",
+    503: "the job store cannot be reached",
+    507: "no space left to unpack the upload or to record the job",
 }
 
 

@@ -16,6 +16,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from capture.zconfig import ZenohAccess
 
+from .auth import ApiToken, parse_token_line
 from .limits import UploadLimits
 
 __all__ = ["Settings", "data_home", "get_settings", "parse_rerun_sink"]
@@ -142,13 +143,16 @@ class Settings(BaseSettings):
     zenoh_listen: list[str] = Field(default_factory=lambda: [DEFAULT_ZENOH_LISTEN])
     zenoh_config: Path | None = Field(None, description="zenoh JSON5 config file (the fields above override it)")
     zenoh_multicast: bool = Field(False, description="multicast scouting (off: on-host only)")
-    zenoh_access: ZenohAccess = Field(default_factory=ZenohAccess, description="user/password and "
-                                      "TLS (POSECAL_ZENOH_USER, ..._TLS_CERTIFICATE, ...: capture.zconfig)")
+    zenoh_access: ZenohAccess = Field(default_factory=ZenohAccess, description="user/password, TLS "
+                                      "and access rules (POSECAL_ZENOH_USER, ..._TLS_CERTIFICATE, "
+                                      "..._AGENTS, ...: capture.zconfig)")
     # REST access (docs/SERVICE.md, "Access")
-    api_token: SecretStr | None = Field(None, description="bearer token: every /v1 route needs "
-                                        "'Authorization: Bearer <token>' (401 otherwise)")
+    api_token: SecretStr | None = Field(None, description="bearer token with every scope: every /v1 "
+                                        "route needs 'Authorization: Bearer <token>' (401 otherwise)")
     api_token_file: Path | None = Field(None, description="a file of bearer tokens, one per line "
-                                        "('#' comments); any of them (or api_token) is accepted")
+                                        "('#' comments): 'TOKEN' (every scope) or 'TOKEN SCOPE[,SCOPE]' "
+                                        "with read (GET), submit (POST jobs, and read), admin (cancel, "
+                                        "delete, everything); a missing scope is 403")
     metrics_open: bool = Field(False, description="serve /metrics without a token even when tokens "
                                "are set (/healthz is always open)")
     # rerun
@@ -173,22 +177,28 @@ class Settings(BaseSettings):
             return self.db
         return f"sqlite:///{Path(self.db).expanduser().resolve()}"
 
-    def api_tokens(self) -> tuple[bytes, ...]:
-        """The accepted bearer tokens (empty: REST is open); ValueError for an unreadable or
-        empty token file."""
-        tokens = [] if self.api_token is None else [self.api_token.get_secret_value().strip()]
+    def api_tokens(self) -> tuple[ApiToken, ...]:
+        """The accepted bearer tokens and their scopes (empty: REST is open); ValueError for
+        an unreadable or empty token file, a short token or an unknown scope."""
+        tokens = [] if self.api_token is None else [ApiToken(self.api_token.get_secret_value().strip().encode())]
         if self.api_token_file is not None:
             try:
                 lines = Path(self.api_token_file).expanduser().read_text().splitlines()
             except OSError as exc:
                 raise ValueError(f"cannot read the API token file {self.api_token_file}: {exc}") from None
-            found = [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+            found = []
+            for number, line in enumerate(lines, 1):
+                if line.strip() and not line.lstrip().startswith("#"):
+                    try:
+                        found.append(parse_token_line(line))
+                    except ValueError as exc:
+                        raise ValueError(f"{self.api_token_file} line {number}: {exc}") from None
             if not found:
                 raise ValueError(f"the API token file {self.api_token_file} holds no token")
             tokens += found
-        if any(len(t) < 16 for t in tokens):
+        if any(len(t.secret) < 16 for t in tokens):
             raise ValueError("API tokens must be at least 16 characters (e.g. `openssl rand -hex 32`)")
-        return tuple(t.encode() for t in tokens)
+        return tuple(tokens)
 
     @property
     def upload_limit_bytes(self) -> int:

@@ -443,15 +443,16 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             fps = seq.fps
             truth = seq.truth
         elif kind == "videos":
-            from capture.refine import track_from_segmentations
             from capture.segment import default_warmup
 
             # One warm-up for all of the job's videos (staging counted their frames).
             warmup = options.get("warmup") or default_warmup(int(options.get("n_frames") or 0))
-            segmentations, image_size, fps, decoding = _segment_videos(
-                Path(input_dir), warmup=warmup, report=lambda p, s: store.report(job_id, 0.05 + 0.45 * p, s),
+            tracks, rates, info = video_tracks(
+                Path(input_dir), warmup=warmup, report=lambda p, s: store.report(job_id, 0.05 + 0.4 * p, s),
                 options=options)
-            tracks = {c: track_from_segmentations(s) for c, s in segmentations.items()}
+            segmentations, image_size, decoding = info["segmentations"], info["sizes"], info["decoding"]
+            store.report(job_id, 0.45, "synchronising the videos")
+            tracks, fps, sync = sync_videos(tracks, rates, _get_model(), options.get("sync", "auto"))
             truth = None
         else:
             raise ValueError(f"unknown job kind {kind!r}")
@@ -466,6 +467,8 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         store.report(job_id, 0.9, "writing result")
         result = json_safe(walk.to_result())
         result["fps"] = fps
+        if kind == "videos" and sync is not None:
+            result["sync"] = sync
         _mark_decoding(result, decoding)
         result["timing"] = {"estimate_s": round(time.perf_counter() - t0, 4)}
         if truth is not None and "cameras" in truth:
@@ -473,7 +476,10 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
                 c: {k: v for k, v in t.items() if k in ("azimuth_deg", "elevation_deg")}
                 for c, t in truth["cameras"].items()}
         refined = None
-        if options.get("refine"):
+        if options.get("refine") and kind == "videos" and _shifted(sync):
+            result["notes"].append("refine: not done on videos paired by their offsets (sync); the videos' "
+                                   "own frames are what the second pass segments")
+        elif options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
             refined = (_refine_sequence(seq, model, walk) if kind == "sequence" else
                        _refine_videos(Path(input_dir), model, fps, walk, segmentations, warmup))
@@ -506,6 +512,14 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
     except Exception as exc:  # a bug: record it on the job, keep the worker alive
         store.fail(job_id, f"internal error: {type(exc).__name__}: {exc}")
         raise
+
+
+def _shifted(sync: dict[str, Any] | None) -> bool:
+    """Whether synchronisation paired the videos' frames other than by index."""
+    if sync is None:
+        return False
+    cams = sync["cameras"].values()
+    return len({c["fps"] for c in cams}) > 1 or any(abs(c["offset_frames"] or 0.0) >= 0.5 for c in cams)
 
 
 def _refine_sequence(seq: Sequence, model: AppearanceModel, estimate: SegmentedWalk):
@@ -551,12 +565,54 @@ def feedback_views(refined) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.n
     return out
 
 
+def video_tracks(folder: Path, *, warmup: int | None, report, options: dict[str, Any] | None = None
+                 ) -> tuple[dict[str, CameraTrack], dict[str, float], dict[str, Any]]:
+    """Each video of ``folder`` segmented (:func:`_segment_videos`) as a camera track (not padded:
+    recordings differ in length), each camera's frame rate (the container's, else the first
+    video's, else 15) and ``{"decoding", "sizes", "warmup", "fps"}``. ``warmup`` None: the
+    default for the shortest video's announced frame count."""
+    from capture.refine import track_from_segmentations
+    from capture.segment import default_warmup
+    from capture.sources import VideoFileSource
+
+    options = dict(options or {})
+    counts = options.get("header_frames")
+    if counts is None:
+        counts = {}
+        for path in list_videos(folder).values():
+            with VideoFileSource(path) as source:
+                counts[path.stem] = source.frame_count() or 0
+        options["header_frames"] = counts
+    warmup = warmup or default_warmup(int(min(counts.values(), default=0)))
+    segmentations, sizes, fps, decoding = _segment_videos(folder, warmup=warmup, report=report, options=options)
+    tracks = {c: track_from_segmentations(s) for c, s in segmentations.items()}
+    rates = {c: float(decoding[c].get("fps") or fps) for c in tracks}
+    return tracks, rates, {"decoding": decoding, "sizes": sizes, "warmup": warmup, "fps": fps,
+                           "segmentations": segmentations}
+
+
+def sync_videos(tracks: dict[str, CameraTrack], rates: dict[str, float], model: AppearanceModel, mode: str
+                ) -> tuple[dict[str, CameraTrack], float, dict[str, Any] | None]:
+    """Recorded videos on one timeline (``mode`` "auto": offsets from the walk,
+    :func:`estimator.sync.sync_tracks`; "off": frames paired by index, the first video's
+    rate): the tracks (padded), the timeline's rate and the result's ``sync`` block."""
+    if mode not in ("auto", "off"):
+        raise ValueError(f"sync must be 'auto' or 'off', got {mode!r}")
+    if mode == "off" or len(tracks) < 2:
+        return pad_tracks(tracks), next(iter(rates.values()), 15.0), None
+    from estimator.sync import sync_tracks
+
+    aligned, rate, result = sync_tracks(tracks, rates, model)
+    return pad_tracks(aligned), rate, result.to_dict()
+
+
 def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any] | None = None
                     ) -> tuple[dict[str, list], dict, float, dict[str, dict[str, int]]]:
     """Background subtraction (:func:`capture.refine.segment`) over each ``<camera>.<ext>`` video.
 
-    Returns the segmentations per camera, the frame sizes, the frame rate and per
-    camera ``{"decoded_frames", "header_frames"}``. At most ``options["max_frames"]``
+    Returns the segmentations per camera, the frame sizes, the frame rate (the first
+    video's) and per camera ``{"decoded_frames", "header_frames", "fps"}`` (its own rate,
+    None when the container does not say). At most ``options["max_frames"]``
     frames are decoded per video (a header can lie); a video that decodes fewer
     frames than its header counts and fewer than one window (``options["windows"]["length"]``)
     is refused (ValueError naming it) rather than estimated from what is left.
@@ -581,7 +637,8 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
             segs = segment(frames, settings)
         if not segs:
             raise ValueError(f"video {path.name} has no decodable frames")
-        decoding[path.stem] = {"decoded_frames": len(segs), "header_frames": header}
+        decoding[path.stem] = {"decoded_frames": len(segs), "header_frames": header,
+                               "fps": round(float(source.fps or 0.0), 4) or None}
         if header and len(segs) < header and len(segs) < min_frames:
             raise ValueError(f"video {path.name}: only {len(segs)} of the {header} frames its header "
                              f"counts decode, fewer than one window ({min_frames} frames): truncated "

@@ -81,6 +81,20 @@ def wait_for(predicate, *, timeout: float, interval: float = 0.05, what: str = "
         time.sleep(interval)
 
 
+def wait_for_server(proc, url: str, *, timeout: float = 120.0) -> None:
+    """Wait until the ``posecal serve`` process ``proc`` answers ``/healthz`` at ``url``; fail at
+    once if it exits."""
+    def up() -> bool:
+        if proc.poll() is not None:
+            raise AssertionError(f"posecal serve exited with {proc.returncode}")
+        try:
+            return httpx.get(f"{url}/healthz", timeout=2).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    wait_for(up, timeout=timeout, interval=0.2, what="posecal serve to answer")
+
+
 def sequence_zip(seq_dir: Path) -> bytes:
     """Zip a sequence folder (under one top folder, as a user would)."""
     buf = io.BytesIO()

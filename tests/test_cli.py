@@ -110,7 +110,7 @@ def test_serve_refuses_to_listen_beyond_loopback_without_tokens(tmp_path, capsys
     tokens.write_text("# lab\n" + "a" * 32 + "\n")
     args, s = settings("--host", "0.0.0.0", "--api-token-file", str(tokens))
     check_exposure(args.host, s, args.insecure)
-    assert s.api_tokens() == (b"a" * 32,)
+    assert [t.secret for t in s.api_tokens()] == [b"a" * 32]
     tokens.write_text("# nothing\n")
     with pytest.raises(Exception, match="holds no token"):
         check_exposure("127.0.0.1", s, False)
@@ -125,3 +125,138 @@ def test_docs_lists_and_prints_the_pages_shipped(capsys):
     assert main(["docs", "FORMATS"]) == 0
     assert capsys.readouterr().out.startswith("# posecal formats and conventions")
     assert main(["docs", "nope"]) == 2 and "formats" in capsys.readouterr().err
+
+
+# ------------------------------------------------- exit codes: 0 done, 1 could not be done, 2 usage or input
+# Covered elsewhere: selfcal (tests/test_selfcal_cli.py: 0, 1 planar motion and unreliable rigs, 2 bad
+# tracks), refine 0 and 2 (tests/test_prior.py), estimate 0 and 2 and docs 0 and 2 (above), serve 2
+# (above). synth has no computation that fails on valid input but the renderer itself (a traceback, 1).
+
+
+def _posecal(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "service.cli", *argv], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _busy_port():
+    """A socket listening on a free loopback port (keep it open while the port must stay taken)."""
+    import socket
+
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen()
+    return sock
+
+
+def test_synth_exit_codes(tmp_path, capsys):
+    assert main(["synth", "--out", str(tmp_path / "s"), "--cameras", "1", "--frames", "2", "--size", "64,48"]) == 0
+    assert main(["synth", "--out", str(tmp_path / "s2"), "--size", "8,8"]) == 2
+    assert "--size" in capsys.readouterr().err
+
+
+def test_estimate_and_refine_exit_1_when_nothing_can_be_estimated(small_model_path, tmp_path, capsys):
+    """A sequence folder that reads but whose silhouettes are all empty: no walker to estimate."""
+    import numpy as np
+
+    from estimator.sequence import write_sequence
+    from estimator.synth import SynthSpec, synthesize
+
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=6, seed=4, image_size=(160, 120)))
+    seq.silhouettes = {c: [None if s is None else np.zeros_like(s) for s in v] for c, v in seq.silhouettes.items()}
+    write_sequence(tmp_path / "empty", seq)
+    for command in ("estimate", "refine"):
+        out = tmp_path / f"{command}-out"
+        assert main([command, str(tmp_path / "empty"), "--model", small_model_path, "--out", str(out)]) == 1
+        err = capsys.readouterr().err
+        assert f"posecal {command}: error:" in err and "no silhouettes" in err
+
+
+def test_estimate_exports_and_exit_1_for_an_export_the_result_cannot_give(small_model_path, tmp_path, capsys):
+    """--posture model: a rig from the viewpoints (no metric cameras). The result and the joints' exports
+    are written, the calibration cannot be (exit 1, with the reason); a calibration file name of no
+    known format is a usage error found before estimating (exit 2)."""
+    import json
+
+    from estimator.sequence import write_sequence
+    from estimator.synth import SynthSpec, synthesize
+
+    write_sequence(tmp_path / "walk", synthesize(SynthSpec(n_cameras=2, n_frames=10, seed=4, image_size=(320, 240))))
+    base = ["estimate", str(tmp_path / "walk"), "--model", small_model_path, "--posture", "model",
+            "--out", str(tmp_path / "r.json")]
+    assert main(base + ["--export-calibration", str(tmp_path / "c.ini")]) == 2
+    assert ".toml, .yaml, .yml, .json" in capsys.readouterr().err and not (tmp_path / "r.json").exists()
+    code = main(base + ["--export-calibration", str(tmp_path / "c.toml"), "--export-trc", str(tmp_path / "w.trc"),
+                        "--export-csv", str(tmp_path / "w.csv"), "--export-bvh", str(tmp_path / "w.bvh")])
+    err = capsys.readouterr().err
+    assert code == 1 and "--export-calibration" in err and "no metric cameras" in err, err
+    assert json.loads((tmp_path / "r.json").read_text())["rig"]["source"] == "viewpoints"
+    assert not (tmp_path / "c.toml").exists()
+    assert (tmp_path / "w.trc").read_text().count("\n") == 5 + 10  # the model's joints3d, every frame
+    assert (tmp_path / "w.csv").read_text().startswith("frame,time,head_x,")
+    assert (tmp_path / "w.bvh").read_text().startswith("HIERARCHY")
+
+
+def test_model_exit_codes(small_model_path, tmp_path, monkeypatch, capsys):
+    import estimator.examples
+
+    assert main(["model", "info", "--model", small_model_path]) == 0
+    assert main(["model", "info", "--model", str(tmp_path / "missing.npz")]) == 2
+    monkeypatch.delattr(estimator.examples, "render_examples")
+    assert main(["model", "build", "--out", str(tmp_path / "m.npz"), "-q"]) == 1
+    assert "not available" in capsys.readouterr().err
+
+
+def test_docs_exit_1_when_the_documentation_is_not_installed(monkeypatch, capsys):
+    monkeypatch.setattr("service.cli.docs.docs_dir", lambda: None)
+    assert main(["docs"]) == 1 and "not installed" in capsys.readouterr().err
+
+
+def test_capture_exit_codes(tmp_path):
+    from service.server import free_port
+
+    ok = _posecal("capture", "--source", "synthetic:seed=3,size=160x120", "--max-frames", "3", "--warmup", "2",
+                  "--listen", f"tcp/127.0.0.1:{free_port()}")
+    assert ok.returncode == 0, ok.stderr
+    bad = _posecal("capture", "--source", str(tmp_path / "missing.mp4"), "--listen", f"tcp/127.0.0.1:{free_port()}")
+    assert bad.returncode == 2 and "posecal capture: error:" in bad.stderr, bad.stderr
+    with _busy_port() as sock:  # a valid endpoint the session cannot listen on
+        failed = _posecal("capture", "--source", "synthetic:seed=3,size=160x120", "--max-frames", "3",
+                          "--listen", f"tcp/127.0.0.1:{sock.getsockname()[1]}")
+    assert failed.returncode == 1 and "posecal capture: error: zenoh:" in failed.stderr, failed.stderr
+
+
+def test_serve_exit_codes(tmp_path):
+    import signal
+    import time
+
+    from service.server import free_port
+
+    common = ["--no-live", "--db", str(tmp_path / "j.db"), "--data-dir", str(tmp_path / "d")]
+    with _busy_port() as sock:
+        taken = _posecal("serve", "--port", str(sock.getsockname()[1]), *common)
+    assert taken.returncode == 1 and "posecal serve: error: the server did not start" in taken.stderr, taken.stderr
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(free_port()), *common],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        for line in proc.stderr:  # uvicorn logs on stderr
+            if "Application startup complete" in line or time.monotonic() > deadline:
+                break
+        proc.send_signal(signal.SIGINT)  # Ctrl-C: a clean stop
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_demo_exit_codes(small_model_path, monkeypatch, capsys):
+    import service.server
+
+    assert main(["demo", "--cameras", "1"]) == 2
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("no room")
+
+    monkeypatch.setattr(service.server, "BackgroundServer", refuse)
+    assert main(["demo", "--model", small_model_path]) == 1
+    assert "the service did not start: no room" in capsys.readouterr().err

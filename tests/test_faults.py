@@ -21,7 +21,7 @@ import zenoh
 
 from capture.wire import encode
 from capture.zconfig import build_config
-from conftest_service import ServerThread, sequence_zip, small_model_path, wait_for
+from conftest_service import ServerThread, sequence_zip, small_model_path, wait_for, wait_for_server
 from estimator.sequence import write_sequence
 from estimator.synth import SynthSpec, synthesize
 from service.jobs import JobGone, JobStore
@@ -205,15 +205,7 @@ def _serve(tmp: Path, port: int, log) -> subprocess.Popen:
            "--job-workers", "1"]
     proc = subprocess.Popen(cmd, cwd=tmp, env=env, stdout=log, stderr=subprocess.STDOUT)
 
-    def up() -> bool:
-        if proc.poll() is not None:
-            raise AssertionError(f"posecal serve exited with {proc.returncode}")
-        try:
-            return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200
-        except httpx.TransportError:
-            return False
-
-    wait_for(up, timeout=120, interval=0.2, what="posecal serve to answer")
+    wait_for_server(proc, f"http://127.0.0.1:{port}")
     return proc
 
 

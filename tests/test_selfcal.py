@@ -617,9 +617,10 @@ def test_reported_uncertainty_zero_without_noise_absent_without_refine(walk):
     y, _ = _test2_tracks(walk, 0.0, 0)
     res = self_calibrate(y, refine=True)
     assert res.euler_xyz_cov.shape == (2, 3, 3) and np.abs(res.euler_xyz_cov).max() < 1e-12
+    assert res.rotvec_cov.shape == (2, 3, 3) and np.abs(res.rotvec_cov).max() < 1e-12
     assert res.scale_std.shape == (2,) and res.scale_std.max() < 1e-12
     closed = self_calibrate(y)
-    assert closed.euler_xyz_cov is None and closed.euler_xyz_std_deg is None
+    assert closed.euler_xyz_cov is None and closed.euler_xyz_std_deg is None and closed.rotvec_cov is None
 
 
 @pytest.mark.parametrize("scales", ["fixed", "varying"])
@@ -645,15 +646,18 @@ def test_reported_uncertainty_with_a_joint_no_camera_sees(walk, scales):
 @pytest.mark.parametrize("upright", [False, True])
 def test_reported_uncertainty_covers_the_error(walk, upright):
     """Test 2 at 4 % noise, 12 noise draws: the true Euler angles lie inside the reported 95 %
-    ellipsoid in at least 10 of 12, the reported standard deviation is the size of the actual
-    error (RMS within 0.5-1.5x), and it grows with the noise (bench: docs/SELFCAL.md)."""
-    m2, err, std, std_low = [], [], [], []
+    ellipsoid in at least 10 of 12, and so does the true rotation in the rotation-vector one
+    (``rotvec_cov``: ``R_true = exp(omega) R``), the reported standard deviation is the size of the
+    actual error (RMS within 0.5-1.5x), and it grows with the noise (bench: docs/SELFCAL.md)."""
+    m2, m2_rotvec, err, std, std_low = [], [], [], [], []
     truth = Rotation.from_matrix(TEST2).as_euler("xyz", degrees=True)
     for seed in range(12):
         y, _ = _test2_tracks(walk, 0.04, seed)
         res = self_calibrate(y, refine=True, upright=upright)
         e = azimuth_difference_deg(res.euler_xyz_deg[1], truth)
         m2.append(e @ np.linalg.solve(res.euler_xyz_cov[1], e))
+        omega = Rotation.from_matrix(TEST2 @ res.rotations[1].T).as_rotvec()
+        m2_rotvec.append(omega @ np.linalg.solve(res.rotvec_cov[1], omega))
         err.append(e)
         std.append(res.euler_xyz_std_deg[1])
         if seed < 3:
@@ -661,6 +665,7 @@ def test_reported_uncertainty_covers_the_error(walk, upright):
             std_low.append(low.euler_xyz_std_deg[1])
         assert 0 < res.scale_std[1] < 0.05
     assert np.sum(np.array(m2) < 7.81) >= 10, m2  # chi2(3) 95 % quantile
+    assert np.sum(np.array(m2_rotvec) < 7.81) >= 10, m2_rotvec
     ratio = np.sqrt(np.mean(np.square(err), axis=0)) / np.median(std, axis=0)
     assert np.all((ratio > 0.5) & (ratio < 1.5)), ratio
     assert np.all(np.median(std[:3], axis=0) > 2.5 * np.median(std_low, axis=0))

@@ -66,6 +66,7 @@ def test_selfcal_writes_result(tmp_path, tracks):
     np.testing.assert_allclose(cam["euler_xyz_deg"], [-10, -60, 20], atol=0.01)
     assert cam["scale"] == pytest.approx(0.8, abs=1e-4)
     assert res["method"] == "wang-leow+ba" and cam["euler_xyz_std_deg"] == [0.0, 0.0, 0.0]  # the refined default
+    assert cam["rotvec_covariance_rad2"] == [[0.0] * 3] * 3
     assert 0.5 <= res["reflection_confidence"] <= 1
     assert len(res["frames"]) == 30 and res["frames"][3]["index"] == 3
     assert res["frames"][7]["joints3d"][0] is None
@@ -80,6 +81,7 @@ def test_closed_form_is_kept_as_published(tmp_path, tracks):
     res = json.loads(out.read_text())
     cam = res["cameras"]["right"]
     assert res["method"] == "wang-leow" and "euler_xyz_std_deg" not in cam  # closed form only: no posterior
+    assert "rotvec_covariance_rad2" not in cam
     assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
 
 
@@ -134,6 +136,7 @@ def test_varying_scale_option(tmp_path, tracks):
     cam = json.loads(out.read_text())["cameras"]["right"]
     assert len(cam["frame_scales"]) == 30
     assert "euler_xyz_std_deg" in cam and "scale_std" not in cam  # per-frame scales: no single std
+    assert np.shape(cam["rotvec_covariance_rad2"]) == (3, 3)
     assert geodesic_deg(np.array(cam["rotation"]), TEST2) < 0.01
 
 
@@ -150,6 +153,13 @@ def test_refine_upright_option(tmp_path, tracks, capsys):
     assert all(0.05 < v < 10 for v in cam["euler_xyz_std_deg"]) and 0 < cam["scale_std"] < 0.05
     err = np.abs(np.array(cam["euler_xyz_deg"]) - [-10, -60, 20])
     assert np.all(err < 4 * np.array(cam["euler_xyz_std_deg"])), (err, cam["euler_xyz_std_deg"])
+    # The same posterior as a rotation-vector covariance (radians^2): R_true = exp(omega) R, omega inside
+    # its 99.9 % ellipsoid (chi2(3)), and the same size as the Euler angles' away from gimbal lock.
+    cov = np.array(cam["rotvec_covariance_rad2"])
+    assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    omega = Rotation.from_matrix(TEST2 @ np.array(cam["rotation"]).T).as_rotvec()
+    assert omega @ np.linalg.solve(cov, omega) < 16.27
+    assert 0.2 < np.degrees(np.sqrt(np.trace(cov))) / np.linalg.norm(cam["euler_xyz_std_deg"]) < 5
     assert main(["selfcal", str(doc), "--upright"]) == 2
     assert "--upright needs --refine" in capsys.readouterr().err
 
@@ -175,13 +185,14 @@ def test_bad_input_exit_2(tmp_path, tracks, capsys, mutate, message):
     assert not (tmp_path / "r.json").exists()
 
 
-def test_planar_motion_exit_2(tmp_path, capsys):
+def test_planar_motion_exit_1(tmp_path, capsys):
+    """Valid tracks of a flat body: the computation cannot be done (exit 1, not 2: the input reads)."""
     rng = np.random.default_rng(0)
     x = np.zeros((10, N_JOINTS, 3))
     x[..., :2] = rng.normal(size=(10, N_JOINTS, 2))
     rots = np.stack([world_to_camera_rotation(20, 10), world_to_camera_rotation(80, 30)])
     y = np.einsum("cij,tkj->ctki", rots[:, :2], x) * 50
-    assert main(["selfcal", str(write(tmp_path, as_doc(y)))]) == 2
+    assert main(["selfcal", str(write(tmp_path, as_doc(y)))]) == 1
     assert "planar" in capsys.readouterr().err
 
 

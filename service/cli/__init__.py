@@ -1,9 +1,10 @@
 """The ``posecal`` command line: one sub-command per module in this package.
 
 Each sub-command module defines ``register(subparsers)``, which adds its parser
-and sets ``func``; the function returns an exit code. Domain errors are raised as
-:class:`CliError` and become a one-line message on stderr and exit code 2, the
-same code argparse uses for bad arguments.
+and sets ``func``; the function returns an exit code. Exit codes: 0 success; 1 a
+computation that could not be done on valid input (:class:`CliFailure`); 2 a
+usage or input error (:class:`CliError`, the code argparse uses for bad
+arguments). Both errors become a one-line message on stderr with the reason.
 """
 
 from __future__ import annotations
@@ -14,15 +15,23 @@ import logging
 import os
 import sys
 
-__all__ = ["CliError", "main", "positive_int"]
+__all__ = ["CliError", "CliFailure", "main", "positive_int"]
 
 # Modules that provide sub-commands, imported lazily so that ``posecal synth``
 # never pays for importing the web stack.
-_COMMANDS = ("synth", "estimate", "refine", "model", "selfcal", "capture", "serve", "demo", "docs")
+_COMMANDS = ("synth", "estimate", "sync", "refine", "model", "selfcal", "capture", "serve", "demo", "docs")
 
 
 class CliError(Exception):
-    """A user-facing error: printed without a traceback, exit code 2."""
+    """A usage or input error: printed without a traceback, exit code 2."""
+
+    exit_code = 2
+
+
+class CliFailure(CliError):
+    """A computation that could not be done on valid input (the reason says why): exit code 1."""
+
+    exit_code = 1
 
 
 def positive_int(text: str) -> int:
@@ -82,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except CliError as exc:
         print(f"posecal {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # the reader went away (`posecal docs | head`): not an error

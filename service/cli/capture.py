@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from . import CliError, positive_int
+from . import CliError, CliFailure, positive_int
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +123,8 @@ def run_capture(args: argparse.Namespace) -> int:
         agent.main(conf, settings, view=view)
     except SourceError as exc:
         raise CliError(str(exc)) from None
-    except zenoh.ZError as exc:
-        raise CliError(f"zenoh: {exc}") from None
+    except zenoh.ZError as exc:  # the configuration parsed: the session could not be run
+        raise CliFailure(f"zenoh: {exc}") from None
     finally:
         if view is not None:
             view.close()
@@ -139,6 +139,6 @@ def run_router(args: argparse.Namespace) -> int:
     conf = _config(args)
     try:
         router.main(conf)
-    except zenoh.ZError as exc:
-        raise CliError(f"zenoh: {exc}") from None
+    except zenoh.ZError as exc:  # the configuration parsed: the router could not be run
+        raise CliFailure(f"zenoh: {exc}") from None
     return 0

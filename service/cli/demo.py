@@ -16,7 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from . import CliError
+from . import CliError, CliFailure
 
 # Viewpoints of the demo cameras (azimuth, elevation), docs/FORMATS.md convention.
 CAMERAS = ((60.0, 10.0), (150.0, 15.0), (240.0, 5.0), (330.0, 20.0), (105.0, 25.0), (285.0, 0.0))
@@ -86,7 +86,7 @@ def run_demo(args: argparse.Namespace) -> int:
     try:
         server = BackgroundServer(settings, port=args.port or None)
     except (RuntimeError, OSError) as exc:
-        raise CliError(f"the service did not start: {exc}") from None
+        raise CliFailure(f"the service did not start: {exc}") from None
     with server:
         url = server.url
         print(f"service at {url}  (Zenoh {endpoint}); {len(cams)} synthetic agents, "
@@ -111,7 +111,7 @@ def run_demo(args: argparse.Namespace) -> int:
             print()
             rig = client.get("/v1/rigs/demo")
             if rig.status_code != 200:
-                raise CliError(f"no silhouettes reached the service; see the agent logs in {workdir}")
+                raise CliFailure(f"no silhouettes reached the service; see the agent logs in {workdir}")
             summary = rig.json()
             estimates = client.get("/v1/rigs/demo/estimates", params={"limit": 1000}).json()["estimates"]
             # The live rig lags the windows (its postures run at low priority): give it a few
@@ -143,7 +143,10 @@ def run_demo(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 pass
     print(f"Rerun recording: {rrd}   (view: rerun {rrd})")
-    return 0 if summary["windows"]["estimated"] else 1
+    if not summary["windows"]["estimated"]:
+        raise CliFailure(f"no window was estimated (skipped without a walker: {summary['windows']['skipped']}, "
+                         f"failed: {summary['windows']['failed']}); see the agent logs in {workdir}")
+    return 0
 
 
 def _report(summary: dict, estimates: list[dict], cams) -> None:

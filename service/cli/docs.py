@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import CliError
+from . import CliError, CliFailure
 
 
 def docs_dir() -> Path | None:
@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     folder = docs_dir()
     if folder is None:
-        raise CliError("the documentation is not installed with this copy of posecal")
+        raise CliFailure("the documentation is not installed with this copy of posecal")
     pages = {p.stem.lower(): p for p in sorted(folder.glob("*.md"))}
     if args.name is None:
         print(f"{folder}:")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from . import CliError, positive_int
+from . import CliError, CliFailure, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,13 +22,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "decode the walking phase with the cyclic HMM and write the result (format: docs/FORMATS.md). "
         "A recording longer than a window is estimated window by window and cut into segments "
         "where the viewpoints change (the walker turned); the result lists them. "
-        "The default appearance model is built and cached on first use (about two minutes).",
+        "The default appearance model is built and cached on first use (about two minutes). "
+        "Exit codes: 0 done, 1 the estimate or an export could not be done, 2 bad arguments or input.",
     )
     p.add_argument("sequence", metavar="SEQ", help="sequence folder (rig.json + per-camera PNG silhouettes), "
-                   "or a folder of videos, one per camera (<camera>.mp4, .avi, .mkv, .mov, .webm, .m4v; frames "
-                   "aligned by index): the walker is separated from the background first")
+                   "or a folder of videos, one per camera (<camera>.mp4, .avi, .mkv, .mov, .webm, .m4v; "
+                   "synchronised from the walk, --sync): the walker is separated from the background first")
     p.add_argument("--warmup", type=positive_int, metavar="N",
                    help="videos: background frames at the start (default: a quarter, at most 100)")
+    p.add_argument("--sync", choices=("auto", "off"), default="auto",
+                   help="videos: 'auto' (default) finds each video's time offset from the walk and pairs "
+                        "frames by time (cameras not started together, different frame rates; the offsets "
+                        "are in the result's sequence.sync; frames paired by index are kept when they fit "
+                        "as well); 'off' pairs frames by index (a hardware-synchronised rig)")
     p.add_argument("--out", default="-", help="result JSON to write (default: standard output, the summary "
                                               "then goes to standard error)")
     p.add_argument("--model", help="appearance model file (default: the cached default model)")
@@ -48,6 +54,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "measures the 3D posture on all views at once with the calibrated cameras and "
                         "calibrates again (about 4 s per round for 2 cameras x 30 frames; it has not improved "
                         "the rig on our evaluations yet, docs/POSTURE.md)")
+    e = p.add_argument_group("exports (docs/FORMATS.md, \"Exports\"); written after the result")
+    e.add_argument("--export-calibration", metavar="PATH.toml|.yaml|.json",
+                   help="the self-calibrated pinhole rig (the reference camera's frame, metres) as a Pose2Sim / "
+                        "anipose calibration TOML or OpenCV's YAML / JSON, by the suffix; needs metric cameras "
+                        "(full-frame silhouettes, rig.source self-calibration)")
+    e.add_argument("--export-trc", metavar="PATH.trc", help="the 3D joints of every frame as an OpenSim TRC (Y up)")
+    e.add_argument("--export-bvh", metavar="PATH.bvh", help="the 3D joints as a BVH skeleton (Y up, metres)")
+    e.add_argument("--export-csv", metavar="PATH.csv",
+                   help="the 3D joints as CSV: frame, time, <joint>_x/_y/_z (person frame, z up, metres)")
     p.set_defaults(func=run)
 
 
@@ -64,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         rig = RigConfig(height_m=args.height, rounds=args.rounds)
     except ValueError as exc:  # --height or --rounds
         raise CliError(str(exc).replace("height_m", "--height").replace("rounds", "--rounds", 1)) from None
+    exports = _export_formats(args)
     videos = _videos(args.sequence)
     sequence = None
     if not videos:
@@ -79,19 +95,21 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             if videos:
-                tracks, info, decoding = _video_tracks(args, videos, lambda f: progress(0.5 * f))
+                tracks, info, decoding = _video_tracks(args, videos, model, lambda f: progress(0.5 * f))
             else:
                 tracks = tracks_from_sequence(sequence)
             walk = segment_walk(tracks, model, length=args.window, hop=args.hop,
                                 posture=MNBPConfig() if args.posture == "mnbp" else None, rig=rig,
                                 progress=(lambda f: progress(0.5 + 0.5 * f)) if videos else progress)
-        except ValueError as exc:
-            raise CliError(f"{args.sequence}: {exc}") from None
+        except ValueError as exc:  # input that reads but cannot be estimated (e.g. no walker)
+            raise CliFailure(f"{args.sequence}: {exc}") from None
     result = walk.to_result()
     if videos:
         from service.worker import _mark_decoding
 
         result["sequence"] = info
+        if "sync" in info:
+            result["sync"] = info.pop("sync")
         _mark_decoding(result, decoding)
         shape = (info["frames"], len(tracks), None)
     else:
@@ -103,12 +121,45 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
         with contextlib.redirect_stdout(sys.stderr):
             _summary(result, shape, "standard output")
-        return 0
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as fh:
-        json.dump(result, fh, allow_nan=False)
-    _summary(result, shape, args.out)
+    else:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as fh:
+            json.dump(result, fh, allow_nan=False)
+        _summary(result, shape, args.out)
+    _export(result, exports)
     return 0
+
+
+def _export_formats(args: argparse.Namespace) -> dict[str, tuple[Path, str]]:
+    """The --export-* files asked for: flag -> (path, format); a calibration suffix that is none of
+    the formats is a usage error (checked before the estimate)."""
+    from service.exports import calibration_format
+
+    out = {}
+    for flag in ("calibration", "trc", "bvh", "csv"):
+        path = getattr(args, f"export_{flag}")
+        if path is None:
+            continue
+        try:
+            out[f"--export-{flag}"] = (Path(path), calibration_format(path) if flag == "calibration" else flag)
+        except ValueError as exc:
+            raise CliError(f"--export-{flag}: {exc}") from None
+    return out
+
+
+def _export(result: dict, exports: dict[str, tuple[Path, str]]) -> None:
+    """Write the exports of the result (:func:`service.exports.export_result`); one the result cannot
+    give (no metric cameras, a joint never placed) fails the command (exit 1) once the others are written."""
+    from service.exports import export_result, write_text
+
+    failed = []
+    for flag, (path, fmt) in exports.items():
+        try:
+            write_text(path, export_result(result, fmt, path.name))
+        except ValueError as exc:
+            failed.append(f"{flag} {path}: {exc}")
+    if failed:
+        raise CliFailure("; ".join(failed))
 
 
 def _videos(path: str) -> list[Path]:
@@ -121,28 +172,25 @@ def _videos(path: str) -> list[Path]:
     return list(list_videos(folder).values())
 
 
-def _video_tracks(args: argparse.Namespace, videos: list[Path], progress):
-    """Each video's silhouettes (background subtraction, as REST jobs do) as camera tracks, the
-    input's ``sequence`` summary and each camera's decoded/announced frame counts."""
-    from capture.refine import track_from_segmentations
-    from capture.segment import default_warmup
-    from capture.sources import VideoFileSource
-    from estimator.pipeline import pad_tracks
-    from service.worker import _segment_videos
+def _video_tracks(args: argparse.Namespace, videos: list[Path], model, progress):
+    """Each video's silhouettes (background subtraction, as REST jobs do) as camera tracks on one
+    timeline (``--sync``), the input's ``sequence`` summary (with the ``sync`` block) and each
+    camera's decoded/announced frame counts."""
+    from service.worker import sync_videos, video_tracks
 
-    counts = {}
-    for path in videos:
-        with VideoFileSource(path) as source:
-            counts[path.stem] = source.frame_count() or 0
-    warmup = args.warmup or default_warmup(min(counts.values()))
-    segmentations, sizes, fps, decoding = _segment_videos(  # the header counts read once, here
-        Path(args.sequence), warmup=warmup, report=lambda f, _: progress(f),
-        options={"windows": {"length": args.window}, "header_frames": counts})
-    tracks = pad_tracks({c: track_from_segmentations(s) for c, s in segmentations.items()})
+    tracks, rates, info = video_tracks(Path(args.sequence), warmup=args.warmup,
+                                       report=lambda f, _: progress(0.9 * f),
+                                       options={"windows": {"length": args.window}})
+    try:
+        tracks, fps, sync = sync_videos(tracks, rates, model, args.sync)
+    except ValueError as exc:  # a camera without the walker
+        raise CliFailure(f"{args.sequence}: synchronising the videos: {exc}") from None
+    progress(1.0)
     frames = max(len(t.silhouettes) for t in tracks.values())
-    size = next(iter(sizes.values()))
-    return tracks, {"fps": fps, "image_size": list(size), "frames": frames, "videos": [p.name for p in videos],
-                    "warmup": warmup}, decoding
+    size = next(iter(info["sizes"].values()))
+    summary = {"fps": fps, "image_size": list(size), "frames": frames, "videos": [p.name for p in videos],
+               "warmup": info["warmup"], **({"sync": sync} if sync is not None else {})}
+    return tracks, summary, info["decoding"]
 
 
 def _summary(result: dict, shape: tuple[int, int, dict | None], where: str) -> None:

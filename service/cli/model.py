@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-from . import CliError
+from . import CliError, CliFailure
 
 __all__ = ["register", "cache_dir", "get_default_model", "default_model_path", "model_from_arg"]
 
@@ -97,7 +97,7 @@ class _Progress:
         from estimator import examples as ex
 
         if not hasattr(ex, "render_examples"):
-            raise CliError("the example renderer (estimator.examples.render_examples) is not available")
+            raise CliFailure("the example renderer (estimator.examples.render_examples) is not available")
         return ex.render_examples(progress=self._render_progress)
 
     def finish(self) -> None:

@@ -20,7 +20,7 @@ import argparse
 import json
 import os
 
-from . import CliError
+from . import CliError, CliFailure
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -87,8 +87,8 @@ def _refine_pngs(args: argparse.Namespace, model) -> int:
     try:
         with Renderer(config.body) as renderer:
             refined = refine_sequence(seq, model, renderer=renderer, config=config)
-    except ValueError as exc:
-        raise CliError(f"{args.sequence}: {exc}") from None
+    except ValueError as exc:  # input that reads but cannot be estimated
+        raise CliFailure(f"{args.sequence}: {exc}") from None
     _write(args.out, refined, "silhouettes")
     print(f"wrote {args.out}: {seq.n_frames} frames, {len(seq.cameras)} cameras, "
           f"{refined.changed_pixels} pixels changed")
@@ -123,8 +123,8 @@ def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> i
         with Renderer(config.body) as renderer:
             refined = refine_videos(videos, model, renderer=renderer, warmup=warmup,
                                     fps=fps or 15.0, config=config, truth=truth)
-    except ValueError as exc:
-        raise CliError(f"{args.sequence}: {exc}") from None
+    except ValueError as exc:  # input that reads but cannot be estimated
+        raise CliFailure(f"{args.sequence}: {exc}") from None
     _write(args.out, refined, "video")
     print(f"wrote {args.out}: {n} frames (warm-up {warmup}), {len(videos)} cameras")
     return 0

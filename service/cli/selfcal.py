@@ -6,7 +6,8 @@ MediaPipe (:mod:`service.keypoints_io`), runs
 :func:`estimator.selfcal.self_calibrate` and writes the rotation and scale of
 every camera relative to the first plus the metric 3D joints per frame; with
 ``--image-size``, pinhole cameras, and on request the rig as a Pose2Sim /
-anipose calibration TOML and the joints as an OpenSim TRC (:mod:`service.exports`).
+anipose calibration TOML or an OpenCV YAML / JSON, and the joints as an OpenSim
+TRC, a BVH or a CSV (:mod:`service.exports`).
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ from estimator.pinhole import floor_frame, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 
-from ..exports import write_calibration_toml, write_trc
+from ..exports import bvh_text, calibration_format, csv_text, write_calibration, write_text, write_trc
 from ..keypoints_io import KeypointError, Keypoints, read_keypoints
-from . import CliError, positive_int
+from . import CliError, CliFailure, positive_int
 
 __all__ = ["load_tracks", "register", "result_to_json"]
 
@@ -45,8 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="self-calibrate cameras from 2D joint tracks (Wang-Leow section 4)",
         description="Relative rotation and scale of two or more scaled orthographic cameras, "
         "and metric 3D joints, from 2D joint tracks of one walker or from OpenPose, MMPose or MediaPipe "
-        "keypoints; with --image-size pinhole cameras, a Pose2Sim / anipose calibration TOML and an "
-        "OpenSim TRC (formats: docs/FORMATS.md).",
+        "keypoints; with --image-size pinhole cameras, a Pose2Sim / anipose calibration TOML or an OpenCV "
+        "YAML / JSON, and the 3D joints as an OpenSim TRC, a BVH or a CSV (formats: docs/FORMATS.md). Exit "
+        "codes: 0 done, 1 the calibration could not be done or is unreliable, 2 bad arguments or input.",
     )
     p.add_argument("tracks", type=Path, nargs="+", metavar="INPUT",
                    help="tracks JSON ({joint_names, cameras: {name: frames}}); or keypoints: a folder of "
@@ -55,7 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="result JSON (default: stdout)")
     p.add_argument("--method", choices=("refined", "closed-form"), default="refined",
                    help="'refined' (default): the closed form, then the bundle adjustment with the "
-                        "upright-walker priors (adds euler_xyz_std_deg and scale_std), then pinhole "
+                        "upright-walker priors (adds rotvec_covariance_rad2, euler_xyz_std_deg and "
+                        "scale_std), then pinhole "
                         "cameras when --image-size is given; 'closed-form': the paper's closed form "
                         "alone (section 4.2), as published")
     p.add_argument("--image-size", metavar="W,H",
@@ -87,11 +90,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="calibrate on at most N frames, evenly spread (default 60 for keypoint input, every "
                         "frame of a tracks JSON); the exports hold every frame")
     e = p.add_argument_group("exports (need --image-size)")
-    e.add_argument("--export-calibration", type=Path, metavar="PATH.toml",
-                   help="the cameras as a Pose2Sim / anipose calibration TOML (z-up world, metres)")
+    e.add_argument("--export-calibration", type=Path, metavar="PATH.toml|.yaml|.json",
+                   help="the cameras (z-up world, metres) as a Pose2Sim / anipose calibration TOML (.toml) or "
+                        "as OpenCV's cv2.FileStorage YAML (.yaml, .yml) or JSON (.json), by the suffix")
     e.add_argument("--export-trc", type=Path, metavar="PATH.trc",
                    help="the 3D joints of every frame as an OpenSim TRC (Y up, metres)")
-    e.add_argument("--fps", type=float, default=15.0, help="the TRC's frame rate (default 15)")
+    e.add_argument("--export-bvh", type=Path, metavar="PATH.bvh",
+                   help="the 3D joints of every frame as a BVH skeleton (Y up, metres; bone lengths the "
+                        "person's medians)")
+    e.add_argument("--export-csv", type=Path, metavar="PATH.csv",
+                   help="the 3D joints of every frame as CSV: frame, time, <joint>_x/_y/_z (z up, metres)")
+    e.add_argument("--fps", type=float, default=15.0, help="the TRC's, BVH's and CSV's frame rate (default 15)")
     p.set_defaults(func=run)
 
 
@@ -171,6 +180,7 @@ def result_to_json(result, cameras: list[str]) -> dict:
             name: {
                 "rotation": result.rotations[c].tolist(),
                 "rotvec": Rotation.from_matrix(result.rotations[c]).as_rotvec().tolist(),
+                "quaternion_xyzw": Rotation.from_matrix(result.rotations[c]).as_quat(canonical=True).tolist(),
                 "euler_xyz_deg": euler[c].tolist(),
                 "scale": float(result.scales[c]),
             }
@@ -188,7 +198,10 @@ def result_to_json(result, cameras: list[str]) -> dict:
         if c == 0:
             continue
         cam = doc["cameras"][name]
-        if std is not None:  # posterior standard deviations (bundle adjustment only)
+        if result.rotvec_cov is not None:  # the posterior (bundle adjustment only), radians^2
+            cov = result.rotvec_cov[c]
+            cam["rotvec_covariance_rad2"] = cov.tolist() if np.isfinite(cov).all() else None
+        if std is not None:  # the same posterior as Euler angles' standard deviations (kept for compatibility)
             cam["euler_xyz_std_deg"] = _nullable(std[c:c + 1])[0]
         if result.scale_std is not None:  # null: the tracks do not determine it
             cam["scale_std"] = float(result.scale_std[c]) if np.isfinite(result.scale_std[c]) else None
@@ -215,10 +228,16 @@ def run(args: argparse.Namespace) -> int:
     if size is not None and (closed or args.varying_scale):
         raise CliError("--image-size, --intrinsics and --focal need the refined path with fixed scales (not "
                        "--method closed-form, not --varying-scale)")
-    exports = [p for p in (args.export_calibration, args.export_trc) if p is not None]
+    exports = [p for p in (args.export_calibration, args.export_trc, args.export_bvh, args.export_csv)
+               if p is not None]
     if exports and size is None:
-        raise CliError("--export-calibration and --export-trc need pinhole cameras: give --image-size W,H "
-                       "(and the refined path, the default)")
+        raise CliError("--export-calibration, --export-trc, --export-bvh and --export-csv need pinhole cameras: "
+                       "give --image-size W,H (and the refined path, the default)")
+    if args.export_calibration is not None:
+        try:
+            calibration_format(args.export_calibration)
+        except ValueError as exc:
+            raise CliError(f"--export-calibration: {exc}") from None
     if args.fps <= 0:
         raise CliError(f"--fps must be positive, got {args.fps}")
     used = _calibration_frames(tracks.shape[1], args.max_frames or (60 if keypoints else None))
@@ -230,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if not result:
-        raise CliError(f"self-calibration failed: {result.reason}")
+        raise CliFailure(f"self-calibration failed: {result.reason}")
     out = result_to_json(result, cameras)
     if size is not None:
         out, pin, k = _with_pinhole(out, result, tracks[:, used], cameras, sizes, rig, pinhole_config)
@@ -289,7 +308,7 @@ def _calibration_frames(t: int, max_frames: int | None) -> np.ndarray:
 
 def _export(args: argparse.Namespace, pin, k: float, tracks: np.ndarray, keypoints: Keypoints | None,
             cameras: list[str], sizes: np.ndarray, rig: RigConfig) -> None:
-    """Write --export-calibration and --export-trc: the pinhole rig in metres in a z-up world
+    """Write the --export-* files: the pinhole rig in metres in a z-up world
     (:func:`estimator.pinhole.floor_frame`), every input frame triangulated."""
     cams = pin.cameras(k)
     weights = keypoints.confidence if keypoints is not None else None
@@ -297,15 +316,23 @@ def _export(args: argparse.Namespace, pin, k: float, tracks: np.ndarray, keypoin
     try:
         rotation, origin = floor_frame(joints, np.array([0.0, 0.0, 1.0]))
     except ValueError as exc:
-        raise CliError(f"exports: {exc}") from None
+        raise CliFailure(f"exports: {exc}") from None
     world = cams.moved(rotation, origin)
     if args.export_calibration is not None:
-        write_calibration_toml(args.export_calibration, cameras, sizes, world, metadata={
+        write_calibration(args.export_calibration, cameras, sizes, world, metadata={
             "error": float(pin.rmse_px), "source": "posecal selfcal", "reference_camera": cameras[0],
             "stature_m": float(rig.height_m)})
+    frames = keypoints.frames if keypoints is not None else None
+    joints = (joints - origin) @ rotation.T
     if args.export_trc is not None:
-        frames = keypoints.frames if keypoints is not None else None
-        write_trc(args.export_trc, (joints - origin) @ rotation.T, args.fps, frames)
+        write_trc(args.export_trc, joints, args.fps, frames)
+    if args.export_csv is not None:
+        write_text(args.export_csv, csv_text(joints, args.fps, frames))
+    if args.export_bvh is not None:
+        try:
+            write_text(args.export_bvh, bvh_text(joints, args.fps))
+        except ValueError as exc:
+            raise CliFailure(f"--export-bvh: {exc}") from None
 
 
 def _image_size(text: str | None) -> tuple[int, int] | None:
@@ -375,7 +402,7 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
     pin = perspective_refine(tracks, sizes, result.rotations, result.scales, list(RIGID_LINKS), config=config)
     k = stature_scale(pin.joints3d, rig.height_m)
     if not np.isfinite(k):
-        raise CliError("the pinhole adjustment gave a body without length")
+        raise CliFailure("the pinhole adjustment gave a body without length")
     rot = Rotation.from_matrix(pin.rotations)
     euler, rotvec = rot.as_euler("xyz", degrees=True), rot.as_rotvec()
     fit = _fit_notes(pin, tracks)
@@ -394,6 +421,7 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
     for c, name in enumerate(cameras[1:], 1):
         cams[name] = {"rotation": pin.rotations[c].tolist(),
                       "rotvec": rotvec[c].tolist(),
+                      "quaternion_xyzw": rot[c].as_quat(canonical=True).tolist(),
                       "euler_xyz_deg": euler[c].tolist(),
                       "scale": float(pin.scales[c]), "focal_px": float(pin.focal_px[c]),
                       "centre_m": (pin.centres[c] * k).tolist()}

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import CliError
+from . import CliError, CliFailure
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -36,8 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-feedback", action="store_true",
                    help="do not send silhouette priors back to the capture agents (section 7.1)")
     p.add_argument("--api-token-file", metavar="PATH",
-                   help="bearer tokens, one per line ('#' comments): every /v1 route then needs "
-                        "'Authorization: Bearer <token>' (docs/SERVICE.md, Access)")
+                   help="bearer tokens, one per line ('#' comments), 'TOKEN' or 'TOKEN SCOPE' (read, "
+                        "submit, admin): every /v1 route then needs 'Authorization: Bearer <token>' "
+                        "(docs/SERVICE.md, Access)")
     p.add_argument("--insecure", action="store_true",
                    help="allow --host beyond loopback without API tokens (anyone who reaches the port "
                         "can list, submit and delete jobs)")
@@ -107,5 +108,10 @@ def run_serve(args: argparse.Namespace) -> int:
         model_from_arg(str(settings.model_path))
     app = create_app()
     app.dependency_overrides[get_settings] = lambda: settings
-    uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    try:
+        uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    except SystemExit as exc:  # uvicorn exits 3 when it cannot start (a port taken): 1 here, with the reason
+        if exc.code in (0, None):
+            raise
+        raise CliFailure(f"the server did not start on {args.host}:{args.port} (the log above says why)") from None
     return 0

@@ -21,6 +21,6 @@ def healthz(rt: RuntimeDep, settings: SettingsDep, store: StoreDep) -> Health:
 
 
 @router.get("/metrics", response_class=Response, dependencies=[Depends(bearer_scheme)],
-            responses=error_responses(401))
+            responses=error_responses(401, 403))
 def metrics(m: MetricsDep) -> Response:
     return Response(m.render(), media_type=CONTENT_TYPE_LATEST)

@@ -9,14 +9,17 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Response, UploadFile, status
 from fastapi.responses import FileResponse
+from sqlalchemy.exc import OperationalError
 
 from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep, bearer_scheme
+from ..exports import export_result
 from ..jobs import ACTIVE, STATES
 from ..schemas import JobList, JobOut, Result, error_responses, job_out
 from ..worker import UploadError, stage_upload
+from ._export import export_content, export_response
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(bearer_scheme)],
-                   responses=error_responses(401))
+                   responses=error_responses(401, 403))
 
 
 def _job_or_404(store: StoreDep, job_id: str):
@@ -27,7 +30,7 @@ def _job_or_404(store: StoreDep, job_id: str):
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(
-    400, 413, 415, 422, 507, examples={
+    400, 413, 415, 422, 503, 507, examples={
         400: "corrupt zip file: walk/c1/000010.png: Bad CRC-32",
         413: "c1/000003.png: the PNG header says 100000x100000, which exceeds the limit of 4096x4096",
         415: "expected one .zip sequence folder or videos (.mp4, .avi, ...), got ['walk.tar']",
@@ -48,6 +51,10 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
                height_m: Annotated[float, Form(ge=0.5, le=2.5, description="the walker's stature in "
                                                "metres: the scale of frames[].person_joints3d and "
                                                "body")] = 1.75,
+               sync: Annotated[Literal["auto", "off"], Form(
+                   description="videos: 'auto' finds each video's time offset from the walk and pairs "
+                   "frames by time (cameras not started together, different frame rates; the offsets in "
+                   "the result's sync block, docs/SYNC.md); 'off' pairs frames by index")] = "auto",
                ) -> JobOut:
     """Validate and stage the upload, queue the job; 4xx with the reason if the upload is bad."""
     job_id = uuid.uuid4().hex
@@ -63,14 +70,24 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
         raise
     options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames,
                                "windows": settings.segment_options(), "posture": posture,
-                               "height_m": height_m, "max_frames": settings.max_frames}
+                               "height_m": height_m, "max_frames": settings.max_frames, "sync": sync}
     if staged.frame_counts:
         options["header_frames"] = staged.frame_counts
     if warmup is not None:
         options["warmup"] = warmup
     if refine:
         options.update(refine=True, refined_dir=str(job_dir))
-    row = store.create(kind=staged.kind, input_dir=str(staged.path), options=options, job_id=job_id)
+    try:
+        row = store.create(kind=staged.kind, input_dir=str(staged.path), options=options, job_id=job_id)
+    except OperationalError as exc:  # the job store's disk is full (or the database is unreachable)
+        shutil.rmtree(job_dir, ignore_errors=True)
+        full = "full" in str(exc.orig).lower()
+        metrics.uploads_rejected.labels("507" if full else "503").inc()
+        raise HTTPException(507 if full else 503, "no space left to record the job" if full
+                            else "the job store cannot be reached") from None
+    except BaseException:
+        shutil.rmtree(job_dir, ignore_errors=True)
+        raise
     metrics.jobs_submitted.inc()
     runner.wake()
     response.headers["Location"] = f"/v1/jobs/{job_id}"
@@ -92,10 +109,21 @@ def get_job(job_id: str, store: StoreDep) -> JobOut:
     return job_out(_job_or_404(store, job_id))
 
 
-@router.get("/{job_id}/result", responses={200: {"model": Result}, **error_responses(
-    404, 409, examples={409: "job 3f2a... is running"})})
-def get_result(job_id: str, store: StoreDep) -> dict[str, Any]:
-    """The result (docs/FORMATS.md) of a finished job; 409 while it is not done."""
+ResultFormat = Literal["json", "trc", "bvh", "csv", "toml", "yaml"]
+
+
+@router.get("/{job_id}/result", response_model=None, responses={
+    200: {"model": Result, "content": export_content("trc", "bvh", "csv", "toml", "yaml")}, **error_responses(
+        400, 404, 409, examples={400: "format 'toml': the rig has no metric cameras (focal lengths, centres in "
+                                      "metres): its source is 'viewpoints', without pinhole cameras (notes say why)",
+                                 409: "job 3f2a... is running"})})
+def get_result(job_id: str, store: StoreDep, format: Annotated[ResultFormat, Query(
+        description="json: the result (docs/FORMATS.md); trc, bvh, csv: its 3D joints (person_joints3d when the "
+                    "rig was self-calibrated, else joints3d; docs/FORMATS.md, \"Exports\"); toml (Pose2Sim / "
+                    "anipose), yaml (OpenCV): its rig's pinhole cameras, when it has them (else 400)")] = "json",
+               ) -> dict[str, Any] | Response:
+    """The result (docs/FORMATS.md) of a finished job, or an export of it; 409 while it is not done,
+    400 for a format the result cannot give (with the reason)."""
     row = _job_or_404(store, job_id)
     if row.state != "done":
         detail = f"job {job_id} is {row.state}" + (f": {row.error}" if row.error else "")
@@ -103,7 +131,10 @@ def get_result(job_id: str, store: StoreDep) -> dict[str, Any]:
     result = store.result(job_id)
     if result is None:
         raise HTTPException(409, f"job {job_id} has no result")
-    return result
+    if format == "json":
+        return result
+    name = f"{job_id}.{format}"
+    return export_response(lambda: export_result(result, format, name), format, name)
 
 
 @router.get("/{job_id}/silhouettes", response_class=FileResponse,

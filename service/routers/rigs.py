@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi import APIRouter, Depends, HTTPException, Query, Response
 
 from ..deps import LiveDep, RuntimeDep, bearer_scheme
+from ..exports import export_calibration
 from ..schemas import EstimatesOut, LiveCalibration, LiveEstimate, RigList, RigOut, error_responses
+from ._export import export_content, export_response
 
 router = APIRouter(prefix="/v1/rigs", tags=["rigs"], dependencies=[Depends(bearer_scheme)],
-                   responses=error_responses(401))
+                   responses=error_responses(401, 403))
 
 
 def _unknown_rig(rig: str) -> HTTPException:
@@ -62,18 +64,28 @@ def estimates_since(rig: str, live: LiveDep,
             "next_since": items[-1]["window"]["seq"] if items else since}
 
 
-@router.get("/{rig}/calibration", response_model=LiveCalibration, responses=error_responses(
-    404, examples={404: "rig 'lab' has no calibration yet: it needs postures on 8 frames seen by two cameras"}))
-def live_calibration(rig: str, live: LiveDep) -> dict[str, Any]:
+@router.get("/{rig}/calibration", response_model=LiveCalibration, responses={
+    200: {"content": export_content("toml", "yaml")}, **error_responses(
+        400, 404, examples={
+            400: "format 'toml': the rig has no metric cameras (focal lengths, centres in metres): its source is "
+                 "'viewpoints', without pinhole cameras (notes say why)",
+            404: "rig 'lab' has no calibration yet: it needs postures on 8 frames seen by two cameras"})})
+def live_calibration(rig: str, live: LiveDep, format: Annotated[Literal["json", "toml", "yaml"], Query(
+        description="json: the calibration below; toml (Pose2Sim / anipose), yaml (OpenCV): its pinhole cameras "
+                    "in the reference camera's frame (docs/FORMATS.md, \"Exports\"), when it has them "
+                    "(else 400)")] = "json") -> dict[str, Any] | Response:
     """The rig calibrated from the live windows so far (Wang–Leow §3-4 on a few frames per window).
 
     Cameras are taken as fixed: the rig is solved over the postures of recent
     windows (at most ``max_frames`` frames), recalibrated every few windows, and
     restarted when a camera moves. ``lag_windows`` says how far it is behind the
-    latest estimate."""
+    latest estimate. ``format=toml|yaml``: the same rig as a calibration file
+    (400 with the reason when it has no pinhole cameras)."""
     _rig_or_404(live, rig)
     cal = live.calibration(rig)
     if cal is None:
         raise HTTPException(404, f"rig {rig!r} has no calibration yet: it needs postures on 8 frames seen by "
                                  "two cameras (live_rig off, or too few windows since the start or a camera move)")
-    return cal
+    if format == "json":
+        return cal
+    return export_response(lambda: export_calibration(cal, format), format, f"{rig}-calibration.{format}")
