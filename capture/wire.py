@@ -156,12 +156,21 @@ def _check_frame(box: Box, image_size: tuple[int, int]) -> None:
         raise WireError(f"box {dataclasses.astuple(box)} is not inside the image {image_size}")
 
 
+def png_size(head: bytes) -> tuple[int, int] | None:
+    """Width and height from a PNG's first 24 bytes (signature and ``IHDR``), without
+    decoding it; None if they are not a PNG header."""
+    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", head[16:24])
+
+
 def _png_crop(png: bytes, box: Box) -> np.ndarray:
     """Decode the crop's PNG once its header says it is the box's size (a header claiming
     100000 x 100000 pixels is refused before anything is allocated)."""
-    if len(png) < 24 or png[:8] != _PNG_SIGNATURE or png[12:16] != b"IHDR":
+    size = png_size(png)
+    if size is None:
         raise WireError("crop is not a decodable PNG (no PNG header)", "image")
-    width, height = struct.unpack(">II", png[16:24])
+    width, height = size
     if (width, height) != (box.w, box.h):
         raise WireError(f"crop PNG of {width}x{height} (its header) does not match box size "
                         f"{box.w}x{box.h}", "image")

@@ -258,6 +258,12 @@ def kinematic_reflection(joints: np.ndarray) -> tuple[bool, float]:
     return bool(agree < 0.5), float(max(agree, 1.0 - agree))
 
 
+def proper_rotations(r: np.ndarray, atol: float = 1e-6) -> bool:
+    """Whether every (..., 3, 3) matrix of ``r`` is a proper rotation (orthonormal, det = +1)."""
+    return bool(np.allclose(r @ np.swapaxes(r, -1, -2), np.eye(3), atol=atol)
+                and np.allclose(np.linalg.det(r), 1.0, atol=atol))
+
+
 def geodesic_deg(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
     """SO(3) geodesic angle between rotations, degrees; shapes (..., 3, 3)."""
     rel = np.swapaxes(r1, -1, -2) @ r2

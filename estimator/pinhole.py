@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._selfcal_core import proper_rotations
 from .joints import JOINT_INDEX
 
 __all__ = ["PinholeCameras", "floor_frame", "project", "triangulate"]
@@ -39,8 +40,7 @@ class PinholeCameras:
 
     def __post_init__(self) -> None:
         r = np.asarray(self.rotations, float)
-        if not np.allclose(r @ np.swapaxes(r, 1, 2), np.eye(3), atol=1e-6) or not np.allclose(
-                np.linalg.det(r), 1.0, atol=1e-6):
+        if not proper_rotations(r):
             raise ValueError("rotations must be proper rotations")
 
     @classmethod

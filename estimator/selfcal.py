@@ -58,6 +58,7 @@ from ._selfcal_core import (
     adj3,
     camera_constraint_rows,
     geodesic_deg,
+    proper_rotations,
     kinematic_reflection,
     link_rows,
     nearest_scaled_rotation,
@@ -187,10 +188,8 @@ class SelfCalibration:
         r = np.asarray(self.rotations, dtype=float)
         if r.ndim != 3 or r.shape[1:] != (3, 3):
             raise ValueError(f"rotations must have shape (C, 3, 3), got {r.shape}")
-        if not np.allclose(np.linalg.det(r), 1.0, atol=1e-6):
-            raise ValueError("rotations must be proper (det = +1)")
-        if not np.allclose(r @ np.swapaxes(r, 1, 2), np.eye(3), atol=1e-6):
-            raise ValueError("rotations must be orthonormal")
+        if not proper_rotations(r):
+            raise ValueError("rotations must be proper rotations (orthonormal, det = +1)")
 
     def __bool__(self) -> bool:
         return not self.reason
@@ -785,8 +784,7 @@ def _check_rotations(rotations: np.ndarray, n_cam: int) -> np.ndarray:
     r = np.asarray(rotations, dtype=float)
     if r.shape != (n_cam, 3, 3) or not np.all(np.isfinite(r)):
         raise ValueError(f"initial_rotations must be finite, shape ({n_cam}, 3, 3), got {r.shape}")
-    if not np.allclose(r @ np.swapaxes(r, 1, 2), np.eye(3), atol=1e-6) or not np.allclose(np.linalg.det(r), 1.0,
-                                                                                          atol=1e-6):
+    if not proper_rotations(r):
         raise ValueError("initial_rotations must be proper rotations")
     return r @ r[0].T
 

@@ -226,7 +226,8 @@ def synchronize(clocks: dict[str, CameraClock], config: SyncConfig | None = None
     grid = np.arange(-2 * config.max_offset_s, 2 * config.max_offset_s + config.resolution_s / 2,
                      config.resolution_s)
     curves = {(a, b): _curve(clocks[a], clocks[b], grid, config) for i, a in enumerate(names) for b in names[i + 1:]}
-    spacing = 0.25 / _cadence(clocks[ref])
+    cadence = _cadence(clocks[ref])
+    spacing = 0.25 / cadence
     others = [c for c in names if c != ref]
     hints = config.hints or {}
     unknown = sorted(set(hints) - set(names))
@@ -254,7 +255,7 @@ def synchronize(clocks: dict[str, CameraClock], config: SyncConfig | None = None
             seen_s = min(clocks[c].seen.sum() / clocks[c].fps, clocks[ref].seen.sum() / clocks[ref].fps)
             ambiguous[c] = bool(margin[c] < config.min_margin * np.sqrt(max(1.0, config.margin_span_s / seen_s)))
             offsets[c] = _refine(curves, fixed, c, grid)
-            unc[c] = _standard_error(clocks[ref], clocks[c], offsets[c], _cadence(clocks[ref]))
+            unc[c] = _standard_error(clocks[ref], clocks[c], offsets[c], cadence)
             if ambiguous[c]:
                 notes.append(f"{c}: another part of the gait cycle fits almost as well (margin {margin[c]:.3f}); "
                              "the walker's pace is too even to tell whole cycles apart")

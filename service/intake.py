@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
 
+from capture.wire import png_size
 from estimator.sequence import read_sequence
 
 from .limits import UploadLimits
@@ -41,7 +42,6 @@ def list_videos(folder: str | Path) -> dict[str, Path]:
     return {p.stem: p for p in sorted(Path(folder).iterdir())
             if p.suffix.lower() in VIDEO_EXTENSIONS and p.is_file()}
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # camera names (as on the wire)
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHUNK = 1 << 20
 # What reading a damaged or hostile zip raises (bz2 raises OSError; encrypted: RuntimeError).
 _ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, lzma.LZMAError, EOFError, OSError, ValueError,
@@ -223,10 +223,10 @@ def _png_size(path: Path, shown: str) -> tuple[int, int]:
     if not path.is_file():
         raise UploadError(422, f"{shown}: not a readable PNG")
     with open(path, "rb") as fh:
-        head = fh.read(24)
-    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        size = png_size(fh.read(24))
+    if size is None:
         raise UploadError(422, f"{shown}: not a readable PNG (no PNG header)")
-    width, height = struct.unpack(">II", head[16:24])
+    width, height = size
     if width == 0 or height == 0:
         raise UploadError(422, f"{shown}: not a readable PNG (its header says {width}x{height})")
     return width, height

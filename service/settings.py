@@ -24,16 +24,19 @@ __all__ = ["Settings", "data_home", "get_settings", "parse_rerun_sink"]
 DEFAULT_ZENOH_LISTEN = "tcp/127.0.0.1:7447"
 
 
+def xdg_dir(own: str, xdg: str, default: str) -> Path:
+    """``$<own>`` if set, else ``$<xdg>/posecal``, else ``~/<default>/posecal`` (the XDG base
+    directory specification: a relative ``$<xdg>`` is ignored); read at call time."""
+    if os.environ.get(own):
+        return Path(os.environ[own]).expanduser()
+    base = os.environ.get(xdg, "")
+    return (Path(base) if base and os.path.isabs(base) else Path.home() / default) / "posecal"
+
+
 def data_home() -> Path:
     """Where the service keeps its state unless told otherwise: ``$POSECAL_DATA``, else
-    ``$XDG_DATA_HOME/posecal``, else ``~/.local/share/posecal`` (XDG base directories:
-    a relative ``XDG_DATA_HOME`` is ignored). Never the working directory."""
-    own = os.environ.get("POSECAL_DATA")
-    if own:
-        return Path(own).expanduser()
-    xdg = os.environ.get("XDG_DATA_HOME", "")
-    base = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".local" / "share"
-    return base / "posecal"
+    ``$XDG_DATA_HOME/posecal``, else ``~/.local/share/posecal``. Never the working directory."""
+    return xdg_dir("POSECAL_DATA", "XDG_DATA_HOME", ".local/share")
 
 
 def parse_rerun_sink(spec: str | None) -> tuple[str, str | int] | None:

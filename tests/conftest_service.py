@@ -95,6 +95,17 @@ def wait_for_server(proc, url: str, *, timeout: float = 120.0) -> None:
     wait_for(up, timeout=timeout, interval=0.2, what="posecal serve to answer")
 
 
+def write_walk(path: Path, *, n_frames: int, seed: int, image_size: tuple[int, int] = (640, 480)) -> Path:
+    """A synthetic 2-camera walk (cameras at 60 and 150 deg azimuth, 10 deg elevation) written
+    as a sequence folder at ``path``; returns ``path``."""
+    from estimator.sequence import write_sequence
+    from estimator.synth import SynthSpec, synthesize
+
+    write_sequence(path, synthesize(SynthSpec(n_cameras=2, n_frames=n_frames, seed=seed, azimuths=(60.0, 150.0),
+                                              elevations=(10.0, 10.0), image_size=image_size)))
+    return path
+
+
 def sequence_zip(seq_dir: Path) -> bytes:
     """Zip a sequence folder (under one top folder, as a user would)."""
     buf = io.BytesIO()

@@ -191,14 +191,9 @@ ADMIN = "admin-token-0123456789abcdef0000"
 @pytest.fixture(scope="module")
 def walk_zip(tmp_path_factory) -> bytes:
     """A small synthetic 2-camera sequence, zipped as a user would upload it."""
-    from conftest_service import sequence_zip
-    from estimator.sequence import write_sequence
-    from estimator.synth import SynthSpec, synthesize
+    from conftest_service import sequence_zip, write_walk
 
-    path = tmp_path_factory.mktemp("walk") / "walk"
-    write_sequence(path, synthesize(SynthSpec(n_cameras=2, n_frames=20, seed=2, azimuths=(60.0, 150.0),
-                                              elevations=(10.0, 10.0))))
-    return sequence_zip(path)
+    return sequence_zip(write_walk(tmp_path_factory.mktemp("walk") / "walk", n_frames=20, seed=2))
 
 
 def test_scoped_tokens_get_403_for_what_their_scope_does_not_allow(tmp_path, walk_zip):

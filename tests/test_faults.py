@@ -21,9 +21,7 @@ import zenoh
 
 from capture.wire import encode
 from capture.zconfig import build_config
-from conftest_service import ServerThread, sequence_zip, small_model_path, wait_for, wait_for_server
-from estimator.sequence import write_sequence
-from estimator.synth import SynthSpec, synthesize
+from conftest_service import ServerThread, sequence_zip, small_model_path, wait_for, wait_for_server, write_walk
 from service.jobs import JobGone, JobStore
 from service.live import FrameAssembler
 from service.server import free_port
@@ -191,10 +189,7 @@ def test_a_stale_run_cannot_write_and_retries_are_capped(tmp_path):
 @pytest.fixture(scope="module")
 def slow_zip(tmp_path_factory) -> bytes:
     """A sequence whose job takes a while (mNBP postures on 2 x 160 frames)."""
-    path = tmp_path_factory.mktemp("slow") / "walk"
-    write_sequence(path, synthesize(SynthSpec(n_cameras=2, n_frames=160, seed=2, azimuths=(60.0, 150.0),
-                                              elevations=(10.0, 10.0))))
-    return sequence_zip(path)
+    return sequence_zip(write_walk(tmp_path_factory.mktemp("slow") / "walk", n_frames=160, seed=2))
 
 
 def _serve(tmp: Path, port: int, log) -> subprocess.Popen:

@@ -30,9 +30,7 @@ import zenoh
 
 from capture.wire import encode
 from capture.zconfig import build_config
-from conftest_service import ServerThread, make_settings, sequence_zip, small_model_path, wait_for, wait_for_server
-from estimator.sequence import write_sequence
-from estimator.synth import SynthSpec, synthesize
+from conftest_service import ServerThread, make_settings, sequence_zip, small_model_path, wait_for, wait_for_server, write_walk
 from service.server import free_port
 from test_faults import _gone
 from test_wire_hostile import FPS, RIG, _Agents, crops  # noqa: F401
@@ -131,7 +129,7 @@ def test_windows_resume_after_the_router_restarts(tmp_path):
             stopped = srv.rig(RIG)
             router = _router(router_ep, log)
             last = max(c["last_index"] for c in stopped["cameras"].values())
-            after = _windows_after(srv.client, last, 3)
+            _windows_after(srv.client, last, 3)  # fails unless 3 windows with both cameras come
             rig = srv.rig(RIG)
             assert all(p.poll() is None for p in agents.values()), "an agent exited"
     finally:
@@ -302,10 +300,7 @@ def _serve_on_small_disk(tmp: Path, data: Path, size: str, log) -> tuple[subproc
 
 @pytest.fixture(scope="module")
 def small_walk(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("disk") / "walk"
-    write_sequence(path, synthesize(SynthSpec(n_cameras=2, n_frames=30, seed=4, azimuths=(60.0, 150.0),
-                                              elevations=(10.0, 10.0), image_size=(320, 240))))
-    return path
+    return write_walk(tmp_path_factory.mktemp("disk") / "walk", n_frames=30, seed=4, image_size=(320, 240))
 
 
 def test_a_full_disk_refuses_the_upload_with_507_and_keeps_nothing(tmp_path, small_walk):

@@ -13,12 +13,9 @@ import zlib
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
-from conftest_service import ServerThread, make_settings, sequence_zip, wait_for
-from estimator.sequence import write_sequence
-from estimator.synth import SynthSpec, synthesize
+from conftest_service import ServerThread, make_settings, sequence_zip, wait_for, write_walk
 
 MAX_FRAMES = 100
 WINDOW = 20
@@ -26,10 +23,7 @@ WINDOW = 20
 
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("seq") / "walk"
-    write_sequence(path, synthesize(SynthSpec(n_cameras=2, n_frames=40, seed=1, azimuths=(60.0, 150.0),
-                                              elevations=(10.0, 10.0), image_size=(320, 240))))
-    return path
+    return write_walk(tmp_path_factory.mktemp("seq") / "walk", n_frames=40, seed=1, image_size=(320, 240))
 
 
 @pytest.fixture(scope="module")

@@ -11,12 +11,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from conftest_service import ServerThread, make_settings, sequence_zip, wait_for
+from conftest_service import ServerThread, make_settings, sequence_zip, wait_for, write_walk
 from estimator.joints import JOINT_NAMES, N_JOINTS
 from estimator.mocap import bvh_positions
 from estimator.rig import Rig
-from estimator.sequence import write_sequence
-from estimator.synth import SynthSpec, synthesize
 from service.jobs import JobStore
 from test_exports import _anipose_load
 
@@ -26,10 +24,7 @@ TEXT = {"trc": "text/plain", "bvh": "text/plain", "csv": "text/csv", "toml": "ap
 
 @pytest.fixture(scope="module")
 def walk_zip(tmp_path_factory) -> bytes:
-    path = tmp_path_factory.mktemp("seq") / "walk"
-    write_sequence(path, synthesize(SynthSpec(n_cameras=2, n_frames=40, seed=1, azimuths=(60.0, 150.0),
-                                              elevations=(10.0, 10.0))))
-    return sequence_zip(path)
+    return sequence_zip(write_walk(tmp_path_factory.mktemp("seq") / "walk", n_frames=40, seed=1))
 
 
 def _job(srv: ServerThread, data: bytes, **form) -> str:

@@ -14,8 +14,9 @@ import importlib
 import logging
 import os
 import sys
+from pathlib import Path
 
-__all__ = ["CliError", "CliFailure", "main", "positive_int"]
+__all__ = ["CliError", "CliFailure", "export_formats", "main", "positive_int"]
 
 # Modules that provide sub-commands, imported lazily so that ``posecal synth``
 # never pays for importing the web stack.
@@ -43,6 +44,24 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
     return value
+
+
+def export_formats(args: argparse.Namespace) -> dict[str, tuple[Path, str]]:
+    """The ``--export-*`` files asked for (``posecal estimate``, ``posecal selfcal``): flag ->
+    (path, format); a calibration suffix that is none of the formats is a usage error,
+    raised before anything is computed."""
+    from service.exports import calibration_format
+
+    out = {}
+    for flag in ("calibration", "trc", "bvh", "csv"):
+        path = getattr(args, f"export_{flag}")
+        if path is None:
+            continue
+        try:
+            out[f"--export-{flag}"] = (Path(path), calibration_format(path) if flag == "calibration" else flag)
+        except ValueError as exc:
+            raise CliError(f"--export-{flag}: {exc}") from None
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:

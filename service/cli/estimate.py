@@ -11,7 +11,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from . import CliError, CliFailure, positive_int
+from . import CliError, CliFailure, export_formats, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         rig = RigConfig(height_m=args.height, rounds=args.rounds)
     except ValueError as exc:  # --height or --rounds
         raise CliError(str(exc).replace("height_m", "--height").replace("rounds", "--rounds", 1)) from None
-    exports = _export_formats(args)
+    exports = export_formats(args)
     videos = _videos(args.sequence)
     sequence = None
     if not videos:
@@ -128,23 +128,6 @@ def run(args: argparse.Namespace) -> int:
         _summary(result, shape, args.out)
     _export(result, exports)
     return 0
-
-
-def _export_formats(args: argparse.Namespace) -> dict[str, tuple[Path, str]]:
-    """The --export-* files asked for: flag -> (path, format); a calibration suffix that is none of
-    the formats is a usage error (checked before the estimate)."""
-    from service.exports import calibration_format
-
-    out = {}
-    for flag in ("calibration", "trc", "bvh", "csv"):
-        path = getattr(args, f"export_{flag}")
-        if path is None:
-            continue
-        try:
-            out[f"--export-{flag}"] = (Path(path), calibration_format(path) if flag == "calibration" else flag)
-        except ValueError as exc:
-            raise CliError(f"--export-{flag}: {exc}") from None
-    return out
 
 
 def _export(result: dict, exports: dict[str, tuple[Path, str]]) -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -22,11 +21,9 @@ __all__ = ["register", "cache_dir", "get_default_model", "default_model_path", "
 def cache_dir() -> Path:
     """``$POSECAL_CACHE`` if set, else ``$XDG_CACHE_HOME/posecal``, else ``~/.cache/posecal`` (the XDG
     base directory specification; read at call time)."""
-    env = os.environ.get("POSECAL_CACHE")
-    if env:
-        return Path(env).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg and os.path.isabs(xdg) else Path.home() / ".cache") / "posecal"
+    from service.settings import xdg_dir
+
+    return xdg_dir("POSECAL_CACHE", "XDG_CACHE_HOME", ".cache")
 
 
 def _examples_key() -> dict:

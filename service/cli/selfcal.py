@@ -33,9 +33,9 @@ from estimator.pinhole import floor_frame, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 
-from ..exports import bvh_text, calibration_format, csv_text, write_calibration, write_text, write_trc
+from ..exports import bvh_text, csv_text, write_calibration, write_text, write_trc
 from ..keypoints_io import KeypointError, Keypoints, read_keypoints
-from . import CliError, CliFailure, positive_int
+from . import CliError, CliFailure, export_formats, positive_int
 
 __all__ = ["load_tracks", "register", "result_to_json"]
 
@@ -228,16 +228,10 @@ def run(args: argparse.Namespace) -> int:
     if size is not None and (closed or args.varying_scale):
         raise CliError("--image-size, --intrinsics and --focal need the refined path with fixed scales (not "
                        "--method closed-form, not --varying-scale)")
-    exports = [p for p in (args.export_calibration, args.export_trc, args.export_bvh, args.export_csv)
-               if p is not None]
+    exports = export_formats(args)
     if exports and size is None:
         raise CliError("--export-calibration, --export-trc, --export-bvh and --export-csv need pinhole cameras: "
                        "give --image-size W,H (and the refined path, the default)")
-    if args.export_calibration is not None:
-        try:
-            calibration_format(args.export_calibration)
-        except ValueError as exc:
-            raise CliError(f"--export-calibration: {exc}") from None
     if args.fps <= 0:
         raise CliError(f"--fps must be positive, got {args.fps}")
     used = _calibration_frames(tracks.shape[1], args.max_frames or (60 if keypoints else None))
