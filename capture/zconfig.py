@@ -55,6 +55,7 @@ MODES = ("peer", "client", "router")
 _RETRY = {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2}
 USRPWD = "transport/auth/usrpwd"
 TLS = "transport/link/tls"
+LEASE = "transport/link/tx/lease"  # milliseconds
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")  # rig, camera and agent names (capture.wire's)
 # Every message kind Zenoh 1.x's access control knows (what a trusted name may send and receive).
 ACL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -209,7 +210,8 @@ def _existing(path: Path | None, what: str) -> Path:
 
 def build_config(*, mode: str = "peer", connect: Sequence[str] = (), listen: Sequence[str] = (),
                  config_file: str | os.PathLike[str] | None = None,
-                 multicast: bool = False, access: ZenohAccess | None = None) -> zenoh.Config:
+                 multicast: bool = False, access: ZenohAccess | None = None,
+                 lease_s: float | None = None) -> zenoh.Config:
     """Build a session config.
 
     Parameters
@@ -221,6 +223,10 @@ def build_config(*, mode: str = "peer", connect: Sequence[str] = (), listen: Seq
     config_file : a zenoh JSON5 config; the other arguments override it.
     multicast : enable multicast scouting (off: tests and defaults stay on-host).
     access : authentication and TLS (:class:`ZenohAccess`); None = none.
+    lease_s : the transport lease this session announces (``transport/link/tx/lease``;
+        Zenoh's default 10 s; keep-alives go every lease / ``keep_alive`` (4)): the other
+        side closes a link silent this long, so it bounds how soon a node that vanished
+        without closing its links (host lost, SIGSTOP) is seen gone. None = the config's.
     """
     import zenoh
 
@@ -246,6 +252,8 @@ def build_config(*, mode: str = "peer", connect: Sequence[str] = (), listen: Seq
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/retry", json.dumps(_RETRY))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+    if lease_s is not None:
+        conf.insert_json5(LEASE, json.dumps(int(lease_s * 1000)))
     for key, value in (access.entries() if access is not None else {}).items():
         conf.insert_json5(key, json.dumps(value))
     return conf

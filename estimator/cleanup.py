@@ -105,6 +105,14 @@ class CleanupConfig:
     cut_steps : tuple of float
         ... then every frame is cut at the best of these relative changes of
         the walker's length on that line (or not at all).
+    cut_search : float
+        The cuts are searched only when the sampled frames' median uncut
+        score exceeds this (``walker_score``: eq. 8 pixels of the 64x48
+        canvas). Measured over 12 walks x 9 damages (docs/ROBUSTNESS.md):
+        clean, speckled, blotted walkers and a second person 22-83, holes
+        and a cut limb 70-146 (searched, not cut), a shadow at the feet
+        116-252; the search is 9 times the scoring, most of a clean window's
+        clean-up.
     """
 
     candidate: float = 0.3
@@ -123,6 +131,7 @@ class CleanupConfig:
     cut_near: float = 0.08
     cut_frames: int = 8
     cut_steps: tuple[float, ...] = (-0.06, -0.03, 0.0, 0.03, 0.06)
+    cut_search: float = 95.0
 
 
 @dataclass
@@ -269,6 +278,19 @@ def _neighbour_median(values: np.ndarray, present: np.ndarray, n: int) -> np.nda
     return out
 
 
+def _components(sil: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """8-connected component labels of a silhouette and their statistics (row 0 = background),
+    as ``cv2.connectedComponentsWithStats`` gives them; a silhouette of one piece (most
+    frames) is labelled without the statistics pass, which costs several times the labelling."""
+    mask = (sil > 0).view(np.uint8)
+    n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_16U)
+    if n != 2:
+        return cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_16U)[1:3]
+    x, y, w, h = cv2.boundingRect(mask)
+    area = cv2.countNonZero(mask)
+    return labels, np.array([[0, 0, mask.shape[1], mask.shape[0], mask.size - area], [x, y, w, h, area]], np.int32)
+
+
 def select_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
                   config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, CleanupReport]:
     """Stages 1 and 2: each frame's candidate walkers, and one of them per frame.
@@ -287,7 +309,7 @@ def select_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
             labelled.append(None)
             cands.append([])
             continue
-        n, labels, stats, _ = cv2.connectedComponentsWithStats((sil > 0).view(np.uint8), connectivity=8)
+        labels, stats = _components(sil)
         at = boxes[t, :2] if np.all(np.isfinite(boxes[t, :2])) else np.zeros(2)
         labelled.append((labels, stats, at))
         cands.append(_candidates(stats, at, config))
@@ -308,7 +330,8 @@ def select_walker(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
         c = cands[t][k]
         report.several += len(cands[t]) > 1
         x, y, w, h = (int(v) for v in c.box)
-        keep = np.isin(labels[y:y + h, x:x + w], c.ids)
+        part = labels[y:y + h, x:x + w]
+        keep = part != 0 if len(c.ids) == len(stats) - 1 else np.isin(part, c.ids)
         report.cleaned += int(len(stats) - 1 > len(c.ids))
         out_sils[t] = np.where(keep, np.uint8(255), np.uint8(0))
         out_boxes[t] = [boxes[t, 0] + x, boxes[t, 1] + y, w, h]
@@ -447,11 +470,12 @@ def trim_below_feet(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
     height = np.array([s.shape[0] if s is not None else 0 for s in silhouettes], float)
     sample = present[np.unique(np.linspace(0, present.size - 1, min(config.cut_frames, present.size)).astype(int))]
     cuts = np.unique(np.concatenate([[1.0], np.clip(config.cuts, 0.05, 1.0)]))[::-1]  # uncut first
-    trials = [[_top_rows(silhouettes[t], round(f * height[t])) for f in cuts] for t in sample]
-    scores = _scores(score, trials)
-    ok = np.isfinite(scores[:, 0])
-    if not ok.any():
-        return list(silhouettes), boxes, kept
+    uncut = _scores(score, [[_top_rows(silhouettes[t], int(height[t]))] for t in sample])
+    ok = np.isfinite(uncut[:, 0])
+    if not ok.any() or np.median(uncut[ok, 0]) <= config.cut_search:
+        return list(silhouettes), boxes, kept  # a walker as the examples are: nothing to search for
+    trials = [[_top_rows(silhouettes[t], round(f * height[t])) for f in cuts[1:]] for t in sample]
+    scores = np.concatenate([uncut, _scores(score, trials)], axis=1)
     scores, sample = scores[ok], sample[ok]
     # The walker's length from its top on those frames (their best cut), a straight line over the window.
     a, b = _line(sample.astype(float), cuts[np.argmin(scores, axis=1)] * height[sample])

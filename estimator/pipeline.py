@@ -40,7 +40,7 @@ from .exemplars import ExemplarIndex, hamming, pack
 from .gait import GaitModel, load_gait
 from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
-from .registration import distance
+from .matchcache import MatchCache, match
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, head_points, motion_cue
@@ -480,6 +480,9 @@ class _Cloud:
     best: np.ndarray
 
 
+_CLOUD_REACH = 10.0  # a frame's cloud: its examples within this many tau_view of its best
+
+
 def _hamming(queries: np.ndarray, bank: np.ndarray) -> np.ndarray:
     """:func:`estimator.exemplars.hamming` ((Q, B) x (R, B) -> (Q, R)) on 64-bit words when B allows."""
     if queries.shape[-1] % 8:
@@ -489,16 +492,24 @@ def _hamming(queries: np.ndarray, bank: np.ndarray) -> np.ndarray:
     return np.bitwise_count(q[:, None, :] ^ b[None, :, :]).sum(axis=-1, dtype=np.int64)
 
 
+def _hamming_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pixel disagreements of packed silhouettes paired element-wise (broadcast over leading axes)."""
+    if a.shape[-1] % 8:
+        return np.bitwise_count(a ^ b).sum(axis=-1, dtype=np.int64)
+    return np.bitwise_count(np.ascontiguousarray(a).view(np.uint64) ^ np.ascontiguousarray(b).view(np.uint64)
+                            ).sum(axis=-1, dtype=np.int64)
+
+
 def _cloud(index: ExemplarIndex, frame_rows: list[np.ndarray], distances: list[np.ndarray],
            config: EstimateConfig) -> _Cloud:
     """The cloud of each frame's candidate examples (rows of ``index``) weighted by ``exp(-d / tau_view)``.
 
-    Members whose weight is below ``exp(-10)`` of their frame's best are left out.
+    Members whose weight is below ``exp(-_CLOUD_REACH)`` of their frame's best are left out.
     """
     az, el, w, frame, best = [], [], [], [], np.empty(len(frame_rows))
     for t, (rows, d) in enumerate(zip(frame_rows, distances)):
         best[t] = d.min()
-        keep = d - best[t] <= 10.0 * config.tau_view
+        keep = d - best[t] <= _CLOUD_REACH * config.tau_view
         wt = np.exp(-(d[keep] - best[t]) / config.tau_view)
         az.append(index.azimuth_deg[rows[keep]])
         el.append(index.elevation_deg[rows[keep]])
@@ -527,15 +538,33 @@ def _cloud_at_phases(index: ExemplarIndex, by_phase: list[np.ndarray], registere
     centre; a hole or a missing forearm moves the centroid, so the distance
     to an example is the least over shifts of the input by up to
     ``config.phase_shift_px`` canvas pixels along either axis.
+
+    The shifts are tried only where they can matter (exact, by the triangle
+    inequality): an example whose unshifted distance ``d0`` exceeds the
+    frame's least ``d0`` plus the cloud's reach plus ``H(shifted, unshifted)``
+    cannot come within the reach by that shift. Examples left out of the
+    cloud keep their unshifted distance.
     """
     r = config.phase_shift_px
     shifts = [(0, 0)] + [(d, 0) for d in range(-r, r + 1) if d] + [(0, d) for d in range(-r, r + 1) if d]
-    rows, dists = [], []
-    for t in range(len(registered)):
-        moved = np.stack([np.roll(registered[t], sh, axis=(0, 1)) for sh in shifts])
-        rr = by_phase[int(states[t])]
-        rows.append(rr)
-        dists.append(_hamming(pack(moved), index.bits[rr]).min(axis=0))
+    T, S = len(registered), len(shifts)
+    moved = pack(np.stack([np.roll(registered, sh, axis=(1, 2)) for sh in shifts], axis=1)
+                 .reshape(T * S, *registered.shape[1:])).reshape(T, S, -1)
+    moved_by = _hamming_pairs(moved[:, 1:], moved[:, :1])  # (T, S - 1): H(shifted, unshifted)
+    reach = _CLOUD_REACH * config.tau_view
+    rows, dists = [None] * T, [None] * T
+    for k in np.unique(states):  # the frames at one phase share their examples
+        frames = np.flatnonzero(states == k)
+        rr = by_phase[int(k)]
+        bank = index.bits[rr]
+        d0 = _hamming(moved[frames, 0], bank)  # (frames, examples)
+        d, bound = d0.copy(), d0.min(axis=1, keepdims=True) + reach
+        for s in range(1, S):
+            f, e = np.nonzero(d0 - moved_by[frames, s - 1, None] <= bound)
+            if f.size:
+                d[f, e] = np.minimum(d[f, e], _hamming_pairs(moved[frames[f], s], bank[e]))
+        for i, t in enumerate(frames):
+            rows[t], dists[t] = rr, d[i]
     return _cloud(index, rows, dists, config)
 
 
@@ -594,21 +623,25 @@ def _phase_distances(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint) -> n
     return d.min(axis=2)
 
 
-def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_clusters: int = 3) -> np.ndarray:
+def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_clusters: int = 3,
+                 cache: MatchCache | None = None) -> np.ndarray:
     """How unlike a walker each silhouette is: eq. 8 (Hamming) distance to the nearest example
     among the members of its ``top_clusters`` nearest cluster means; inf where it cannot be registered.
 
     The members rather than the means: a silhouette cut through the legs is
     about as far from the nearest (blurred) mean as a whole one, but much
-    farther from every sharp example (docs/ROBUSTNESS.md).
+    farther from every sharp example (docs/ROBUSTNESS.md). With a ``cache`` each
+    silhouette is registered and scored once (:mod:`estimator.matchcache`).
     """
-    registered, tf = model.register(silhouettes)
-    out = np.full(len(silhouettes), np.inf)
-    if not tf.valid.any():
-        return out
-    _, dists = _member_distances(model, model.exemplars(), pack(registered[tf.valid]),
-                                 distance(registered[tf.valid], model.means), top_clusters)
-    out[tf.valid] = [d.min() for d in dists]
+    m = match(model, silhouettes, cache)
+    out = np.where(m.valid, m.score, np.inf)
+    todo = m.valid & np.isnan(out)
+    if todo.any():
+        _, dists = _member_distances(model, model.exemplars(), pack(m.registered[todo]), m.means_distance[todo],
+                                     top_clusters)
+        out[todo] = [d.min() for d in dists]
+        if cache is not None and top_clusters == 3:  # the score the cache keeps
+            cache.remember_scores([k for k, t in zip(m.keys, todo) if t], out[todo])
     return out
 
 
@@ -654,6 +687,7 @@ def estimate_walk(
     *,
     config: EstimateConfig | None = None,
     gait: GaitModel | None = None,
+    cache: MatchCache | None = None,
 ) -> WalkEstimate:
     """Estimate phase per frame, 3D/2D joints and camera viewpoints for one window.
 
@@ -665,6 +699,9 @@ def estimate_walk(
     config : EstimateConfig, optional
     gait : GaitModel, optional
         Defaults to the shipped CMU fit.
+    cache : MatchCache, optional
+        Registrations and matches of silhouettes seen before (overlapping live
+        windows); the estimate is the same with or without.
 
     Raises
     ------
@@ -683,7 +720,7 @@ def estimate_walk(
 
     reports: dict[str, CleanupReport] = {}
     if config.cleanup is not None:
-        tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s))
+        tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
     cams: dict[str, CameraEstimate] = {}
     distances: dict[str, np.ndarray] = {}
     log_emission = np.zeros((T, n_phases))
@@ -704,9 +741,8 @@ def estimate_walk(
                 "the majority of matches), and joints2d are in each crop's own pixels"
             )
         if present.size:
-            registered, tf = model.register([track.silhouettes[k] for k in present])
-            ok = tf.valid
-            present, registered = present[ok], registered[ok]
+            m = match(model, [track.silhouettes[k] for k in present], cache)
+            present, registered, d = present[m.valid], m.registered[m.valid], m.means_distance[m.valid]
         if present.size == 0:
             cam_notes.append("no silhouette in this window")
             vp = Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)
@@ -714,7 +750,6 @@ def estimate_walk(
                                         reports.get(name))
             distances[name] = dist
             continue
-        d = distance(registered, model.means)
         dist[present] = d
         labels[present] = np.argmin(d, axis=1)
         distances[name] = dist

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from .appearance import AppearanceModel
+from .matchcache import MatchCache
 from .mnbp import MNBPConfig, measure_postures
 from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, track_length
 from .rig import RigConfig, calibrate_rig
@@ -196,9 +197,9 @@ def window_tracks(tracks: dict[str, CameraTrack], a: int, b: int) -> dict[str, C
     return {n: CameraTrack(t.silhouettes[a:b], t.boxes[a:b], full_frame=t.full_frame, image_size=t.image_size) for n, t in tracks.items()}
 
 
-def _estimate(tracks, a, b, model, config) -> tuple[WalkEstimate | None, str]:
+def _estimate(tracks, a, b, model, config, cache=None) -> tuple[WalkEstimate | None, str]:
     try:
-        return estimate_walk(window_tracks(tracks, a, b), model, config=config), ""
+        return estimate_walk(window_tracks(tracks, a, b), model, config=config, cache=cache), ""
     except ValueError as exc:
         return None, str(exc)
 
@@ -251,8 +252,9 @@ def segment_walk(
     progress = progress or (lambda f: None)
     views = {name: ViewpointTrack(threshold_deg=threshold_deg, confirm=confirm) for name in tracks}
     windows, cuts, estimates, errors = [], set(), [], []
+    cache = MatchCache(max_entries=4 * length * len(tracks))  # overlapping windows match each frame once
     for k, (a, b) in enumerate(zip(starts, stops)):
-        est, err = _estimate(tracks, a, b, model, config)
+        est, err = _estimate(tracks, a, b, model, config, cache)
         estimates.append(est)
         errors.append(err)
         w: dict[str, Any] = {"first_index": int(a), "last_index": int(b) - 1}
@@ -280,7 +282,7 @@ def segment_walk(
         last = n - 1 if j == len(starts) else int(np.floor((centres[j - 1] + centres[j]) / 2))
         a, b = int(starts[i]), int(stops[j - 1])
         # A segment of one window is that window's estimate; a longer one is estimated whole.
-        est, err = (estimates[i], errors[i]) if j - i == 1 else _estimate(tracks, a, b, model, config)
+        est, err = (estimates[i], errors[i]) if j - i == 1 else _estimate(tracks, a, b, model, config, cache)
         if est is not None and posture is not None:
             est = measure_postures(est, posture)
         if est is not None and rig is not None:

@@ -13,7 +13,7 @@ from fastapi import FastAPI
 
 from .auth import BearerAuthMiddleware
 from .limits import UploadLimitMiddleware
-from .routers import health, jobs, rigs
+from .routers import health, jobs, replicas, rigs
 from .runtime import Runtime
 from .settings import get_settings
 
@@ -39,6 +39,7 @@ def create_app() -> FastAPI:
     app.include_router(health.router)
     app.include_router(jobs.router)
     app.include_router(rigs.router)
+    app.include_router(replicas.router)
     return app
 
 

@@ -5,14 +5,22 @@ but the same code runs against PostgreSQL when ``POSECAL_DB`` is a URL, and the
 worker processes open their own engine on the same URL to write progress.
 
 States: ``queued -> running -> done | failed``, and ``cancelled`` from queued or
-running. :meth:`JobStore.requeue_interrupted` puts jobs left ``running`` by a
-crash or restart back in the queue (a job interrupted ``max_attempts`` times
-fails instead, with the reason). Each claim writes a new token (``claim``)
-into the row; the worker writes progress, the result or the failure only
-while the row is still ``running`` under its own token
-(:meth:`JobStore.claimed`), so a cancelled, deleted or re-queued job tells its
-worker to stop, and a worker orphaned by a crashed service cannot finish a
-job the next service has re-queued.
+running. Each claim writes a new token (``claim``) into the row, with the
+replica that claimed it (``replica``) and its lease (``heartbeat_at``, renewed
+by that replica's runner while the job runs); the worker writes progress, the
+result or the failure only while the row is still ``running`` under its own
+token (:meth:`JobStore.claimed`), so a cancelled, deleted or re-queued job
+tells its worker to stop, and a run whose job was re-queued can never finish
+it: each job ends once.
+
+Several replicas may share one database (PostgreSQL): :meth:`JobStore.claim_next`
+takes the oldest queued row with ``FOR UPDATE SKIP LOCKED`` (two replicas never
+take the same one); a replica that restarts re-queues the jobs it ran itself
+(:meth:`JobStore.requeue_owned`), and every replica re-queues the jobs whose
+lease expired, their replica dead or cut off (:meth:`JobStore.requeue_expired`).
+A job interrupted ``max_attempts`` times fails instead, with the reason.
+Leases are measured by the database server's clock (PostgreSQL), so the
+replicas' own clocks need not agree.
 
 The schema is versioned (:mod:`service.migrations`, Alembic): opening a store
 upgrades its database, a database made by an older version included.
@@ -21,15 +29,19 @@ upgrades its database, a database made by an older version included.
 from __future__ import annotations
 
 import json
+import logging
 import uuid
+from collections.abc import Collection
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 __all__ = ["ACTIVE", "STATES", "ClaimedJobs", "JobRow", "JobStore", "JobGone"]
+
+log = logging.getLogger(__name__)
 
 STATES = ("queued", "running", "done", "failed", "cancelled")
 ACTIVE = ("queued", "running")
@@ -51,6 +63,8 @@ jobs_table = sa.Table(
     sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
     sa.Column("started_at", sa.DateTime(timezone=True)),
     sa.Column("finished_at", sa.DateTime(timezone=True)),
+    sa.Column("replica", sa.String(64)),  # the replica that claimed the row last (a done job: that finished it)
+    sa.Column("heartbeat_at", sa.DateTime(timezone=True)),  # its lease, renewed while the job runs
 )
 
 
@@ -76,6 +90,8 @@ class JobRow:
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    replica: str | None = None
+    heartbeat_at: datetime | None = None
 
 
 def _now() -> datetime:
@@ -88,6 +104,12 @@ def _utc(value: datetime | None) -> datetime | None:
 
 
 _ROW_COLUMNS = [c for c in jobs_table.c if c.name != "result"]
+
+# PostgreSQL connections (unless the URL sets them): an unreachable server fails in seconds, and a
+# session left idle inside a transaction for 30 s (its process frozen or hung; ours take
+# milliseconds) is ended, releasing its row locks, so that the other replicas can re-queue
+# that replica's jobs.
+_PG_CONNECT = {"connect_timeout": 10, "options": "-c idle_in_transaction_session_timeout=30000"}
 
 
 class JobStore:
@@ -102,10 +124,17 @@ class JobStore:
         if url.startswith("sqlite"):
             # Several processes write one file: wait for the lock instead of failing.
             kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
+        elif url.startswith("postgresql"):
+            # An unreachable server fails in seconds; a connection the server dropped is replaced.
+            kwargs["pool_pre_ping"] = True
+            kwargs["connect_args"] = {k: v for k, v in _PG_CONNECT.items() if f"{k}=" not in url}
         self.url = url
         self.engine: Engine = sa.create_engine(url, **kwargs)
         if url.startswith("sqlite"):
             sa.event.listen(self.engine, "connect", _sqlite_pragmas)
+        # Leases by the server's clock where there is a server (replicas on several hosts);
+        # a SQLite file has one host, whose clock it is.
+        self._server_clock = self.engine.dialect.name != "sqlite"
         if migrate:
             from .migrations import upgrade
 
@@ -113,6 +142,10 @@ class JobStore:
 
     def close(self) -> None:
         self.engine.dispose()
+
+    def _clock(self) -> Any:
+        """Now, as leases are written and compared: the database server's ``now()``, or this host's."""
+        return sa.func.now() if self._server_clock else _now()
 
     # -- rows -------------------------------------------------------------------
     @staticmethod
@@ -122,7 +155,8 @@ class JobStore:
                       options=json.loads(m["options"] or "{}"), progress=m["progress"],
                       stage=m["stage"], error=m["error"], has_result=bool(m["has_result"]),
                       attempts=m["attempts"], claim=m["claim"], created_at=_utc(m["created_at"]),
-                      started_at=_utc(m["started_at"]), finished_at=_utc(m["finished_at"]))
+                      started_at=_utc(m["started_at"]), finished_at=_utc(m["finished_at"]),
+                      replica=m["replica"], heartbeat_at=_utc(m["heartbeat_at"]))
 
     def _select(self):
         return sa.select(*_ROW_COLUMNS, (jobs_table.c.result.is_not(None)).label("has_result"))
@@ -162,41 +196,85 @@ class JobStore:
         return None if text is None else json.loads(text)
 
     # -- transitions ------------------------------------------------------------------
-    def claim_next(self) -> JobRow | None:
-        """Atomically move the oldest queued job to ``running`` and return it."""
+    def claim_next(self, replica: str | None = None) -> JobRow | None:
+        """Atomically move the oldest queued job to ``running`` under a new claim, held by
+        ``replica`` with a fresh lease, and return it (None: nothing queued).
+
+        One ``UPDATE ... WHERE id = (SELECT ... FOR UPDATE SKIP LOCKED)``: on PostgreSQL,
+        concurrent claims (other replicas) lock different rows and never wait for each
+        other; SQLite ignores the lock clause and runs the statement alone (one writer).
+        """
+        oldest = (sa.select(jobs_table.c.id).where(jobs_table.c.state == "queued")
+                  .order_by(jobs_table.c.created_at).limit(1).with_for_update(skip_locked=True))
         with self.engine.begin() as conn:
-            while True:
-                job_id = conn.execute(
-                    sa.select(jobs_table.c.id).where(jobs_table.c.state == "queued")
-                    .order_by(jobs_table.c.created_at).limit(1)).scalar()
-                if job_id is None:
-                    return None
-                done = conn.execute(
-                    jobs_table.update().where(jobs_table.c.id == job_id, jobs_table.c.state == "queued")
-                    .values(state="running", started_at=_now(), progress=0.0, stage="starting",
-                            attempts=jobs_table.c.attempts + 1, claim=uuid.uuid4().hex))
-                if done.rowcount == 1:
-                    break
-        return self.get(job_id)
+            # The row as this statement wrote it: read again afterwards, it may already hold
+            # another replica's claim (this one stalled, its lease expired, the job moved on).
+            row = conn.execute(
+                jobs_table.update().where(jobs_table.c.id == oldest.scalar_subquery(),
+                                          jobs_table.c.state == "queued")
+                .values(state="running", started_at=_now(), progress=0.0, stage="starting",
+                        attempts=jobs_table.c.attempts + 1, claim=uuid.uuid4().hex,
+                        replica=replica, heartbeat_at=self._clock())
+                .returning(*_ROW_COLUMNS, sa.literal(False).label("has_result"))).first()
+        return None if row is None else self._row(row)
+
+    def renew(self, claims: Collection[str]) -> int:
+        """Renew the lease of the running jobs held under ``claims`` (one replica's runs);
+        returns how many still are (a job cancelled or re-queued meanwhile is not renewed)."""
+        if not claims:
+            return 0
+        with self.engine.begin() as conn:
+            done = conn.execute(jobs_table.update()
+                                .where(jobs_table.c.state == "running", jobs_table.c.claim.in_(list(claims)))
+                                .values(heartbeat_at=self._clock()))
+        return done.rowcount
 
     def requeue_interrupted(self, *, max_attempts: int | None = None) -> list[str]:
-        """Jobs left ``running`` (the service stopped mid-job) go back to ``queued``, their
-        claim withdrawn; one that has already run ``max_attempts`` times fails instead,
-        with the reason. Returns the ids re-queued."""
-        running = jobs_table.c.state == "running"
+        """Every job left ``running`` goes back to the queue (one service alone on its
+        database, stopped mid-job); see :meth:`_requeue`."""
+        return self._requeue([], max_attempts=max_attempts, stage="requeued after restart")
+
+    def requeue_owned(self, replica: str, *, max_attempts: int | None = None) -> list[str]:
+        """The jobs ``replica`` left ``running`` go back to the queue: it restarted, so they run
+        nowhere. Rows claimed without a replica (a version before replicas) count as its own."""
+        mine = sa.or_(jobs_table.c.replica == replica, jobs_table.c.replica.is_(None))
+        return self._requeue([mine], max_attempts=max_attempts, stage="requeued after restart")
+
+    def requeue_expired(self, lease_s: float, *, max_attempts: int | None = None) -> list[str]:
+        """The running jobs whose lease was not renewed for ``lease_s`` seconds go back to the
+        queue: their replica died, hangs or lost the database."""
+        expired = sa.or_(jobs_table.c.heartbeat_at.is_(None),
+                         jobs_table.c.heartbeat_at < self._clock() - timedelta(seconds=lease_s))
+        return self._requeue([expired], max_attempts=max_attempts, stage="requeued: its lease expired")
+
+    def _requeue(self, where: list, *, max_attempts: int | None, stage: str) -> list[str]:
+        """Running jobs matching ``where`` go back to ``queued``, their claim withdrawn (the
+        interrupted run can no longer write); one that has already run ``max_attempts`` times
+        fails instead, with the reason. Returns the ids re-queued.
+
+        Each is one ``UPDATE ... RETURNING``, its rows picked ``FOR UPDATE SKIP LOCKED``: a row
+        another transaction holds (its replica renewing it, another replica re-queuing it) is
+        left for the next round rather than waited for, and the conditions are checked on
+        the row as it is updated.
+        """
+        running = [jobs_table.c.state == "running", *where]
+
+        def update(*more, **values) -> list[str]:
+            picked = sa.select(jobs_table.c.id).where(*running, *more).with_for_update(skip_locked=True)
+            return list(conn.execute(jobs_table.update().where(jobs_table.c.id.in_(picked), *running, *more)
+                                     .values(**values).returning(jobs_table.c.id)).scalars())
+
         with self.engine.begin() as conn:
             if max_attempts is not None:
-                conn.execute(jobs_table.update().where(running, jobs_table.c.attempts >= max_attempts)
-                             .values(state="failed", stage="failed", claim=None, finished_at=_now(),
-                                     error=f"interrupted {max_attempts} times (the service stopped or "
-                                           f"crashed while it ran): not retried (max_attempts = "
-                                           f"{max_attempts})"))
-            ids = list(conn.execute(sa.select(jobs_table.c.id).where(running)).scalars())
-            if ids:
-                conn.execute(jobs_table.update().where(jobs_table.c.id.in_(ids))
-                             .values(state="queued", progress=0.0, stage="requeued after restart",
-                                     started_at=None, claim=None))
-        return ids
+                failed = update(jobs_table.c.attempts >= max_attempts, state="failed", stage="failed",
+                                claim=None, finished_at=_now(),
+                                error=f"interrupted {max_attempts} times (the service stopped or crashed "
+                                      f"while it ran): not retried (max_attempts = {max_attempts})")
+                if failed:
+                    log.warning("failed %d job(s) interrupted %d times: %s", len(failed), max_attempts,
+                                ", ".join(failed))
+            return update(state="queued", progress=0.0, stage=stage, started_at=None, claim=None,
+                          replica=None, heartbeat_at=None)
 
     def claimed(self, claim: str | None) -> "ClaimedJobs":
         """This store as the run holding ``claim`` writes to it (None: any run, as before claims)."""

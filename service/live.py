@@ -25,6 +25,12 @@ Per rig:
    ``feedback_ahead`` frames of every camera; their rendered, registered priors
    go to ``posecal/<rig>/<camera>/feedback`` ahead of the frames they are for.
 
+With several replicas (:mod:`service.replicas`, docs/SERVICE.md, "Several replicas")
+each estimates only the rigs that rendezvous hashing gives it: a silhouette of another
+replica's rig is skipped by its key, before it is decoded; when the membership
+changes, rigs now owned elsewhere are dropped (as forgotten ones) and rigs now
+owned here start from their next frames.
+
 Before a message touches a rig it must be believable (docs/SERVICE.md, "Limits
 and refusals"): the receiver rejects clocks from the future; a new rig beyond
 ``max_rigs`` or a new camera beyond ``max_cameras`` is refused unless a silent
@@ -45,11 +51,13 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import zenoh
+from prometheus_client import Counter
 
 from capture.receiver import Received, SilhouetteReceiver
 from capture.wire import Box, FeedbackMessage, Quality, SilhouetteMessage, encode, estimate_key, feedback_key
@@ -58,6 +66,7 @@ from estimator.pipeline import CameraTrack
 from estimator.windows import ViewpointTrack
 
 from .metrics import Metrics
+from .replicas import Replicas
 from .settings import Settings
 from .worker import StageBundle, estimate_window, predict_feedback, register_stage
 
@@ -67,6 +76,46 @@ log = logging.getLogger(__name__)
 
 _REBASE_AFTER = 5  # frames in a row, each ahead of the rig but agreeing, that move it there
 _EXPIRE_EVERY_S = 1.0
+_MAX_HEARD_RIGS = 4096  # rig names remembered from other replicas' silhouettes (peers choose them)
+
+
+class _OwnedReceiver(SilhouetteReceiver):
+    """A :class:`SilhouetteReceiver` that skips, by their key and before decoding, silhouettes
+    of rigs ``owns(rig)`` refuses (another replica estimates them), and remembers when each
+    rig was last heard (to name a rig's owner)."""
+
+    def __init__(self, session: zenoh.Session, *, owns: Callable[[str], bool], skipped: Counter,
+                 **kwargs: Any) -> None:
+        self._owns, self._skipped = owns, skipped
+        self._heard: collections.OrderedDict[str, float] = collections.OrderedDict()
+        self._heard_lock = threading.Lock()
+        super().__init__(session, **kwargs)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        if len(parts) == 4:  # posecal/<rig>/<camera>/silhouette (anything else: rejected below)
+            rig = parts[1]
+            with self._heard_lock:
+                self._heard[rig] = time.monotonic()
+                self._heard.move_to_end(rig)
+                if len(self._heard) > _MAX_HEARD_RIGS:
+                    self._heard.popitem(last=False)
+            if not self._owns(rig):
+                self._skipped.inc()
+                return
+        super()._on_sample(sample)
+
+    def heard(self, within_s: float) -> list[str]:
+        """Rigs whose silhouettes came within ``within_s`` seconds (any replica's), sorted."""
+        now = time.monotonic()
+        with self._heard_lock:
+            return sorted(r for r, t in self._heard.items() if now - t <= within_s)
+
+    def forget(self, rig: str) -> None:
+        """Drop the agent epochs of ``rig``'s cameras: if the rig comes back, its runs are new."""
+        with self._lock:
+            for key in [k for k in self._epochs if k[0] == rig]:
+                del self._epochs[key]
 
 
 # ---------------------------------------------------------------------------- frame sets
@@ -372,8 +421,11 @@ class LiveService:
     def __init__(self, session: zenoh.Session, pool: concurrent.futures.Executor, settings: Settings,
                  metrics: Metrics, rerun=None,
                  feedback_pool: concurrent.futures.Executor | None = None,
-                 rig_pool: concurrent.futures.Executor | None = None) -> None:
+                 rig_pool: concurrent.futures.Executor | None = None,
+                 replicas: Replicas | None = None) -> None:
         self.session, self.pool, self.settings = session, pool, settings
+        self.replicas = replicas  # None: this service estimates every rig it hears
+        self._owns = (lambda rig: True) if replicas is None else replicas.owns
         self.metrics, self.rerun = metrics, rerun
         self.feedback_pool = feedback_pool if settings.feedback else None
         self.rig_pool = rig_pool if settings.live_rig else None
@@ -400,10 +452,15 @@ class LiveService:
             self._threads.append(threading.Thread(target=self._rig_loop, name="live-rig", daemon=True))
         for t in self._threads:
             t.start()
-        self.receiver = SilhouetteReceiver(session, on_message=self._on_message,
-                                           max_clock_ahead_s=settings.max_clock_ahead_s,
-                                           epoch_silence_s=settings.camera_timeout_s)
+        self.receiver = _OwnedReceiver(session, owns=self._owns, skipped=metrics.frames_not_owned,
+                                       on_message=self._on_message,
+                                       max_clock_ahead_s=settings.max_clock_ahead_s,
+                                       epoch_silence_s=settings.camera_timeout_s)
         metrics.watch_receiver(self.receiver.stats)
+        metrics.watch_live(lambda: (len(self.rig_names()), len(replicas.alive()) if replicas else 1))
+        if replicas is not None:
+            replicas.on_change(self._rebalance)
+            self._rebalance()  # the membership may have changed while this started
 
     # -- ingest (Zenoh callback thread) ---------------------------------------------------
     def _assembler(self) -> FrameAssembler:
@@ -446,13 +503,27 @@ class LiveService:
         self._forget_rig(min(silent, key=lambda r: (r.estimated > 0, -r.silent_for(now))))
         return True
 
-    def _forget_rig(self, rig: RigState) -> None:
+    def _forget_rig(self, rig: RigState, *, handed_to: str | None = None) -> None:
         del self._rigs[rig.name]
         self._feedback_todo.pop(rig.name, None)
         self._rig_todo.pop(rig.name, None)  # a rig of the same name that comes back starts afresh
         self._retired += [rig.publisher, *rig.feedback.values()]
-        self.metrics.forget_rig(rig.name, list(rig.cameras))
-        log.info("rig %s forgotten (silent %.0f s)", rig.name, rig.silent_for(time.monotonic()))
+        self.metrics.forget_rig(rig.name, list(rig.cameras), handed_over=handed_to is not None)
+        if handed_to is not None:
+            log.info("rig %s handed over to replica %s", rig.name, handed_to)
+        else:
+            log.info("rig %s forgotten (silent %.0f s)", rig.name, rig.silent_for(time.monotonic()))
+
+    def _rebalance(self) -> None:
+        """After a change of replicas: drop the rigs another replica now estimates (their
+        windows in flight are not published); rigs this one now owns start from their next
+        frames, as new rigs."""
+        with self._lock:
+            moved = [rig for name, rig in self._rigs.items() if not self._owns(name)]
+            for rig in moved:
+                self._forget_rig(rig, handed_to=self.replicas.owner(rig.name))
+        for rig in moved:
+            self.receiver.forget(rig.name)
 
     def _forget_camera(self, rig: RigState, cam: str) -> None:
         for table in (rig.cameras, rig.heard, rig.tracks, rig.pending_ahead, rig.assembler.last_seen,
@@ -497,6 +568,8 @@ class LiveService:
         msg = item.message
         now = time.monotonic()
         with self._lock:
+            if not self._owns(msg.rig):  # handed over since the receiver let it through
+                return
             rig = self._admit(msg, now)
             if rig is None:
                 return
@@ -624,6 +697,8 @@ class LiveService:
         return tracks, sizes
 
     def _process(self, w: Window) -> None:
+        if not self.has_rig(w.rig):  # forgotten or handed over while it waited
+            return
         built = self._tracks(w)
         if built is None:
             self._count(w.rig, "skipped")
@@ -675,7 +750,8 @@ class LiveService:
             "latency_ms": {"estimate": round(seconds * 1e3, 2), "last_frame_to_result": round(latency * 1e3, 2)},
             "published_ns": done_ns,
         })
-        publisher.put(json.dumps(result, separators=(",", ":")))
+        # The attachment names the replica that estimated it (the result itself stays as documented).
+        publisher.put(json.dumps(result, separators=(",", ":")), attachment=self.settings.replica_id)
         self.metrics.window_latency.observe(latency)
         self.metrics.window_estimate.observe(seconds)
         self.metrics.windows.labels(w.rig, "estimated").inc()
@@ -894,6 +970,28 @@ class LiveService:
     def has_rig(self, name: str) -> bool:
         with self._lock:
             return name in self._rigs
+
+    def estimated_by(self, name: str) -> str | None:
+        """The other replica that estimates rig ``name``, if the rig is heard on the network
+        (within ``rig_expiry_s``) and not estimated here; else None."""
+        if self.replicas is None or self._owns(name) or name not in self.receiver.heard(self.settings.rig_expiry_s):
+            return None
+        return self.replicas.owner(name)
+
+    def replica_view(self) -> dict[str, Any]:
+        """This replica, and per alive replica the rigs heard within ``rig_expiry_s`` that it
+        estimates, as seen from here (``GET /v1/replicas``)."""
+        me = self.settings.replica_id
+        heard = self.receiver.heard(self.settings.rig_expiry_s)
+        if self.replicas is None:
+            return {"replica": me, "enabled": False, "active": True, "others_with_this_id": [],
+                    "replicas": [{"replica": me, "rigs": heard}]}
+        rigs: dict[str, list[str]] = {r: [] for r in self.replicas.alive()}
+        for rig in heard:
+            rigs.setdefault(self.replicas.owner(rig), []).append(rig)
+        return {"replica": me, "enabled": True, "active": self.replicas.active,
+                "others_with_this_id": self.replicas.sessions().get(me, []),
+                "replicas": [{"replica": r, "rigs": owned} for r, owned in sorted(rigs.items())]}
 
     def close(self) -> None:
         self._stop.set()

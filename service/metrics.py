@@ -2,7 +2,8 @@
 
 Frames in, drops by reason, windows by outcome, latency histograms (window
 end-to-end, estimation, jobs), jobs by state (read from the store at scrape
-time) and the receiver's reject counters. Every label value is bounded: a
+time), the receiver's reject counters, and the rigs and replicas of this one
+(gauges, at scrape time). Every label value is bounded: a
 rig's series go when the rig is forgotten (:meth:`Metrics.forget_rig`), and
 reasons are fixed words.
 """
@@ -51,6 +52,10 @@ class Metrics:
                                     "beyond max_cameras (camera_limit)", ["reason"], registry=r)
         self.rigs_forgotten = Counter("posecal_rigs_forgotten", "rigs forgotten: silent for "
                                       "rig_expiry_s, or replaced by a new rig at max_rigs", registry=r)
+        self.rigs_handed_over = Counter("posecal_rigs_handed_over", "rigs dropped because another "
+                                        "replica now estimates them (a replica joined)", registry=r)
+        self.frames_not_owned = Counter("posecal_frames_not_owned", "silhouettes skipped before "
+                                        "decoding: their rig is estimated by another replica", registry=r)
         self.frames_missing = Counter("posecal_frames_missing", "camera frames absent when a "
                                       "synchronized frame set was closed", ["rig"], registry=r)
         self.windows = Counter("posecal_windows", "sliding windows by outcome "
@@ -117,8 +122,22 @@ class Metrics:
                 yield c
         self.registry.register(_Callback(families))
 
-    def forget_rig(self, rig: str, cameras: list[str]) -> None:
-        """Remove every series labelled with ``rig`` (the rig was forgotten)."""
+    def watch_live(self, counts: Callable[[], tuple[int, int]]) -> None:
+        """Export ``posecal_live_rigs`` (rigs this replica estimates) and ``posecal_replicas``
+        (alive replicas it sees, itself included) from ``counts()`` at scrape time."""
+        def families():
+            rigs, replicas = counts()
+            for name, doc, value in (("posecal_live_rigs", "live rigs this replica estimates", rigs),
+                                     ("posecal_replicas", "alive replicas on the Zenoh network, this "
+                                      "one included (1 with replicas off)", replicas)):
+                g = GaugeMetricFamily(name, doc)
+                g.add_metric([], value)
+                yield g
+        self.registry.register(_Callback(families))
+
+    def forget_rig(self, rig: str, cameras: list[str], *, handed_over: bool = False) -> None:
+        """Remove every series labelled with ``rig`` (the rig was forgotten, or ``handed_over``
+        to another replica)."""
         for cam in cameras:
             self.frames_in.remove(rig, cam)
         for reason in DROP_REASONS:
@@ -128,7 +147,7 @@ class Metrics:
         for counter in (self.frames_missing, self.feedback_priors, self.feedback_superseded,
                         self.rerun_skipped):
             counter.remove(rig)
-        self.rigs_forgotten.inc()
+        (self.rigs_handed_over if handed_over else self.rigs_forgotten).inc()
 
     def forget_camera(self, rig: str, camera: str) -> None:
         """Remove the series of one forgotten camera of a rig."""

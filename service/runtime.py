@@ -1,11 +1,12 @@
 """What the lifespan owns: store, process pools, Zenoh session, live windows, job runner, Rerun.
 
 :meth:`Runtime.start` builds everything from one :class:`~service.settings.Settings`
-and :meth:`Runtime.stop` closes it in reverse order. Jobs left running by the
-previous process are re-queued at start (up to ``max_attempts`` runs); a job
-running at stop is interrupted (its worker is terminated) and re-queued by the
-next start. Worker processes die with the service, even when it is killed
-(:func:`service.worker.make_pool`). The store's schema is migrated at start.
+and :meth:`Runtime.stop` closes it in reverse order. Jobs this replica
+(``replica_id``) left running are re-queued at start (up to ``max_attempts``
+runs); a job running at stop is interrupted (its worker is terminated) and
+re-queued by the next start, or by another replica once its lease expires
+(:class:`~service.runner.JobRunner`). Worker processes die with the service,
+even when it is killed (:func:`service.worker.make_pool`). The store's schema is migrated at start.
 """
 
 from __future__ import annotations
@@ -79,6 +80,7 @@ class Runtime:
     feedback_pool: WorkerPool | None = None
     rig_pool: WorkerPool | None = None
     session: object | None = None
+    replicas: object | None = None  # service.replicas.Replicas: which replica estimates which rig
     live: object | None = None
     rerun: object | None = None
     api_tokens: tuple[ApiToken, ...] = ()  # accepted REST bearer tokens and scopes (empty: open)
@@ -86,12 +88,22 @@ class Runtime:
     @classmethod
     async def start(cls, settings: Settings) -> "Runtime":
         api_tokens = settings.api_tokens()  # a bad token file fails the start, with its reason
-        model_path = await asyncio.to_thread(resolve_model_path, settings)
         make_storage(settings)
         store = await asyncio.to_thread(JobStore, settings.db_url)  # migrates the schema
-        requeued = await asyncio.to_thread(store.requeue_interrupted, max_attempts=settings.max_attempts)
+        # An unreachable database fails the start before the model is built or loaded.
+        model_path = await asyncio.to_thread(resolve_model_path, settings)
+        # Join the other replicas before touching jobs: a replica whose id is taken
+        # (ReplicaConflict) must not re-queue the running jobs of the one that holds it.
+        try:
+            session, replicas = await asyncio.to_thread(_join, settings)
+        except BaseException:
+            store.close()
+            raise
+        requeued = await asyncio.to_thread(store.requeue_owned, settings.replica_id,
+                                           max_attempts=settings.max_attempts)
         if requeued:
-            log.info("re-queued %d interrupted job(s): %s", len(requeued), ", ".join(requeued))
+            log.info("re-queued %d job(s) this replica (%s) left running: %s", len(requeued),
+                     settings.replica_id, ", ".join(requeued))
         metrics = Metrics()
         metrics.watch_jobs(store.counts)
         rerun = None
@@ -102,37 +114,35 @@ class Runtime:
             if rerun.uri:
                 log.info("Rerun: connect a viewer with `rerun %s`", rerun.uri)
         # Feedback priors render in a process of their own, so that they never
-        # hold up the next window's estimate.
-        # The live rig's postures run at low priority: they may lag, the viewpoints may not.
+        # hold up the next window's estimate, at a lower priority (nice 5): where the
+        # cores are short (16 cameras x 30 fps need ~6 cores of priors, docs/SCALING.md)
+        # the viewpoints go first and the priors, newest window first, take what is left.
+        # The live rig's postures run lower still (nice 10): they may lag, the viewpoints may not.
         job_pool, live_pool, feedback_pool, rig_pool = await asyncio.gather(
             asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
             asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none(),
-            asyncio.to_thread(make_pool, 1, None, renderer=True)  # rendering needs no model
+            asyncio.to_thread(make_pool, 1, None, renderer=True, nice=5)  # rendering needs no model
             if settings.live and settings.feedback else _none(),
             asyncio.to_thread(make_pool, 1, None, nice=10) if settings.live and settings.live_rig else _none())
         runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
-                           rerun=rerun if settings.rerun_jobs else None)
+                           rerun=rerun if settings.rerun_jobs else None, replica=settings.replica_id,
+                           lease_s=settings.job_lease_s, max_attempts=settings.max_attempts)
         rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner,
-                 feedback_pool=feedback_pool, rig_pool=rig_pool, rerun=rerun, api_tokens=api_tokens)
+                 feedback_pool=feedback_pool, rig_pool=rig_pool, session=session, replicas=replicas,
+                 rerun=rerun, api_tokens=api_tokens)
         if settings.live:
-            import zenoh
-
-            from capture.zconfig import build_config
-
             from .live import LiveService
 
-            conf = build_config(mode=settings.zenoh_mode, connect=settings.zenoh_connect,
-                                listen=settings.zenoh_listen, config_file=settings.zenoh_config,
-                                multicast=settings.zenoh_multicast, access=settings.zenoh_access)
-            rt.session = await asyncio.to_thread(zenoh.open, conf)
-            rt.live = LiveService(rt.session, live_pool, settings, metrics, rerun=rerun,
-                                  feedback_pool=feedback_pool, rig_pool=rig_pool)
+            rt.live = LiveService(session, live_pool, settings, metrics, rerun=rerun,
+                                  feedback_pool=feedback_pool, rig_pool=rig_pool, replicas=replicas)
         return rt
 
     async def stop(self) -> None:
         await self.runner.close()
         if self.live is not None:
             await asyncio.to_thread(self.live.close)
+        if self.replicas is not None:  # leave first: the others take this replica's rigs at once
+            await asyncio.to_thread(self.replicas.close)
         if self.session is not None:
             await asyncio.to_thread(self.session.close)
         await asyncio.to_thread(shutdown_pool, self.job_pool)
@@ -146,3 +156,28 @@ class Runtime:
 
 async def _none() -> None:
     return None
+
+
+def _join(settings: Settings) -> tuple[object | None, object | None]:
+    """The live path's Zenoh session and this replica's membership among the others
+    (None, None without live windows); ReplicaConflict if another live replica has our id."""
+    if not settings.live:
+        return None, None
+    import zenoh
+
+    from capture.zconfig import build_config
+
+    conf = build_config(mode=settings.zenoh_mode, connect=settings.zenoh_connect,
+                        listen=settings.zenoh_listen, config_file=settings.zenoh_config,
+                        multicast=settings.zenoh_multicast, access=settings.zenoh_access,
+                        lease_s=settings.replica_lease_s if settings.replicas else None)
+    session = zenoh.open(conf)
+    if not settings.replicas:
+        return session, None
+    from .replicas import Replicas
+
+    try:
+        return session, Replicas(session, settings.replica_id, lease_s=settings.replica_lease_s)
+    except BaseException:
+        session.close()
+        raise

@@ -8,6 +8,7 @@ with explicit settings (:func:`service.app.create_app`).
 from __future__ import annotations
 
 import os
+import socket
 from functools import lru_cache
 from pathlib import Path
 
@@ -76,10 +77,25 @@ class Settings(BaseSettings):
     model_path: Path | None = Field(None, description="appearance model (.npz); default: the "
                                     "cached default model, built on first use")
     cache_dir: Path | None = Field(None, description="model cache (default: $POSECAL_CACHE or ~/.cache/posecal)")
+    # replicas (docs/SCALING.md): several services on one database and one Zenoh network
+    replica_id: str = Field(default_factory=lambda: socket.gethostname() or "posecal",
+                            pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,62}$",
+                            description="this service's name among its replicas: the owner of the "
+                            "jobs it runs and of the live rigs it estimates; stable across restarts, "
+                            "unique among running replicas (default: the host name)")
+    replicas: bool = Field(True, description="share the live rigs with the other replicas on the Zenoh "
+                           "network (liveliness tokens, rendezvous hashing; docs/SERVICE.md, \"Several "
+                           "replicas\"): each rig is estimated by exactly one; a replica alone estimates every rig")
+    replica_lease_s: float = Field(2.0, ge=0.5, le=60.0, description="Zenoh transport lease the service "
+                                   "announces: a replica that vanishes without closing its links (host "
+                                   "lost) is seen gone this long after its last keep-alive (bounds failover)")
     # jobs
     job_workers: int = Field(1, ge=0, description="processes that run jobs (0 = jobs stay queued)")
     max_attempts: int = Field(3, ge=1, description="runs of a job that a stop or crash may "
                               "interrupt; a job interrupted this often fails instead of being re-queued")
+    job_lease_s: float = Field(30.0, gt=0, description="a running job whose replica has not renewed "
+                               "its lease for this long (renewed every third of it) is re-queued by "
+                               "any replica: the replica died or lost the database")
     upload_limit_mb: float = Field(200.0, gt=0, description="largest accepted upload (413 above)")
     max_frames: int = Field(5000, ge=1, description="most frames per camera in one job (a PNG "
                             "named 5000.png or above, a video whose header counts more: 413)")
@@ -95,7 +111,10 @@ class Settings(BaseSettings):
                              "are refused and counted)")
     # live
     live: bool = Field(True, description="subscribe to silhouettes and estimate windows")
-    live_workers: int = Field(1, ge=1, description="processes that estimate live windows")
+    live_workers: int = Field(default_factory=lambda: min(2, os.cpu_count() or 1), ge=1,
+                              description="processes that estimate live windows, each its own window "
+                              "(default: 2, or 1 on one core; ~175 MB each): with two, 16 cameras x 30 fps "
+                              "keep every window on two cores (docs/SCALING.md)")
     window_length: int = Field(20, ge=4, description="frames per window (about one gait cycle; "
                                "live windows and the windows of batch jobs)")
     window_hop: int = Field(10, ge=1, description="frames between window starts")

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from estimator.appearance import AppearanceModel, load_model
+from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraTrack, WalkEstimate, crop_to_box, estimate_walk, pad_tracks,
                                 tracks_from_sequence)
@@ -71,6 +72,9 @@ _MAX_CLOUD = 1500  # viewpoint-cloud points kept per camera for drawing
 _model: AppearanceModel | None = None
 _stores: dict[str, JobStore] = {}
 _renderer = None  # estimator.render.Renderer, made on first use (feedback priors)
+# Live windows overlap: each silhouette is registered and matched once per worker process
+# (estimator.matchcache; 16 cameras x 4 windows of 20 frames).
+_match_cache = MatchCache(max_entries=1280)
 
 
 def make_pool(n: int, model_path: Path | None, *, renderer: bool = False, nice: int = 0) -> WorkerPool:
@@ -369,7 +373,7 @@ def estimate_window(tracks: dict[str, CameraTrack], indices: list[int],
     """
     model = _get_model()
     t0 = time.perf_counter()
-    est = estimate_walk(tracks, model)
+    est = estimate_walk(tracks, model, cache=_match_cache)
     result = json_safe(est.to_result(first_index=indices[0]))
     for frame, index in zip(result["frames"], indices):
         frame["index"] = int(index)

@@ -230,6 +230,25 @@ def test_a_shadow_at_the_feet_is_cut_off_by_the_model(walk, small_model):
         assert np.all(kept == 1.0) and np.array_equal(same, clean[cam].boxes)
 
 
+def test_the_cuts_are_searched_only_where_the_walker_does_not_fit(walk, small_model):
+    """A window whose uncut silhouettes fit the examples costs one scoring of its sampled
+    frames; a shadowed one is searched over every cut (CleanupConfig.cut_search)."""
+    config = CleanupConfig()
+    for name, expect_search in (("clean", False), ("shadow", True)):
+        t = tracks_from_sequence(walk if name == "clean" else damaged(walk, "shadow"))[walk.cameras[0]]
+        scored = []
+
+        def score(sils):
+            scored.append(len(sils))
+            return walker_score(small_model, sils)
+
+        trim_below_feet(t.silhouettes, t.boxes, score, config=config)
+        assert scored[0] == config.cut_frames  # the uncut frames first
+        assert (len(scored) > 1) == expect_search, name
+        if expect_search:
+            assert scored[1] == config.cut_frames * (len(config.cuts) - 1)
+
+
 @pytest.mark.parametrize("kind", ["salt", "blobs", "shadow", "second_person"])
 def test_estimate_on_damaged_silhouettes_stays_near_the_clean_one(walk, small_model, kind):
     ref = estimate_walk(tracks_from_sequence(walk), small_model)

@@ -212,3 +212,53 @@ def test_a_shadow_cut_off_the_feet_leaves_the_motion_cue_to_the_head(small_model
         cos = np.cos(np.radians(seq.truth["cameras"][cam]["azimuth_deg"]))
         if abs(cos) > 0.3:
             assert c.cue.signs()[0] == np.sign(cos)
+
+
+def test_the_shift_search_at_the_decoded_phases_is_exact(small_model, sequences):
+    """_cloud_at_phases tries the shifts only where the triangle inequality lets them matter:
+    its cloud is the one of the exhaustive search over every shift and example."""
+    from estimator.exemplars import hamming, pack
+    from estimator.pipeline import _cloud, _cloud_at_phases, _rows_by_phase
+
+    index = small_model.exemplars()
+    config = EstimateConfig(phase_shift_px=2)
+    track = tracks_from_sequence(sequences[1])[sequences[1].cameras[0]]
+    registered, tf = small_model.register([s for s in track.silhouettes if s is not None])
+    registered = registered[tf.valid]
+    states = np.random.default_rng(0).integers(0, index.n_phases, len(registered))
+    by_phase = _rows_by_phase(index)
+    r = config.phase_shift_px
+    shifts = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy == 0 or dx == 0]
+    rows, dists = [], []
+    for reg, k in zip(registered, states):
+        moved = pack(np.stack([np.roll(reg, sh, axis=(0, 1)) for sh in shifts]))
+        rows.append(by_phase[k])
+        dists.append(hamming(moved, index.bits[by_phase[k]]).min(axis=0))
+    want = _cloud(index, rows, dists, config)
+    got = _cloud_at_phases(index, by_phase, registered, states, config)
+    for field in ("az", "el", "w", "frame", "best"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+
+
+def test_a_match_cache_changes_nothing_but_the_work(small_model):
+    """Overlapping windows estimated with a MatchCache give the estimates they give without;
+    the second window's shared frames are found in it."""
+    from estimator.matchcache import MatchCache
+    from estimator.windows import window_tracks
+
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=30, seed=3, image_size=(320, 240)))
+    full = tracks_from_sequence(seq)
+    cache = MatchCache()
+    for k, a in enumerate((0, 10)):
+        plain = estimate_walk(window_tracks(full, a, a + 20), small_model)
+        hits = cache.hits
+        cached = estimate_walk(window_tracks(full, a, a + 20), small_model, cache=cache)
+        np.testing.assert_array_equal(cached.states, plain.states)
+        for cam in seq.cameras:
+            assert cached.cameras[cam].viewpoint.azimuth_deg == plain.cameras[cam].viewpoint.azimuth_deg
+            np.testing.assert_array_equal(cached.cameras[cam].labels, plain.cameras[cam].labels)
+        if k:  # frames 10-19 were matched in the first window
+            assert cache.hits - hits >= 2 * 10
+    small = MatchCache(max_entries=5)
+    estimate_walk(window_tracks(full, 0, 20), small_model, cache=small)
+    assert len(small) == 5

@@ -135,6 +135,9 @@ class _Live:
     def calibration(self, name: str) -> dict | None:
         return self.calibrations.get(name)
 
+    def estimated_by(self, name: str) -> str | None:  # one replica: every rig is its own
+        return None
+
     def close(self) -> None:
         pass
 

@@ -56,6 +56,8 @@ def test_the_service_writes_nothing_into_its_working_directory(tmp_path, monkeyp
 
 _OLD_COLUMNS = ("id", "state", "kind", "input_dir", "options", "progress", "stage", "error", "result",
                 "attempts", "created_at", "started_at", "finished_at")
+_NEW_COLUMNS = ("claim", "replica", "heartbeat_at")  # 0002: the run's claim; 0003: its replica and lease
+HEAD = "0003"
 
 
 def _old_database(path: Path) -> None:
@@ -109,14 +111,14 @@ def test_an_old_database_is_upgraded_on_start_and_keeps_its_jobs(tmp_path):
         assert srv.client.get(f"/v1/jobs/{'a' * 32}/result").json()["notes"] == ["old"]
     engine = sa.create_engine(f"sqlite:///{db}")
     columns = [c["name"] for c in sa.inspect(engine).get_columns("jobs")]
-    assert columns == [*_OLD_COLUMNS, "claim"]
-    assert current_revision(engine) == "0002"
+    assert columns == [*_OLD_COLUMNS, *_NEW_COLUMNS]
+    assert current_revision(engine) == HEAD
     engine.dispose()
     # Opening it again is a no-op; a new database is made at the same revision.
     store = JobStore(settings.db_url)
-    assert len(store.list()) == 3 and current_revision(store.engine) == "0002"
+    assert len(store.list()) == 3 and current_revision(store.engine) == HEAD
     store.close()
     fresh = JobStore(f"sqlite:///{tmp_path / 'new.db'}")
-    assert current_revision(fresh.engine) == "0002"
-    assert [c["name"] for c in sa.inspect(fresh.engine).get_columns("jobs")] == [*_OLD_COLUMNS, "claim"]
+    assert current_revision(fresh.engine) == HEAD
+    assert [c["name"] for c in sa.inspect(fresh.engine).get_columns("jobs")] == [*_OLD_COLUMNS, *_NEW_COLUMNS]
     fresh.close()

@@ -20,7 +20,8 @@ __all__ = ["CliError", "CliFailure", "export_formats", "main", "positive_int"]
 
 # Modules that provide sub-commands, imported lazily so that ``posecal synth``
 # never pays for importing the web stack.
-_COMMANDS = ("synth", "estimate", "sync", "refine", "model", "selfcal", "capture", "serve", "demo", "docs")
+_COMMANDS = ("synth", "estimate", "sync", "refine", "model", "selfcal", "capture", "serve", "worker", "demo",
+             "docs")
 
 
 class CliError(Exception):
@@ -106,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     logging.getLogger("OpenGL").setLevel(logging.WARNING)
+    logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)  # a line per plugin at start
     try:
         return int(args.func(args) or 0)
     except CliError as exc:

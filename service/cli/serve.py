@@ -24,14 +24,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default: 8000)")
     p.add_argument("--rerun", metavar="SINK",
                    help="save:PATH (.rrd file) | serve[:PORT] (gRPC on 127.0.0.1) | connect[:URL]")
-    p.add_argument("--db", metavar="PATH|URL", help="SQLite file or SQLAlchemy URL (default: posecal.db in "
-                   "$POSECAL_DATA, else $XDG_DATA_HOME/posecal, else ~/.local/share/posecal)")
-    p.add_argument("--data-dir", metavar="DIR", help="where job uploads are kept (default: jobs/ in that "
-                   "same directory)")
-    p.add_argument("--model", metavar="PATH", help="appearance model (default: the cached default model)")
+    add_job_arguments(p)
     p.add_argument("--window", type=int, metavar="N", help="frames per live window (default: 20)")
     p.add_argument("--hop", type=int, metavar="N", help="frames between windows (default: 10)")
-    p.add_argument("--job-workers", type=int, metavar="N", help="job processes (default: 1)")
     p.add_argument("--no-live", action="store_true", help="REST jobs only: no Zenoh subscription")
     p.add_argument("--no-feedback", action="store_true",
                    help="do not send silhouette priors back to the capture agents (section 7.1)")
@@ -49,27 +44,49 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_serve)
 
 
-def settings_from_args(args: argparse.Namespace):
-    """:class:`~service.settings.Settings` from the command line (and the environment)."""
+def add_job_arguments(p: argparse.ArgumentParser, *, worker: bool = False) -> None:
+    """The options of the job store and its runner, shared by ``posecal serve`` and ``posecal
+    worker`` (which has no defaults for the database and the uploads: the replicas' shared ones)."""
+    p.add_argument("--db", metavar="PATH|URL", help="SQLite file or SQLAlchemy URL, e.g. "
+                   "postgresql+psycopg://user@host/posecal " + (
+                       "(required, or $POSECAL_DB)" if worker else "(default: posecal.db in $POSECAL_DATA, "
+                       "else $XDG_DATA_HOME/posecal, else ~/.local/share/posecal)"))
+    p.add_argument("--data-dir", metavar="DIR", help="where job uploads are kept, shared by the replicas "
+                   "at the same path " + ("(required, or $POSECAL_DATA_DIR)" if worker else
+                                          "(default: jobs/ in that same directory)"))
+    p.add_argument("--model", metavar="PATH", help="appearance model (default: the cached default model)")
+    p.add_argument("--job-workers", type=int, metavar="N", help="job processes (default: 1)")
+    p.add_argument("--replica-id", metavar="NAME", help="this replica's name among those sharing the "
+                   "database: the owner of the jobs it runs, stable across restarts (default: "
+                   "$POSECAL_REPLICA_ID, else the host name)")
+
+
+# Settings given by options of the same value: (setting, option's dest); options a parser lacks are skipped.
+_OPTIONS = (("rerun", "rerun"), ("db", "db"), ("data_dir", "data_dir"), ("model_path", "model"),
+            ("window_length", "window"), ("window_hop", "hop"), ("job_workers", "job_workers"),
+            ("replica_id", "replica_id"), ("job_lease_s", "job_lease_s"), ("zenoh_connect", "connect"),
+            ("zenoh_listen", "listen"), ("zenoh_config", "zenoh_config"), ("api_token_file", "api_token_file"))
+
+
+def settings_from_args(args: argparse.Namespace, **fixed):
+    """:class:`~service.settings.Settings` from the command line (and the environment), with
+    ``fixed`` settings on top (``posecal worker``: no live path)."""
     from pydantic import ValidationError
 
     from service.settings import Settings
 
-    given = {name: value for name, value in (
-        ("rerun", args.rerun), ("db", args.db), ("data_dir", args.data_dir), ("model_path", args.model),
-        ("window_length", args.window), ("window_hop", args.hop), ("job_workers", args.job_workers),
-        ("zenoh_connect", args.connect), ("zenoh_listen", args.listen),
-        ("zenoh_config", args.zenoh_config), ("api_token_file", args.api_token_file)) if value is not None}
-    if args.no_live:
+    given = {name: value for name, dest in _OPTIONS if (value := getattr(args, dest, None)) is not None}
+    if getattr(args, "no_live", False):
         given["live"] = False
-    if args.no_feedback:
+    if getattr(args, "no_feedback", False):
         given["feedback"] = False
-    if args.no_live_rig:
+    if getattr(args, "no_live_rig", False):
         given["live_rig"] = False
-    if args.mode != "peer":
+    if getattr(args, "mode", "peer") != "peer":
         given["zenoh_mode"] = args.mode
-    if args.multicast:
+    if getattr(args, "multicast", False):
         given["zenoh_multicast"] = True
+    given.update(fixed)
     try:
         return Settings(**given)
     except ValidationError as exc:

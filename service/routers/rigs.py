@@ -1,4 +1,7 @@
-"""Live rigs: ``/v1/rigs``, one rig, its latest estimate and estimates since a window."""
+"""Live rigs: ``/v1/rigs``, one rig, its latest estimate and estimates since a window.
+
+With several replicas each answers for the rigs it estimates; asked for another
+replica's rig it answers 404 naming that replica (``GET /v1/replicas`` lists them)."""
 
 from __future__ import annotations
 
@@ -15,17 +18,22 @@ router = APIRouter(prefix="/v1/rigs", tags=["rigs"], dependencies=[Depends(beare
                    responses=error_responses(401, 403))
 
 
-def _unknown_rig(rig: str) -> HTTPException:
+def _unknown_rig(live: LiveDep, rig: str) -> HTTPException:
+    """404: the rig is estimated by another replica (named), or no silhouettes came for it."""
+    owner = live.estimated_by(rig)
+    if owner is not None:
+        return HTTPException(404, f"rig {rig!r} is estimated by replica {owner!r}")
     return HTTPException(404, f"unknown rig {rig!r}: no silhouettes received for it")
 
 
 def _rig_or_404(live: LiveDep, rig: str) -> None:
     if not live.has_rig(rig):
-        raise _unknown_rig(rig)
+        raise _unknown_rig(live, rig)
 
 
 @router.get("", response_model=RigList)
 def list_rigs(rt: RuntimeDep) -> RigList:
+    """The rigs this replica estimates."""
     live = rt.live
     if live is None:
         return RigList(live=False, rigs=[])
@@ -33,11 +41,12 @@ def list_rigs(rt: RuntimeDep) -> RigList:
 
 
 @router.get("/{rig}", response_model=RigOut,
-            responses=error_responses(404, examples={404: "unknown rig 'lab': no silhouettes received for it"}))
+            responses=error_responses(404, examples={404: "rig 'lab' is estimated by replica 'b'"}))
 def get_rig(rig: str, live: LiveDep) -> RigOut:
+    """The rig's summary, if this replica estimates it (else 404 naming the replica that does)."""
     summary = live.summary(rig)
     if summary is None:
-        raise _unknown_rig(rig)
+        raise _unknown_rig(live, rig)
     return RigOut(**summary)
 
 
