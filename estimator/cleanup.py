@@ -283,9 +283,9 @@ def _components(sil: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     as ``cv2.connectedComponentsWithStats`` gives them; a silhouette of one piece (most
     frames) is labelled without the statistics pass, which costs several times the labelling."""
     mask = (sil > 0).view(np.uint8)
-    n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_16U)
+    n, labels = cv2.connectedComponents(mask, connectivity=8)
     if n != 2:
-        return cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_16U)[1:3]
+        return cv2.connectedComponentsWithStats(mask, connectivity=8)[1:3]
     x, y, w, h = cv2.boundingRect(mask)
     area = cv2.countNonZero(mask)
     return labels, np.array([[0, 0, mask.shape[1], mask.shape[0], mask.size - area], [x, y, w, h, area]], np.int32)

@@ -9,7 +9,9 @@ silhouette's pixels, so that the window-level steps (viewpoint vote, phase
 evidence, HMM) are all that a frame costs the second time.
 
 A :class:`MatchCache` is an explicit argument, never a global: the results
-are the same with or without one (``tests/test_pipeline.py``). It is bound to
+are the same with or without one (``tests/test_pipeline.py``), up to the
+float32 rounding of eq. 8's matrix product, which depends on the batch it is
+computed in (a few 1e-4 pixels: it can only decide an exact tie). It is bound to
 one appearance model (given another, it starts again) and bounded: the least
 recently used silhouettes go first.
 """

@@ -547,22 +547,22 @@ def _cloud_at_phases(index: ExemplarIndex, by_phase: list[np.ndarray], registere
     """
     r = config.phase_shift_px
     shifts = [(0, 0)] + [(d, 0) for d in range(-r, r + 1) if d] + [(0, d) for d in range(-r, r + 1) if d]
-    T, S = len(registered), len(shifts)
-    moved = pack(np.stack([np.roll(registered, sh, axis=(1, 2)) for sh in shifts], axis=1)
-                 .reshape(T * S, *registered.shape[1:])).reshape(T, S, -1)
-    moved_by = _hamming_pairs(moved[:, 1:], moved[:, :1])  # (T, S - 1): H(shifted, unshifted)
+    S = len(shifts)
     reach = _CLOUD_REACH * config.tau_view
-    rows, dists = [None] * T, [None] * T
+    rows, dists = [None] * len(registered), [None] * len(registered)
     for k in np.unique(states):  # the frames at one phase share their examples
         frames = np.flatnonzero(states == k)
+        moved = pack(np.stack([np.roll(registered[frames], sh, axis=(1, 2)) for sh in shifts], axis=1)
+                     .reshape(len(frames) * S, *registered.shape[1:])).reshape(len(frames), S, -1)
+        moved_by = _hamming_pairs(moved[:, 1:], moved[:, :1])  # (frames, S - 1): H(shifted, unshifted)
         rr = by_phase[int(k)]
         bank = index.bits[rr]
-        d0 = _hamming(moved[frames, 0], bank)  # (frames, examples)
+        d0 = _hamming(moved[:, 0], bank)  # (frames, examples)
         d, bound = d0.copy(), d0.min(axis=1, keepdims=True) + reach
         for s in range(1, S):
-            f, e = np.nonzero(d0 - moved_by[frames, s - 1, None] <= bound)
+            f, e = np.nonzero(d0 - moved_by[:, s - 1, None] <= bound)
             if f.size:
-                d[f, e] = np.minimum(d[f, e], _hamming_pairs(moved[frames[f], s], bank[e]))
+                d[f, e] = np.minimum(d[f, e], _hamming_pairs(moved[f, s], bank[e]))
         for i, t in enumerate(frames):
             rows[t], dists[t] = rr, d[i]
     return _cloud(index, rows, dists, config)
@@ -634,7 +634,7 @@ def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_c
     silhouette is registered and scored once (:mod:`estimator.matchcache`).
     """
     m = match(model, silhouettes, cache)
-    out = np.where(m.valid, m.score, np.inf)
+    out = np.where(m.valid, m.score if top_clusters == 3 else np.nan, np.inf)  # the cache keeps top-3 scores
     todo = m.valid & np.isnan(out)
     if todo.any():
         _, dists = _member_distances(model, model.exemplars(), pack(m.registered[todo]), m.means_distance[todo],
@@ -701,7 +701,8 @@ def estimate_walk(
         Defaults to the shipped CMU fit.
     cache : MatchCache, optional
         Registrations and matches of silhouettes seen before (overlapping live
-        windows); the estimate is the same with or without.
+        windows); the estimate is the same with or without (up to float32
+        rounding, :mod:`estimator.matchcache`).
 
     Raises
     ------

@@ -132,6 +132,12 @@ class JobStore:
         self.engine: Engine = sa.create_engine(url, **kwargs)
         if url.startswith("sqlite"):
             sa.event.listen(self.engine, "connect", _sqlite_pragmas)
+        with self.engine.connect():  # the dialect learns the server's version on first connect
+            pass
+        if not self.engine.dialect.update_returning:  # claims and re-queues are UPDATE ... RETURNING
+            raise RuntimeError(f"the job store needs UPDATE ... RETURNING (SQLite >= 3.35, PostgreSQL); "
+                               f"{self.engine.dialect.name} here has none (SQLite "
+                               f"{getattr(self.engine.dialect.dbapi, 'sqlite_version', '?')})")
         # Leases by the server's clock where there is a server (replicas on several hosts);
         # a SQLite file has one host, whose clock it is.
         self._server_clock = self.engine.dialect.name != "sqlite"

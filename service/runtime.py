@@ -91,58 +91,67 @@ class Runtime:
         make_storage(settings)
         store = await asyncio.to_thread(JobStore, settings.db_url)  # migrates the schema
         # An unreachable database fails the start before the model is built or loaded.
-        model_path = await asyncio.to_thread(resolve_model_path, settings)
-        # Join the other replicas before touching jobs: a replica whose id is taken
-        # (ReplicaConflict) must not re-queue the running jobs of the one that holds it.
+        pools: tuple = (None, None, None, None)
+        session = replicas = None
         try:
+            model_path = await asyncio.to_thread(resolve_model_path, settings)
+            # Feedback priors render in a process of their own, so that they never
+            # hold up the next window's estimate, at a lower priority (nice 5): where the
+            # cores are short (16 cameras x 30 fps need ~6 cores of priors, docs/SCALING.md)
+            # the viewpoints go first and the priors, newest window first, take what is left.
+            # The live rig's postures run lower still (nice 10): they may lag, the viewpoints may not.
+            pools = await asyncio.gather(
+                asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
+                asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none(),
+                asyncio.to_thread(make_pool, 1, None, renderer=True, nice=5)  # rendering needs no model
+                if settings.live and settings.feedback else _none(),
+                asyncio.to_thread(make_pool, 1, None, nice=10) if settings.live and settings.live_rig else _none())
+            job_pool, live_pool, feedback_pool, rig_pool = pools
+            # Join the other replicas once the pools are up (the others hand this replica its
+            # rigs as soon as it is seen) and before touching jobs: a replica whose id is taken
+            # (ReplicaConflict) must not re-queue the running jobs of the one that holds it.
             session, replicas = await asyncio.to_thread(_join, settings)
-        except BaseException:
+            requeued = await asyncio.to_thread(store.requeue_owned, settings.replica_id,
+                                               max_attempts=settings.max_attempts)
+            if requeued:
+                log.info("re-queued %d job(s) this replica (%s) left running: %s", len(requeued),
+                         settings.replica_id, ", ".join(requeued))
+            metrics = Metrics()
+            metrics.watch_jobs(store.counts)
+            rerun = None
+            if settings.rerun_sink is not None:
+                from .rerun_log import RerunLog
+
+                rerun = RerunLog(settings.rerun_sink)
+                if rerun.uri:
+                    log.info("Rerun: connect a viewer with `rerun %s`", rerun.uri)
+            runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
+                               rerun=rerun if settings.rerun_jobs else None, replica=settings.replica_id,
+                               lease_s=settings.job_lease_s, max_attempts=settings.max_attempts)
+            rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner,
+                     feedback_pool=feedback_pool, rig_pool=rig_pool, session=session, replicas=replicas,
+                     rerun=rerun, api_tokens=api_tokens)
+            if settings.live:
+                from .live import LiveService
+
+                rt.live = LiveService(session, live_pool, settings, metrics, rerun=rerun,
+                                      feedback_pool=feedback_pool, rig_pool=rig_pool, replicas=replicas)
+        except BaseException:  # a failed start leaves nothing running
+            for closing in (replicas, session):
+                if closing is not None:
+                    closing.close()
+            for pool in pools:
+                shutdown_pool(pool)
             store.close()
             raise
-        requeued = await asyncio.to_thread(store.requeue_owned, settings.replica_id,
-                                           max_attempts=settings.max_attempts)
-        if requeued:
-            log.info("re-queued %d job(s) this replica (%s) left running: %s", len(requeued),
-                     settings.replica_id, ", ".join(requeued))
-        metrics = Metrics()
-        metrics.watch_jobs(store.counts)
-        rerun = None
-        if settings.rerun_sink is not None:
-            from .rerun_log import RerunLog
-
-            rerun = RerunLog(settings.rerun_sink)
-            if rerun.uri:
-                log.info("Rerun: connect a viewer with `rerun %s`", rerun.uri)
-        # Feedback priors render in a process of their own, so that they never
-        # hold up the next window's estimate, at a lower priority (nice 5): where the
-        # cores are short (16 cameras x 30 fps need ~6 cores of priors, docs/SCALING.md)
-        # the viewpoints go first and the priors, newest window first, take what is left.
-        # The live rig's postures run lower still (nice 10): they may lag, the viewpoints may not.
-        job_pool, live_pool, feedback_pool, rig_pool = await asyncio.gather(
-            asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
-            asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none(),
-            asyncio.to_thread(make_pool, 1, None, renderer=True, nice=5)  # rendering needs no model
-            if settings.live and settings.feedback else _none(),
-            asyncio.to_thread(make_pool, 1, None, nice=10) if settings.live and settings.live_rig else _none())
-        runner = JobRunner(store, job_pool, metrics, slots=settings.job_workers,
-                           rerun=rerun if settings.rerun_jobs else None, replica=settings.replica_id,
-                           lease_s=settings.job_lease_s, max_attempts=settings.max_attempts)
-        rt = cls(settings, model_path, store, metrics, job_pool, live_pool, runner,
-                 feedback_pool=feedback_pool, rig_pool=rig_pool, session=session, replicas=replicas,
-                 rerun=rerun, api_tokens=api_tokens)
-        if settings.live:
-            from .live import LiveService
-
-            rt.live = LiveService(session, live_pool, settings, metrics, rerun=rerun,
-                                  feedback_pool=feedback_pool, rig_pool=rig_pool, replicas=replicas)
         return rt
 
     async def stop(self) -> None:
+        if self.replicas is not None:  # leave first: the others take this replica's rigs at once
+            await asyncio.to_thread(self.replicas.close)
         await self.runner.close()
         if self.live is not None:
             await asyncio.to_thread(self.live.close)
-        if self.replicas is not None:  # leave first: the others take this replica's rigs at once
-            await asyncio.to_thread(self.replicas.close)
         if self.session is not None:
             await asyncio.to_thread(self.session.close)
         await asyncio.to_thread(shutdown_pool, self.job_pool)

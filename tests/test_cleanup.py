@@ -293,3 +293,13 @@ def test_cli_synth_damage_and_estimate(small_model_path, tmp_path, capsys):
     capsys.readouterr()
     assert main(["synth", "--out", str(tmp_path / "x"), "--damage", "smudge"]) == 2
     assert "unknown damage" in capsys.readouterr().err
+
+
+def test_a_silhouette_of_more_pieces_than_16_bit_labels_is_cleaned():
+    """Speckle over a large crop (90,000 isolated pixels and a walker): labelled, not an error."""
+    sil = np.zeros((600, 600), np.uint8)
+    sil[::2, ::2] = 255
+    sil[100:500, 250:350] = 255  # the walker
+    sils, boxes, report = select_walker([sil], np.array([[0.0, 0.0, 600.0, 600.0]]))
+    assert report.kept == 1 and report.cleaned == 1
+    assert boxes[0, 3] >= 400  # the walker, not a speck
