@@ -333,6 +333,21 @@ class CameraState:
 _ONE_WALKER = "the papers assume one walker per rig: the tracked one is kept"
 
 
+def insert_by_seq(recent: collections.deque, result: dict[str, Any]) -> None:
+    """Keep a rig's results in window order: with several live workers a window may finish
+    after the next one. A result older than every kept one of a full history is dropped."""
+    seq = result["window"]["seq"]
+    i = len(recent)
+    while i and recent[i - 1]["window"]["seq"] > seq:
+        i -= 1
+    if recent.maxlen is not None and len(recent) == recent.maxlen:
+        if i == 0:
+            return
+        recent.popleft()
+        i -= 1
+    recent.insert(i, result)
+
+
 def _crowd_notes(frames: list[FrameSet]) -> dict[str, str]:
     """Per camera whose agent saw several people in view in some of ``frames``, a note
     for the window's estimate (the agent sends the walker it tracks)."""
@@ -756,7 +771,7 @@ class LiveService:
         self.metrics.window_estimate.observe(seconds)
         self.metrics.windows.labels(w.rig, "estimated").inc()
         with self._lock:
-            rig.recent.append(result)
+            insert_by_seq(rig.recent, result)
             rig.estimated += 1
             rig.last_logged_index = max(rig.last_logged_index, w.indices[-1])
         if self.rerun is not None and bundle is not None:

@@ -322,3 +322,18 @@ def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, ren
     assert geodesic_deg(r, truth) < 30.0, (geodesic_deg(r, truth), cal["notes"])
     assert cal["body"]["stature_m"] == 1.75
     assert "posecal_live_rig_seconds_count" in metrics
+
+
+def test_window_results_are_kept_in_window_order():
+    """Two live workers may finish window 3 before window 2: the history stays in seq order,
+    bounded, and a result older than a full history is not kept."""
+    import collections
+
+    from service.live import insert_by_seq
+
+    recent = collections.deque(maxlen=3)
+    for seq in (1, 3, 2, 5, 4):
+        insert_by_seq(recent, {"window": {"seq": seq}})
+    assert [r["window"]["seq"] for r in recent] == [3, 4, 5]
+    insert_by_seq(recent, {"window": {"seq": 2}})  # older than all kept
+    assert [r["window"]["seq"] for r in recent] == [3, 4, 5]
