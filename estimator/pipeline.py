@@ -36,7 +36,7 @@ from .appearance import AppearanceModel
 from .body import PARTS
 from .cleanup import CleanupConfig, CleanupReport, check_plausible, select_walker, trim_below_feet
 from .camera import world_to_camera_rotation
-from .exemplars import ExemplarIndex, hamming, pack
+from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
 from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
@@ -484,16 +484,13 @@ _CLOUD_REACH = 10.0  # a frame's cloud: its examples within this many tau_view o
 
 
 def _hamming(queries: np.ndarray, bank: np.ndarray) -> np.ndarray:
-    """:func:`estimator.exemplars.hamming` ((Q, B) x (R, B) -> (Q, R)) on 64-bit words when B allows."""
-    if queries.shape[-1] % 8:
-        return hamming(queries, bank)
-    q = np.ascontiguousarray(queries).view(np.uint64)
-    b = np.ascontiguousarray(bank).view(np.uint64)
-    return np.bitwise_count(q[:, None, :] ^ b[None, :, :]).sum(axis=-1, dtype=np.int64)
+    """:func:`estimator.exemplars.hamming`: every query against every bank row, (Q, B) x (R, B) -> (Q, R)."""
+    return _hamming_pairs(queries[:, None, :], bank[None, :, :])
 
 
 def _hamming_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pixel disagreements of packed silhouettes paired element-wise (broadcast over leading axes)."""
+    """Pixel disagreements of packed silhouettes paired element-wise (broadcast over leading
+    axes), on 64-bit words when the rows allow."""
     if a.shape[-1] % 8:
         return np.bitwise_count(a ^ b).sum(axis=-1, dtype=np.int64)
     return np.bitwise_count(np.ascontiguousarray(a).view(np.uint64) ^ np.ascontiguousarray(b).view(np.uint64)

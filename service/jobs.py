@@ -235,11 +235,6 @@ class JobStore:
                                 .values(heartbeat_at=self._clock()))
         return done.rowcount
 
-    def requeue_interrupted(self, *, max_attempts: int | None = None) -> list[str]:
-        """Every job left ``running`` goes back to the queue (one service alone on its
-        database, stopped mid-job); see :meth:`_requeue`."""
-        return self._requeue([], max_attempts=max_attempts, stage="requeued after restart")
-
     def requeue_owned(self, replica: str, *, max_attempts: int | None = None) -> list[str]:
         """The jobs ``replica`` left ``running`` go back to the queue: it restarted, so they run
         nowhere. Rows claimed without a replica (a version before replicas) count as its own."""

@@ -165,7 +165,7 @@ def test_a_stale_run_cannot_write_and_retries_are_capped(tmp_path):
     store = JobStore(f"sqlite:///{tmp_path / 'jobs.db'}")
     job = store.create(kind="sequence", input_dir="/x")
     first = store.claim_next()
-    assert store.requeue_interrupted(max_attempts=3) == [job.id]  # the service restarted
+    assert store.requeue_owned("here", max_attempts=3) == [job.id]  # the service restarted
     second = store.claim_next()
     assert first.claim != second.claim and second.attempts == 2
     orphan, current = store.claimed(first.claim), store.claimed(second.claim)
@@ -178,9 +178,9 @@ def test_a_stale_run_cannot_write_and_retries_are_capped(tmp_path):
     # Retries are capped, with the reason kept.
     other = store.create(kind="sequence", input_dir="/y")
     store.claim_next()
-    assert store.requeue_interrupted(max_attempts=2) == [other.id]  # interrupted once: retried
+    assert store.requeue_owned("here", max_attempts=2) == [other.id]  # interrupted once: retried
     store.claim_next()
-    assert store.requeue_interrupted(max_attempts=2) == []  # twice: failed
+    assert store.requeue_owned("here", max_attempts=2) == []  # twice: failed
     row = store.get(other.id)
     assert row.state == "failed" and row.attempts == 2 and "max_attempts = 2" in row.error
     store.close()
