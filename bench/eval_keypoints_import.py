@@ -125,7 +125,8 @@ def look_at(centre: np.ndarray, target: np.ndarray, roll_deg: float) -> np.ndarr
     return Rotation.from_rotvec([0, 0, np.radians(roll_deg)]).as_matrix() @ base
 
 
-def random_rig(rng: np.random.Generator, path: np.ndarray, body: np.ndarray) -> dict:
+def random_rig(rng: np.random.Generator, path: np.ndarray, body: np.ndarray,
+               distance: tuple[float, float] = (2.5, 4.0)) -> dict:
     """4 cameras around the middle of the walk (``path``: (T, 3) hip centres) that frame the
     walker: a camera that would see less than 95 % of the 13 joints ``body`` (T, 13, 3) in its
     image is drawn again (a lab points its cameras at the walkway)."""
@@ -135,7 +136,7 @@ def random_rig(rng: np.random.Generator, path: np.ndarray, body: np.ndarray) -> 
     start = rng.uniform(0, 360)
     while len(cams) < 4:
         az = np.radians(start + 90 * len(cams) + rng.uniform(-20, 20))
-        dist = rng.uniform(2.5, 4.0)
+        dist = rng.uniform(*distance)
         centre = np.array([mid[0] + dist * np.cos(az), mid[1] + dist * np.sin(az), rng.uniform(1.2, 2.0)])
         target = np.array([mid[0], mid[1], 0.9]) + rng.normal(0, 0.1, 3)
         cam = {"name": f"cam{len(cams) + 1:02d}", "R": look_at(centre, target, rng.uniform(-3, 3)),
@@ -147,17 +148,18 @@ def random_rig(rng: np.random.Generator, path: np.ndarray, body: np.ndarray) -> 
     return {"cameras": cams, "size": (w, h)}
 
 
-def detections(rng: np.random.Generator, x: np.ndarray, cam: dict, noise_px: float = 2.5) -> np.ndarray:
+def detections(rng: np.random.Generator, x: np.ndarray, cam: dict, noise_px: float = 2.5, swaps: float = 0.01,
+               outliers: float = 0.02) -> np.ndarray:
     """Detector-like (T, len(KEYPOINTS), 3) [u, v, confidence] of points ``x`` (T, N, 3)."""
     q = (x - cam["C"]) @ cam["R"].T
     uv = cam["f"] * q[..., :2] / q[..., 2:] + np.array(cam["size"]) / 2
     t, n = uv.shape[:2]
-    swap = rng.random((t, len(PAIRS))) < 0.01
+    swap = rng.random((t, len(PAIRS))) < swaps
     for k, (a, b) in enumerate(PAIRS):
         uv[swap[:, k], a], uv[swap[:, k], b] = uv[swap[:, k], b].copy(), uv[swap[:, k], a].copy()
     uv += rng.normal(0, noise_px, uv.shape)
     conf = rng.uniform(0.5, 0.95, (t, n))
-    outlier = rng.random((t, n)) < 0.02
+    outlier = rng.random((t, n)) < outliers
     ang = rng.uniform(0, 2 * np.pi, (t, n))
     uv += outlier[..., None] * rng.uniform(20, 60, (t, n, 1)) * np.stack([np.cos(ang), np.sin(ang)], -1)
     conf[outlier] = rng.uniform(0.3, 0.7, outlier.sum())
@@ -211,16 +213,26 @@ def write_intrinsics(path: Path, rig: dict) -> None:
     write_calibration_toml(path, [c["name"] for c in cams], sizes, pin)
 
 
-def centre_errors(doc: dict, rig: dict) -> tuple[list[float], list[float]]:
-    """Errors (m) of cameras 1..'s centres in the reference camera's frame, and of their distances to it."""
+def image_height(body: np.ndarray, cam: dict) -> float:
+    """The walker's median image height (pixels) in camera ``cam``: the vertical extent of the 13 joints."""
+    q = (body - cam["C"]) @ cam["R"].T
+    v = cam["f"] * q[..., 1] / q[..., 2]
+    return float(np.median(v.max(axis=1) - v.min(axis=1)))
+
+
+def centre_errors(doc: dict, rig: dict) -> tuple[list[float], list[float], list[float]]:
+    """Errors (m) of cameras 1..'s centres in the reference camera's frame, of their distances to it, and the
+    angle (deg) between the estimated and true directions from it (the translation direction)."""
     cams = rig["cameras"]
-    pos, dist = [], []
+    pos, dist, dirs = [], [], []
     for c in cams[1:]:
         truth = cams[0]["R"] @ (c["C"] - cams[0]["C"])
         est = np.array(doc["cameras"][c["name"]]["centre_m"])
         pos.append(float(np.linalg.norm(est - truth)))
         dist.append(abs(float(np.linalg.norm(est) - np.linalg.norm(truth))))
-    return pos, dist
+        cos = est @ truth / max(np.linalg.norm(est) * np.linalg.norm(truth), 1e-12)
+        dirs.append(float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))))
+    return pos, dist, dirs
 
 
 def errors(doc: dict, rig: dict) -> tuple[list[float], list[float]]:
@@ -248,20 +260,34 @@ def main() -> None:
     ap.add_argument("--rigs", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--mocap", type=Path, default=MOCAP)
+    ap.add_argument("--distance", default="2.5,4.0", help="cameras' distance from the walk's middle, MIN,MAX metres")
+    ap.add_argument("--noise-share", default=None,
+                    help="Gaussian noise as a share of the walker's image height, MIN,MAX drawn per rig "
+                         "(default: 2.5 px)")
+    ap.add_argument("--outliers", type=float, default=0.02, help="share of keypoints displaced by 20-60 px")
+    ap.add_argument("--swaps", type=float, default=0.01, help="share of left/right pairs swapped")
+    ap.add_argument("--methods", default=",".join(METHODS.values()),
+                    help=f"comma-separated subset of {','.join(METHODS.values())}")
     args = ap.parse_args()
+    distance = tuple(float(v) for v in args.distance.split(","))
+    share = None if args.noise_share is None else tuple(float(v) for v in args.noise_share.split(","))
+    methods = {label: key for label, key in METHODS.items() if key in args.methods.split(",")}
     motion = read_motion(args.mocap)
     stretch = motion.positions[60:300:4]  # 2 s at 30 Hz
     pts = keypoints_3d(stretch)
     hips = (stretch[:, J["left_hip"]] + stretch[:, J["right_hip"]]) / 2
     height = 1.75 / stature_scale(stretch[:, :13], 1.75)  # the mocap walker's stature, m
     rng = np.random.default_rng(args.seed)
-    rows = {m: {"rot": [], "foc": [], "pos": [], "dist": [], "fail": 0, "time": [], "starts": 0, "flagged": [],
-                "wrong": 0} for m in METHODS}
+    rows = {m: {"rot": [], "foc": [], "pos": [], "dist": [], "dirs": [], "fail": 0, "time": [], "starts": 0,
+                "flagged": [], "wrong": 0, "epipolar": 0} for m in methods}
     same_as_mmpose = None
     for r in range(args.rigs):
-        rig = random_rig(rng, hips, stretch[:, :13])
+        rig = random_rig(rng, hips, stretch[:, :13], distance)
         w, h = rig["size"]
-        dets = {c["name"]: detections(rng, pts, c) for c in rig["cameras"]}
+        noise = {c["name"]: 2.5 if share is None else rng.uniform(*share) * image_height(stretch[:, :13], c)
+                 for c in rig["cameras"]}
+        dets = {c["name"]: detections(rng, pts, c, noise[c["name"]], args.swaps, args.outliers)
+                for c in rig["cameras"]}
         with tempfile.TemporaryDirectory() as tmp:
             root = Path(tmp) / "pose"
             for name, det in dets.items():
@@ -270,7 +296,7 @@ def main() -> None:
             runs = {"pinhole": ("--image-size", f"{w},{h}"), "ortho": (), "closed": ("--method", "closed-form"),
                     "intrinsics": ("--intrinsics", str(Path(tmp) / "calib.toml"))}
             runs = {k: (*v, "--height", f"{height:.4f}") for k, v in runs.items()}
-            for label, key in METHODS.items():
+            for label, key in methods.items():
                 doc, dt, err = run_cli(Path(tmp), *runs[key])
                 rows[label]["time"].append(dt)
                 if doc is None:
@@ -283,15 +309,17 @@ def main() -> None:
                     print(f"rig {r} {label}: flagged unreliable (worst pair {np.max(rot):.1f} deg)", flush=True)
                     continue
                 rows[label]["wrong"] += bool(np.max(rot) > 10.0)
-                pos, dist = centre_errors(doc, rig) if "reference_focal_px" in doc else ([], [])
+                pos, dist, dirs = centre_errors(doc, rig) if "reference_focal_px" in doc else ([], [], [])
                 rows[label]["rot"] += rot
                 rows[label]["foc"] += foc if key != "intrinsics" else []
                 rows[label]["pos"] += pos
                 rows[label]["dist"] += dist
+                rows[label]["dirs"] += dirs
+                rows[label]["epipolar"] += doc.get("pinhole_start") == "epipolar"
                 rows[label]["starts"] += doc.get("start", "closed form") != "closed form"
                 print(f"rig {r} ({w}x{h}) {label}: pairs {np.round(rot, 1).tolist()} focal "
                       f"{np.round(100 * np.array(foc), 1).tolist()} % centres {np.round(pos, 2).tolist()} m "
-                      f"start {doc.get('start')!r} notes {len(doc.get('notes', []))}  {dt:.1f} s", flush=True)
+                      f"dir {np.round(dirs, 1).tolist()} deg start {doc.get('start')!r}/{doc.get('pinhole_start')!r} notes {len(doc.get('notes', []))}  {dt:.1f} s", flush=True)
                 if r == 0 and key == "pinhole":
                     mm = Path(tmp) / "mmpose"
                     for name, det in dets.items():
@@ -301,23 +329,29 @@ def main() -> None:
                         np.allclose(doc_mm["cameras"][n]["rotation"], doc["cameras"][n]["rotation"], atol=1e-6)
                         for n in doc["cameras"])
     print()
-    print(f"CMU 16_15, {args.rigs} rigs x 6 camera pairs, seed {args.seed}; BODY_25 OpenPose folders")
+    noise_text = "2.5 px" if share is None else f"{100 * share[0]:g}-{100 * share[1]:g} % of the walker's height"
+    print(f"CMU 16_15, {args.rigs} rigs x 6 camera pairs, seed {args.seed}; BODY_25 OpenPose folders; cameras "
+          f"{distance[0]:g}-{distance[1]:g} m away; noise {noise_text}, {100 * args.outliers:g} % outliers, "
+          f"{100 * args.swaps:g} % left/right swaps")
     print()
     print("| method | median rot. err. (deg) | p90 (deg) | median focal err. | p90 focal | median centre err. (m) "
-          "| median distance err. (m) | failed | flagged unreliable (exit 1; their worst pair, median) "
-          "| accepted but wrong (worst pair > 10 deg) | other start | s / run |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| median distance err. (m) | translation direction median / p90 (deg) | failed "
+          "| flagged unreliable (exit 1; their worst pair, median) "
+          "| accepted but wrong (worst pair > 10 deg) | other start | epipolar start kept | s / run |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for label, row in rows.items():
-        rot, foc, pos, dist = (np.array(row[k]) for k in ("rot", "foc", "pos", "dist"))
+        rot, foc, pos, dist, dirs = (np.array(row[k]) for k in ("rot", "foc", "pos", "dist", "dirs"))
         f_med = f"{100 * np.median(foc):.1f} %" if foc.size else "—"
         f_p90 = f"{100 * np.percentile(foc, 90):.1f} %" if foc.size else "—"
         r_med = f"{np.median(rot):.2f}" if rot.size else "—"
         r_p90 = f"{np.percentile(rot, 90):.2f}" if rot.size else "—"
         p_med = f"{np.median(pos):.2f}" if pos.size else "—"
         d_med = f"{np.median(dist):.2f}" if dist.size else "—"
+        t_dir = f"{np.median(dirs):.2f} / {np.percentile(dirs, 90):.2f}" if dirs.size else "—"
         flagged = (f"{len(row['flagged'])} ({np.median(row['flagged']):.0f} deg)" if row["flagged"] else "0")
-        print(f"| {label} | {r_med} | {r_p90} | {f_med} | {f_p90} | {p_med} | {d_med} | {row['fail']}/{args.rigs} | "
-              f"{flagged} | {row['wrong']} | {row['starts']} | {np.median(row['time']):.1f} |")
+        print(f"| {label} | {r_med} | {r_p90} | {f_med} | {f_p90} | {p_med} | {d_med} | {t_dir} | "
+              f"{row['fail']}/{args.rigs} | {flagged} | {row['wrong']} | {row['starts']} | {row['epipolar']} | "
+              f"{np.median(row['time']):.1f} |")
     print()
     print(f"MMPose COCO-17 files of rig 0 give the same rotations as its OpenPose folders: {same_as_mmpose}")
 

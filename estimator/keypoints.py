@@ -127,8 +127,14 @@ def detect_skeleton(keypoints: np.ndarray, scores: np.ndarray | None = None, *,
     BODY_25 and BODY_25B both have 25 keypoints. In BODY_25, keypoint 1 (neck)
     is the midpoint of 2 and 5 (the shoulders) and 8 (mid hip) that of 9 and 12
     (the hips); in BODY_25B they are an eye between an eye and a shoulder, and
-    an elbow between a wrist and a hip. The median over detections of the
-    two offsets over the two widths decides (below 0.25: BODY_25).
+    an elbow between a wrist and a hip. The two offsets are measured in units
+    of the person's size (the larger side of the box of their confident
+    keypoints), not of the shoulders' and hips' widths: in a side view those
+    widths vanish and any offset looks large (on a 4-camera rig, the two side
+    cameras of BODY_25 detections were taken for BODY_25B). In BODY_25 the sum
+    is detection noise (about 0.01); in BODY_25B about 0.1 or more (half an
+    eye-to-shoulder and half a wrist-to-hip distance). Its median over the
+    detections decides: below ``BODY25_OFFSET`` (0.05), BODY_25.
     """
     kp = np.asarray(keypoints, float)
     if kp.ndim != 3 or kp.shape[-1] != 2:
@@ -143,16 +149,23 @@ def detect_skeleton(keypoints: np.ndarray, scores: np.ndarray | None = None, *,
     if scores is not None:
         ok &= np.asarray(scores, float) >= min_confidence
     need = [1, 2, 5, 8, 9, 12]
-    use = ok[:, need].all(axis=1)
+    use = ok[:, need].all(axis=1) & (ok.sum(axis=1) >= 8)
     if not use.any():
         raise ValueError("25 keypoints, but no detection shows keypoints 1, 2, 5, 8, 9 and 12 "
                          "to tell BODY_25 from BODY_25B (give the skeleton: --skeleton)")
-    p = kp[use]
+    p, seen = kp[use], ok[use]
+    lo = np.where(seen[..., None], p, np.inf).min(axis=1)
+    hi = np.where(seen[..., None], p, -np.inf).max(axis=1)
+    size = (hi - lo).max(axis=-1)
     off = (np.linalg.norm(p[:, 1] - (p[:, 2] + p[:, 5]) / 2, axis=-1)
            + np.linalg.norm(p[:, 8] - (p[:, 9] + p[:, 12]) / 2, axis=-1))
-    width = np.linalg.norm(p[:, 2] - p[:, 5], axis=-1) + np.linalg.norm(p[:, 9] - p[:, 12], axis=-1)
-    ratio = float(np.median(off / np.maximum(width, 1e-9)))
-    return SKELETONS["BODY_25" if ratio < 0.25 else "BODY_25B"]
+    ratio = float(np.median(off / np.maximum(size, 1e-9)))
+    return SKELETONS["BODY_25" if ratio < BODY25_OFFSET else "BODY_25B"]
+
+
+BODY25_OFFSET = 0.05
+"""Median offset (neck from the shoulders' midpoint plus mid hip from the hips', over the person's size)
+below which 25 keypoints are BODY_25 (:func:`detect_skeleton`)."""
 
 
 def keypoints_to_joints(keypoints: np.ndarray, scores: np.ndarray, skeleton: Skeleton, *,

@@ -17,7 +17,7 @@ import numpy as np
 from ._selfcal_core import proper_rotations
 from .joints import JOINT_INDEX
 
-__all__ = ["PinholeCameras", "floor_frame", "project", "triangulate"]
+__all__ = ["PinholeCameras", "floor_frame", "project", "reprojection_rmse", "triangulate"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,17 @@ def project(cameras: PinholeCameras, points: np.ndarray) -> np.ndarray:
     h = np.einsum("cab,c...b->c...a", cameras.matrices, x)
     z = h[..., 2:3]
     return np.where(z > 0, h[..., :2] / np.where(z > 0, z, 1.0), np.nan)
+
+
+def reprojection_rmse(cameras: PinholeCameras, points: np.ndarray, tracks: np.ndarray) -> float:
+    """Root mean square distance (pixels) between ``tracks`` (C, T, J, 2; NaN where missing) and the
+    projections of ``points`` (T, J, 3); a point behind a camera counts as the image diagonal off."""
+    y = np.asarray(tracks, float)
+    seen = np.isfinite(y).all(axis=-1)
+    d2 = np.sum((project(cameras, points) - y) ** 2, axis=-1)[seen]
+    far = 2.0 * float(np.abs(cameras.matrices[:, :2, 2]).max()) ** 2 * 2.0  # about the diagonal, squared
+    d2 = np.where(np.isfinite(d2), d2, far)
+    return float(np.sqrt(d2.mean())) if d2.size else float("nan")
 
 
 def triangulate(cameras: PinholeCameras, tracks: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:

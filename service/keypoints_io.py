@@ -122,24 +122,51 @@ def read_keypoints(paths: Sequence[Path], *, min_confidence: float = 0.3,
     return _assemble(fmt, cams, min_confidence, skeleton)
 
 
+def _detections(cam: _Camera) -> tuple[dict, np.ndarray, np.ndarray]:
+    """A camera's keypoint count per frame with anyone, and every detection's keypoints and scores."""
+    numbers = sorted(cam.frames)
+    if not numbers or not any(len(cam.frames[f][0]) for f in numbers):
+        raise KeypointError(f"{cam.path}: no person detected in any frame")
+    counts = {f: cam.frames[f][0].shape[1] for f in numbers if len(cam.frames[f][0])}
+    usual = max(set(counts.values()), key=list(counts.values()).count)
+    odd = next((f for f, k in counts.items() if k != usual), None)
+    if odd is not None:
+        raise KeypointError(f"{(cam.files or {}).get(odd, cam.path)}: frame {odd} has {counts[odd]} keypoints "
+                            f"per person, the other frames of camera {cam.name!r} {usual}")
+    return (counts, np.concatenate([cam.frames[f][0] for f in counts]),
+            np.concatenate([cam.frames[f][1] for f in counts]))
+
+
+def _skeletons(cams: list[_Camera], detections: list, min_confidence: float, skeleton: str | None) -> list:
+    """Each camera's layout: ``skeleton`` if given, else detected once over every camera with the same
+    keypoint count (one detector wrote them; a side view alone hardly tells BODY_25 from BODY_25B)."""
+    out, by_count = [], {}
+    for cam, (_, kp, _) in zip(cams, detections):
+        try:
+            if skeleton:
+                skel = SKELETONS[skeleton]
+            elif kp.shape[1] in by_count:
+                skel = by_count[kp.shape[1]]
+            else:
+                same = [d for d in detections if d[1].shape[1] == kp.shape[1]]
+                skel = by_count[kp.shape[1]] = detect_skeleton(
+                    np.concatenate([d[1] for d in same]), np.concatenate([d[2] for d in same]),
+                    min_confidence=min_confidence)
+            if skel.n_keypoints != kp.shape[1]:
+                raise ValueError(f"{skel.name} has {skel.n_keypoints} keypoints, the detections {kp.shape[1]}")
+        except ValueError as exc:
+            raise KeypointError(f"{cam.path}: {exc}") from None
+        out.append(skel)
+    return out
+
+
 def _assemble(fmt: str, cams: list[_Camera], min_confidence: float, skeleton: str | None) -> Keypoints:
     per_cam, layouts = [], {}
-    for cam in cams:
+    detections = [_detections(cam) for cam in cams]
+    skeletons = _skeletons(cams, detections, min_confidence, skeleton)
+    for cam, skel in zip(cams, skeletons):
         numbers = sorted(cam.frames)
-        if not numbers or not any(len(cam.frames[f][0]) for f in numbers):
-            raise KeypointError(f"{cam.path}: no person detected in any frame")
-        counts = {f: cam.frames[f][0].shape[1] for f in numbers if len(cam.frames[f][0])}
-        usual = max(set(counts.values()), key=list(counts.values()).count)
-        odd = next((f for f, k in counts.items() if k != usual), None)
-        if odd is not None:
-            raise KeypointError(f"{(cam.files or {}).get(odd, cam.path)}: frame {odd} has {counts[odd]} keypoints "
-                                f"per person, the other frames of camera {cam.name!r} {usual}")
-        kp_all = np.concatenate([cam.frames[f][0] for f in counts])
-        sc_all = np.concatenate([cam.frames[f][1] for f in counts])
         try:
-            skel = SKELETONS[skeleton] if skeleton else detect_skeleton(kp_all, sc_all, min_confidence=min_confidence)
-            if skel.n_keypoints != kp_all.shape[1]:
-                raise ValueError(f"{skel.name} has {skel.n_keypoints} keypoints, the detections {kp_all.shape[1]}")
             people = [keypoints_to_joints(*cam.frames[f], skel, min_confidence=min_confidence)
                       if len(cam.frames[f][0]) else (np.zeros((0, N_JOINTS, 2)), np.zeros((0, N_JOINTS)))
                       for f in numbers]

@@ -133,6 +133,22 @@ def test_detect_body25_from_body25b():
     assert detect_skeleton(b25b[..., :2], b25b[..., 2]).name == "BODY_25B"
 
 
+def test_detect_body25_in_side_views():
+    """Seen from the side the shoulders and the hips overlap: their widths vanish, and an offset measured
+    in widths took BODY_25 for BODY_25B (two cameras of a 4-camera rig). In units of the person's size
+    the side view decides like any other, for both layouts."""
+    rng = np.random.default_rng(1)
+    people = _person(rng, 40)
+    people[:, 1:, 0] = 320 + (people[:, 1:, 0] - 320) * 0.05  # a side view: left and right nearly coincide
+    b25 = _layout("BODY_25", people)
+    b25[:, [1, 8], :2] += rng.normal(0, 3, (40, 2, 2))  # the detector's own neck and mid hip
+    assert detect_skeleton(b25[..., :2], b25[..., 2]).name == "BODY_25"
+    b25b = _layout("BODY_25B", people)
+    b25b[:, 1:3, :2] = people[:, None, 0] + [[8, 0], [6, 0]]  # eyes by the head, in front
+    b25b[:, 1:3, 2] = 0.9
+    assert detect_skeleton(b25b[..., :2], b25b[..., 2]).name == "BODY_25B"
+
+
 def test_unknown_keypoint_count():
     with pytest.raises(ValueError, match="unknown keypoint count 21"):
         detect_skeleton(np.zeros((1, 21, 2)))

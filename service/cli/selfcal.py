@@ -28,7 +28,8 @@ from scipy.spatial.transform import Rotation
 
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 from estimator.keypoints import SKELETONS
-from estimator.perspective import PerspectiveConfig, perspective_refine
+from estimator.epipolar import refine_from_starts
+from estimator.perspective import PerspectiveConfig
 from estimator.pinhole import floor_frame, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
@@ -390,10 +391,12 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
 
 def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], sizes: np.ndarray,
                   rig: RigConfig, config: PerspectiveConfig) -> tuple[dict, Any, float]:
-    """The calibration with pinhole cameras (:func:`estimator.perspective.perspective_refine`)
-    after the refined scaled-orthographic one: rotations, focal lengths and centres per
-    camera, 3D joints in metres at the stature (:func:`estimator.rig.stature_scale`)."""
-    pin = perspective_refine(tracks, sizes, result.rotations, result.scales, list(RIGID_LINKS), config=config)
+    """The calibration with pinhole cameras (:func:`estimator.epipolar.refine_from_starts`: the
+    bundle adjustment from the refined scaled-orthographic rig and from the epipolar start, the
+    better kept): rotations, focal lengths and centres per camera, 3D joints in metres at the
+    stature (:func:`estimator.rig.stature_scale`)."""
+    pin, start = refine_from_starts(tracks, sizes, result.rotations, result.scales, list(RIGID_LINKS),
+                                    config=config)
     k = stature_scale(pin.joints3d, rig.height_m)
     if not np.isfinite(k):
         raise CliFailure("the pinhole adjustment gave a body without length")
@@ -405,6 +408,7 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
                               f"stature of {rig.height_m} m; origin at that camera's centre",
                frames=[{"index": i, "joints3d": _nullable(j * k)} for i, j in enumerate(pin.joints3d)],
                reprojection_rms_px=round(pin.rmse_px, 3),
+               pinhole_start=start,
                scaled_orthographic={name: {"rotation": doc["cameras"][name]["rotation"],
                                            "scale": doc["cameras"][name]["scale"]} for name in cameras[1:]},
                reference_focal_px=float(pin.focal_px[0]),
