@@ -238,9 +238,15 @@ def run(args: argparse.Namespace) -> int:
     used = _calibration_frames(tracks.shape[1], args.max_frames or (60 if keypoints else None))
     try:
         rig = RigConfig(height_m=args.height)
-        result = self_calibrate(tracks[:, used], scales="varying" if args.varying_scale else "fixed",
-                                refine=None if closed else True,
-                                upright=args.upright if args.refine else not closed)
+        result = None
+        if size is not None and not args.refine:
+            # Pinhole cameras by default: the closed form is their start (with the epipolar one); the
+            # scaled-orthographic bundle adjustment, 1-30 s, is only needed where the closed form fails.
+            result = self_calibrate(tracks[:, used], refine=False, temporal_prior=True) or None
+        if result is None:
+            result = self_calibrate(tracks[:, used], scales="varying" if args.varying_scale else "fixed",
+                                    refine=None if closed else True,
+                                    upright=args.upright if args.refine else not closed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if not result:
