@@ -127,14 +127,15 @@ def detect_skeleton(keypoints: np.ndarray, scores: np.ndarray | None = None, *,
     BODY_25 and BODY_25B both have 25 keypoints. In BODY_25, keypoint 1 (neck)
     is the midpoint of 2 and 5 (the shoulders) and 8 (mid hip) that of 9 and 12
     (the hips); in BODY_25B they are an eye between an eye and a shoulder, and
-    an elbow between a wrist and a hip. The two offsets are measured in units
-    of the person's size (the larger side of the box of their confident
-    keypoints), not of the shoulders' and hips' widths: in a side view those
-    widths vanish and any offset looks large (on a 4-camera rig, the two side
-    cameras of BODY_25 detections were taken for BODY_25B). In BODY_25 the sum
-    is detection noise (about 0.01); in BODY_25B about 0.1 or more (half an
-    eye-to-shoulder and half a wrist-to-hip distance). Its median over the
-    detections decides: below ``BODY25_OFFSET`` (0.05), BODY_25.
+    an elbow between a wrist and a hip: about 0.07 and 0.12 of the stature above
+    those midpoints in an upright person, whatever the view. Each offset is a
+    signed 2D vector in units of the person's size (the larger side of the box of
+    their confident keypoints); its median over the detections cancels the
+    detector's noise, and the sum of the two medians' lengths decides: below
+    ``BODY25_OFFSET`` (0.06), BODY_25. Two earlier rules failed on a 4-camera
+    rig: offsets over the shoulders' and hips' widths (a side view has none),
+    then the median of the offsets' lengths (noise of 3 % of the height alone
+    makes that 0.07).
     """
     kp = np.asarray(keypoints, float)
     if kp.ndim != 3 or kp.shape[-1] != 2:
@@ -157,15 +158,16 @@ def detect_skeleton(keypoints: np.ndarray, scores: np.ndarray | None = None, *,
     lo = np.where(seen[..., None], p, np.inf).min(axis=1)
     hi = np.where(seen[..., None], p, -np.inf).max(axis=1)
     size = (hi - lo).max(axis=-1)
-    off = (np.linalg.norm(p[:, 1] - (p[:, 2] + p[:, 5]) / 2, axis=-1)
-           + np.linalg.norm(p[:, 8] - (p[:, 9] + p[:, 12]) / 2, axis=-1))
-    ratio = float(np.median(off / np.maximum(size, 1e-9)))
-    return SKELETONS["BODY_25" if ratio < BODY25_OFFSET else "BODY_25B"]
+    unit = 1.0 / np.maximum(size, 1e-9)[:, None]
+    neck = np.median((p[:, 1] - (p[:, 2] + p[:, 5]) / 2) * unit, axis=0)
+    mid_hip = np.median((p[:, 8] - (p[:, 9] + p[:, 12]) / 2) * unit, axis=0)
+    offset = float(np.linalg.norm(neck) + np.linalg.norm(mid_hip))
+    return SKELETONS["BODY_25" if offset < BODY25_OFFSET else "BODY_25B"]
 
 
-BODY25_OFFSET = 0.05
-"""Median offset (neck from the shoulders' midpoint plus mid hip from the hips', over the person's size)
-below which 25 keypoints are BODY_25 (:func:`detect_skeleton`)."""
+BODY25_OFFSET = 0.06
+"""Length of the median offset of the neck from the shoulders' midpoint plus that of the mid hip from the
+hips', over the person's size, below which 25 keypoints are BODY_25 (:func:`detect_skeleton`)."""
 
 
 def keypoints_to_joints(keypoints: np.ndarray, scores: np.ndarray, skeleton: Skeleton, *,

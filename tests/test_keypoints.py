@@ -143,6 +143,9 @@ def test_detect_body25_in_side_views():
     b25 = _layout("BODY_25", people)
     b25[:, [1, 8], :2] += rng.normal(0, 3, (40, 2, 2))  # the detector's own neck and mid hip
     assert detect_skeleton(b25[..., :2], b25[..., 2]).name == "BODY_25"
+    noisy = b25.copy()  # a detector's noise of 3 % of the height on every keypoint
+    noisy[..., :2] += rng.normal(0, 9, noisy[..., :2].shape) * (noisy[..., 2:] > 0)
+    assert detect_skeleton(noisy[..., :2], noisy[..., 2]).name == "BODY_25"
     b25b = _layout("BODY_25B", people)
     b25b[:, 1:3, :2] = people[:, None, 0] + [[8, 0], [6, 0]]  # eyes by the head, in front
     b25b[:, 1:3, 2] = 0.9
