@@ -59,13 +59,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("refined", "closed-form"), default="refined",
                    help="'refined' (default): the closed form, then the bundle adjustment with the "
                         "upright-walker priors (adds rotvec_covariance_rad2, euler_xyz_std_deg and "
-                        "scale_std), then pinhole "
-                        "cameras when --image-size is given; 'closed-form': the paper's closed form "
+                        "scale_std); with --image-size the closed form, then pinhole cameras adjusted from "
+                        "it and from an epipolar start (the scaled-orthographic adjustment only where the "
+                        "closed form fails, or with --refine); 'closed-form': the paper's closed form "
                         "alone (section 4.2), as published")
     p.add_argument("--image-size", metavar="W,H",
                    help="the cameras' image size in pixels (principal point at its centre): adds "
-                        "pinhole cameras after the refined path (rotation, focal length, centre per "
-                        "camera), exact where the scaled orthographic model is not")
+                        "pinhole cameras (rotation, focal length, centre per camera), exact where the "
+                        "scaled orthographic model is not")
     p.add_argument("--intrinsics", type=Path, metavar="CALIB.toml",
                    help="known intrinsics: each camera's 'matrix' (focal length, principal point) and 'size' "
                         "from a Pose2Sim / anipose calibration TOML (as --export-calibration writes it), matched "
