@@ -31,6 +31,7 @@ to its focal length), ready for ``perspective_refine(..., initial=)``.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 
 import cv2
@@ -258,6 +259,8 @@ def _fill(x: np.ndarray) -> np.ndarray | None:
     have = np.isfinite(centroid).all(axis=-1)
     idx = np.arange(len(x))
     centroid = np.stack([np.interp(idx, idx[have], centroid[have, d]) for d in range(3)], axis=-1)
-    offset = np.nanmedian(np.where(seen[..., None], x - centroid[:, None], np.nan), axis=0)  # (J, 3)
+    with warnings.catch_warnings():  # a joint no two cameras ever saw: its offset is 0 below
+        warnings.simplefilter("ignore", RuntimeWarning)
+        offset = np.nanmedian(np.where(seen[..., None], x - centroid[:, None], np.nan), axis=0)  # (J, 3)
     offset = np.where(np.isfinite(offset), offset, 0.0)
     return np.where(seen[..., None], x, centroid[:, None] + offset[None])
