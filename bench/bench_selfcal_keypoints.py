@@ -37,6 +37,7 @@ from estimator.epipolar import epipolar_start  # noqa: E402
 from estimator.perspective import perspective_refine  # noqa: E402
 from estimator.selfcal import RIGID_LINKS, self_calibrate  # noqa: E402
 from service.cli import main as cli_main  # noqa: E402
+from service.cli.selfcal import _calibration_frames  # noqa: E402
 from service.keypoints_io import read_keypoints  # noqa: E402
 
 
@@ -72,7 +73,7 @@ def main() -> None:
                 code, dt = timed(cli_main, ["selfcal", tmp, "--image-size", f"{w},{h}", "--out", str(out)])
             rows["command"].append(dt)
             kp = read_keypoints([Path(tmp)], image_size=(w, h))
-        used = np.arange(0, kp.tracks.shape[1], int(np.ceil(kp.tracks.shape[1] / 60)))  # --max-frames 60
+        used = _calibration_frames(kp.tracks.shape[1], 60)  # the command's --max-frames 60 for keypoints
         y = kp.tracks[:, used]
         sizes = np.tile([w, h], (4, 1)).astype(float)
         cf, dt = timed(self_calibrate, y, refine=False, temporal_prior=True)

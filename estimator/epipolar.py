@@ -37,8 +37,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from .perspective import PerspectiveConfig, PerspectiveRig, perspective_refine
-from .pinhole import PinholeCameras, reprojection_rmse, triangulate
+from .perspective import PerspectiveConfig, PerspectiveRig, _per_camera, perspective_refine
+from .pinhole import PinholeCameras, image_height, reprojection_rmse, triangulate
 
 __all__ = ["EpipolarConfig", "epipolar_start", "refine_from_starts"]
 
@@ -94,7 +94,7 @@ def epipolar_start(tracks: np.ndarray, image_sizes: np.ndarray, *, focal_px: np.
     principal = sizes / 2.0 if principal_px is None else np.asarray(principal_px, float)
     focals = ([np.asarray(focal_px, float)] if focal_px is not None
               else [k * sizes[:, 0] for k in config.focal_widths])
-    height = _walker_height(y)
+    height = image_height(y, min_joints=4)
     if not np.isfinite(height):
         return None
     best = None
@@ -126,8 +126,8 @@ def refine_from_starts(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     starts = {"scaled orthographic": None}
     if epipolar is not None:
         n_cam = len(tracks)
-        focal = None if config.focal_px is None else np.broadcast_to(np.asarray(config.focal_px, float), (n_cam,))
-        principal = None if config.principal_px is None else np.asarray(config.principal_px, float)
+        focal = _per_camera(config.focal_px, (n_cam,), "focal_px", None)
+        principal = _per_camera(config.principal_px, (n_cam, 2), "principal_px", None)
         start = epipolar_start(tracks, image_sizes, focal_px=focal, principal_px=principal, config=epipolar)
         if start is not None:
             starts["epipolar"] = start
@@ -139,16 +139,6 @@ def refine_from_starts(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         found[name] = perspective_refine(tracks, image_sizes, rotations, scales, links, config=config,
                                          initial=found[name])
     return found[name], name
-
-
-def _walker_height(y: np.ndarray) -> float:
-    """The walker's median image height in pixels over cameras and frames."""
-    v = y[..., 1]
-    seen = np.isfinite(v).sum(axis=2) >= 4
-    with np.errstate(invalid="ignore"):
-        extent = np.where(seen, np.nanmax(np.where(np.isfinite(v), v, -np.inf), axis=2)
-                          - np.nanmin(np.where(np.isfinite(v), v, np.inf), axis=2), np.nan)
-    return float(np.nanmedian(extent)) if np.isfinite(extent).any() else float("nan")
 
 
 def _start_for(y: np.ndarray, focal: np.ndarray, principal: np.ndarray, threshold_px: float,

@@ -139,7 +139,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         (width, height) per camera: the principal point is the image centre
         unless ``config.principal_px`` gives it.
     rotations, scales : ndarray of shape (C, 3, 3), (C,)
-        The scaled-orthographic result (``R_c R_0^T`` and relative scales).
+        The scaled-orthographic result (``R_c R_0^T`` and relative scales);
+        not used (may be None) when ``initial`` is given.
     links : list of (int, int)
         Joint pairs of constant length.
     initial : PerspectiveRig, optional
@@ -199,7 +200,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal)
 
 
-def _per_camera(value, shape: tuple[int, ...], name: str, default: np.ndarray) -> np.ndarray:
+def _per_camera(value, shape: tuple[int, ...], name: str, default: np.ndarray | None) -> np.ndarray | None:
     """A setting given for every camera at once or per camera, as an array of ``shape``."""
     if value is None:
         return default

@@ -17,7 +17,7 @@ import numpy as np
 from ._selfcal_core import proper_rotations
 from .joints import JOINT_INDEX
 
-__all__ = ["PinholeCameras", "floor_frame", "project", "reprojection_rmse", "triangulate"]
+__all__ = ["PinholeCameras", "floor_frame", "image_height", "project", "reprojection_rmse", "triangulate"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,19 @@ def project(cameras: PinholeCameras, points: np.ndarray) -> np.ndarray:
     h = np.einsum("cab,c...b->c...a", cameras.matrices, x)
     z = h[..., 2:3]
     return np.where(z > 0, h[..., :2] / np.where(z > 0, z, 1.0), np.nan)
+
+
+def image_height(tracks: np.ndarray, min_joints: int = 1) -> float:
+    """The walker's median image height in pixels: the vertical extent of the joints of ``tracks``
+    (C, T, J, 2; NaN where missing) over the cameras and frames showing at least ``min_joints``
+    joints (NaN when none does)."""
+    v = np.asarray(tracks, float)[..., 1]
+    shown = np.isfinite(v).sum(axis=-1) >= max(min_joints, 1)
+    if not shown.any():
+        return float("nan")
+    top = np.where(np.isfinite(v), v, np.inf).min(axis=-1)
+    bottom = np.where(np.isfinite(v), v, -np.inf).max(axis=-1)
+    return float(np.median((bottom - top)[shown]))
 
 
 def reprojection_rmse(cameras: PinholeCameras, points: np.ndarray, tracks: np.ndarray) -> float:

@@ -122,8 +122,8 @@ def read_keypoints(paths: Sequence[Path], *, min_confidence: float = 0.3,
     return _assemble(fmt, cams, min_confidence, skeleton)
 
 
-def _detections(cam: _Camera) -> tuple[dict, np.ndarray, np.ndarray]:
-    """A camera's keypoint count per frame with anyone, and every detection's keypoints and scores."""
+def _detections(cam: _Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Every detection's keypoints and scores of a camera whose frames agree on the keypoint count."""
     numbers = sorted(cam.frames)
     if not numbers or not any(len(cam.frames[f][0]) for f in numbers):
         raise KeypointError(f"{cam.path}: no person detected in any frame")
@@ -133,7 +133,7 @@ def _detections(cam: _Camera) -> tuple[dict, np.ndarray, np.ndarray]:
     if odd is not None:
         raise KeypointError(f"{(cam.files or {}).get(odd, cam.path)}: frame {odd} has {counts[odd]} keypoints "
                             f"per person, the other frames of camera {cam.name!r} {usual}")
-    return (counts, np.concatenate([cam.frames[f][0] for f in counts]),
+    return (np.concatenate([cam.frames[f][0] for f in counts]),
             np.concatenate([cam.frames[f][1] for f in counts]))
 
 
@@ -141,16 +141,16 @@ def _skeletons(cams: list[_Camera], detections: list, min_confidence: float, ske
     """Each camera's layout: ``skeleton`` if given, else detected once over every camera with the same
     keypoint count (one detector wrote them; a side view alone hardly tells BODY_25 from BODY_25B)."""
     out, by_count = [], {}
-    for cam, (_, kp, _) in zip(cams, detections):
+    for cam, (kp, _) in zip(cams, detections):
         try:
             if skeleton:
                 skel = SKELETONS[skeleton]
             elif kp.shape[1] in by_count:
                 skel = by_count[kp.shape[1]]
             else:
-                same = [d for d in detections if d[1].shape[1] == kp.shape[1]]
+                same = [d for d in detections if d[0].shape[1] == kp.shape[1]]
                 skel = by_count[kp.shape[1]] = detect_skeleton(
-                    np.concatenate([d[1] for d in same]), np.concatenate([d[2] for d in same]),
+                    np.concatenate([d[0] for d in same]), np.concatenate([d[1] for d in same]),
                     min_confidence=min_confidence)
             if skel.n_keypoints != kp.shape[1]:
                 raise ValueError(f"{skel.name} has {skel.n_keypoints} keypoints, the detections {kp.shape[1]}")

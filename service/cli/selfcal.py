@@ -18,7 +18,6 @@ import math
 import re
 import sys
 import tomllib
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,7 @@ from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 from estimator.keypoints import SKELETONS
 from estimator.epipolar import refine_from_starts
 from estimator.perspective import PerspectiveConfig
-from estimator.pinhole import floor_frame, triangulate
+from estimator.pinhole import floor_frame, image_height, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 
@@ -447,9 +446,7 @@ reported: on the evaluation's rigs a right rig leaves 1-3 % (outliers included),
 
 def _fit_notes(pin, tracks: np.ndarray) -> list[str]:
     """A warning when the pinhole cameras do not fit the tracks (a wrong basin, not noise)."""
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        height = float(np.nanmedian(np.nanmax(tracks[..., 1], axis=2) - np.nanmin(tracks[..., 1], axis=2)))
+    height = image_height(tracks)
     if not (np.isfinite(height) and pin.rmse_px > FIT_SHARE * height):
         return []
     return [f"the pinhole cameras fit the keypoints poorly ({pin.rmse_px:.1f} px rms, "
