@@ -15,7 +15,10 @@ from the mocap, heels 6 cm behind the ankles) are projected and given
 detector-like errors: Gaussian 2.5 px, 5 % of keypoints missed (confidence 0,
 as OpenPose writes them), 1 % of left/right pairs swapped, 2 % outliers
 displaced by 20-60 px, confidences 0.5-0.95 (outliers 0.3-0.7), keypoints
-outside the image missed. They are written as OpenPose BODY_25 folders
+outside the image missed (``--noise-share``, ``--outliers``, ``--outlier-share``,
+``--swaps`` change them: ``--outlier-share`` scales the outliers' displacement
+with the walker's image height, as a detector's wrong keypoint lies on the
+person). They are written as OpenPose BODY_25 folders
 (``<cam>_json/<cam>_<frame>.json``) and MMPose COCO-17 prediction files, and
 ``python -m service.cli selfcal`` runs on them as a user would:
 
@@ -149,7 +152,7 @@ def random_rig(rng: np.random.Generator, path: np.ndarray, body: np.ndarray,
 
 
 def detections(rng: np.random.Generator, x: np.ndarray, cam: dict, noise_px: float = 2.5, swaps: float = 0.01,
-               outliers: float = 0.02) -> np.ndarray:
+               outliers: float = 0.02, outlier_px: tuple[float, float] = (20.0, 60.0)) -> np.ndarray:
     """Detector-like (T, len(KEYPOINTS), 3) [u, v, confidence] of points ``x`` (T, N, 3)."""
     q = (x - cam["C"]) @ cam["R"].T
     uv = cam["f"] * q[..., :2] / q[..., 2:] + np.array(cam["size"]) / 2
@@ -161,7 +164,7 @@ def detections(rng: np.random.Generator, x: np.ndarray, cam: dict, noise_px: flo
     conf = rng.uniform(0.5, 0.95, (t, n))
     outlier = rng.random((t, n)) < outliers
     ang = rng.uniform(0, 2 * np.pi, (t, n))
-    uv += outlier[..., None] * rng.uniform(20, 60, (t, n, 1)) * np.stack([np.cos(ang), np.sin(ang)], -1)
+    uv += outlier[..., None] * rng.uniform(*outlier_px, (t, n, 1)) * np.stack([np.cos(ang), np.sin(ang)], -1)
     conf[outlier] = rng.uniform(0.3, 0.7, outlier.sum())
     inside = (q[..., 2] > 0.1) & (uv >= 0).all(-1) & (uv < cam["size"]).all(-1)
     missed = (rng.random((t, n)) < 0.05) | ~inside
@@ -265,12 +268,16 @@ def main() -> None:
                     help="Gaussian noise as a share of the walker's image height, MIN,MAX drawn per rig "
                          "(default: 2.5 px)")
     ap.add_argument("--outliers", type=float, default=0.02, help="share of keypoints displaced by 20-60 px")
+    ap.add_argument("--outlier-share", default=None,
+                    help="outliers' displacement as a share of the walker's image height, MIN,MAX (default: "
+                         "20-60 px, which is 0.06-0.17 of the median walker at 2.5-4 m)")
     ap.add_argument("--swaps", type=float, default=0.01, help="share of left/right pairs swapped")
     ap.add_argument("--methods", default=",".join(METHODS.values()),
                     help=f"comma-separated subset of {','.join(METHODS.values())}")
     args = ap.parse_args()
     distance = tuple(float(v) for v in args.distance.split(","))
     share = None if args.noise_share is None else tuple(float(v) for v in args.noise_share.split(","))
+    far = None if args.outlier_share is None else tuple(float(v) for v in args.outlier_share.split(","))
     methods = {label: key for label, key in METHODS.items() if key in args.methods.split(",")}
     motion = read_motion(args.mocap)
     stretch = motion.positions[60:300:4]  # 2 s at 30 Hz
@@ -286,7 +293,9 @@ def main() -> None:
         w, h = rig["size"]
         noise = {c["name"]: 2.5 if share is None else rng.uniform(*share) * image_height(stretch[:, :13], c)
                  for c in rig["cameras"]}
-        dets = {c["name"]: detections(rng, pts, c, noise[c["name"]], args.swaps, args.outliers)
+        jump = {c["name"]: (20.0, 60.0) if far is None else tuple(np.multiply(far, image_height(stretch[:, :13], c)))
+                for c in rig["cameras"]}
+        dets = {c["name"]: detections(rng, pts, c, noise[c["name"]], args.swaps, args.outliers, jump[c["name"]])
                 for c in rig["cameras"]}
         with tempfile.TemporaryDirectory() as tmp:
             root = Path(tmp) / "pose"
@@ -331,8 +340,9 @@ def main() -> None:
     print()
     noise_text = "2.5 px" if share is None else f"{100 * share[0]:g}-{100 * share[1]:g} % of the walker's height"
     print(f"CMU 16_15, {args.rigs} rigs x 6 camera pairs, seed {args.seed}; BODY_25 OpenPose folders; cameras "
-          f"{distance[0]:g}-{distance[1]:g} m away; noise {noise_text}, {100 * args.outliers:g} % outliers, "
-          f"{100 * args.swaps:g} % left/right swaps")
+          f"{distance[0]:g}-{distance[1]:g} m away; noise {noise_text}, {100 * args.outliers:g} % outliers "
+          + ("(20-60 px)" if far is None else f"({100 * far[0]:g}-{100 * far[1]:g} % of the walker's height)")
+          + f", {100 * args.swaps:g} % left/right swaps")
     print()
     print("| method | median rot. err. (deg) | p90 (deg) | median focal err. | p90 focal | median centre err. (m) "
           "| median distance err. (m) | translation direction median / p90 (deg) | failed "
