@@ -850,7 +850,7 @@ class LiveService:
         done = self._result(self.rig_pool.submit(update_rig, acc, est, w.indices[0], calibrate), 120)
         if done is None:
             return
-        acc, cal = done
+        acc, cal, cameras = done
         self.metrics.rig_seconds.observe(time.perf_counter() - t0)
         with self._lock:
             if self._rigs.get(w.rig) is not rig or rig.rig_generation != generation:
@@ -859,6 +859,11 @@ class LiveService:
             if cal is not None:
                 rig.calibration = {"rig": w.rig, "window_seq": w.seq, "last_index": w.indices[-1],
                                    "updated_ns": time.time_ns(), **cal}
+        ref = est.cameras.get(cameras["reference"]) if cameras is not None else None
+        if self.rerun is not None and ref is not None:  # placed through this window's reference viewpoint
+            self.rerun.log_rig(f"rigs/{w.rig}", w.indices[-1], cameras,
+                               (ref.viewpoint.azimuth_deg, ref.viewpoint.elevation_deg),
+                               {c: t.image_size for c, t in (est.tracks or {}).items() if t.image_size})
 
     def _feedback(self, w: Window, est, tracks: dict[str, CameraTrack],
                   sizes: dict[str, tuple[int, int]]) -> None:

@@ -19,7 +19,8 @@ coordinate spaces, under a prefix per rig (``rigs/<rig>``) or job
     <P>/world/cameras/<cam>               estimated camera: Transform3D + Pinhole
     <P>/world/cameras/<cam>/box           silhouette box in that camera's image
     <P>/world/cameras/<cam>/joints        2D joints in that camera's image
-    <P>/world/rig/<cam>                   the calibrated pinhole camera (jobs): pose, focal length
+    <P>/world/rig/<cam>                   the calibrated pinhole camera (jobs; live rigs when their
+                                          calibration updates): pose, focal length
     <P>/feedback/<cam>/prior              §7.1 prior sent for a frame (live: predicted ahead)
     <P>/feedback/<cam>/raw                jobs with refine: the raw silhouette, ...
     <P>/feedback/<cam>/refined            ... and the refined one, cut to the same box as the prior
@@ -157,7 +158,9 @@ class RerunLog:
             s.log(f"{p}/viewpoints/{cam}/ellipse", rr.LineStrips2D([_ellipse(az, el, vp["covariance"])]))
             self._log_camera(p, cam, az, el, b.image_size.get(cam, (640, 480)))
         if "rig" in b.extra:
-            self._log_rig(p, b)
+            ref = b.viewpoints.get(b.extra["rig"]["reference"], {})
+            self._log_rig(p, b.extra["rig"], ref.get("azimuth_deg", np.nan), ref.get("elevation_deg", np.nan),
+                          b.image_size)
 
     def _log_camera(self, p: str, cam: str, az: float, el: float, size: tuple[int, int]) -> None:
         R = world_to_camera_rotation(az, el)  # rows: u, v, viewing direction = camera RDF axes
@@ -167,12 +170,18 @@ class RerunLog:
             resolution=[int(size[0]), int(size[1])], focal_length=1.2 * float(size[0]),
             camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.8))
 
-    def _log_rig(self, p: str, b: StageBundle) -> None:
+    def log_rig(self, prefix: str, index: int, rig: dict, reference_viewpoint: tuple[float, float],
+                image_size: dict[str, tuple[int, int]]) -> None:
+        """A live rig's calibrated pinhole cameras (``worker.rig_arrays``) at frame ``index``, placed
+        through the reference camera's latest viewpoint ``(azimuth, elevation)``."""
+        with self._lock:
+            self._setup(prefix)
+            self.stream.set_time(TIMELINE, sequence=int(index))
+            self._log_rig(prefix, rig, *reference_viewpoint, image_size)
+
+    def _log_rig(self, p: str, rig: dict, az: float, el: float, image_size: dict[str, tuple[int, int]]) -> None:
         """The calibrated pinhole cameras, placed in the person frame through the reference
         camera's viewpoint (the rig itself is relative to that camera), the walker at the origin."""
-        rig = b.extra["rig"]
-        ref = b.viewpoints.get(rig["reference"], {})
-        az, el = ref.get("azimuth_deg", np.nan), ref.get("elevation_deg", np.nan)
         if not (np.isfinite(az) and np.isfinite(el)):
             return
         r0 = world_to_camera_rotation(az, el)  # person frame -> reference camera
@@ -180,7 +189,7 @@ class RerunLog:
             if not np.all(np.isfinite(rig["rotations"][k])):
                 continue  # left out of the rig
             r = rig["rotations"][k] @ r0
-            size = b.image_size.get(cam, (640, 480))
+            size = image_size.get(cam, (640, 480))
             self.stream.log(f"{p}/world/rig/{cam}", rr.Transform3D(
                 translation=r0.T @ (rig["centres_m"][k] - rig["walker_m"]), mat3x3=r.T))
             self.stream.log(f"{p}/world/rig/{cam}", rr.Pinhole(

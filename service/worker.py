@@ -43,7 +43,7 @@ from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraTrack, WalkEstimate, crop_to_box, estimate_walk, pad_tracks,
                                 tracks_from_sequence)
-from estimator.rig import RigAccumulator, RigConfig
+from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
@@ -318,12 +318,19 @@ def _rig_extra(est: WalkEstimate) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if rig is not None and rig.joints3d is not None:
         out["person"] = np.asarray(rig.joints3d, float)
-    if rig is not None and rig.centres_m is not None:
-        out["rig"] = {"cameras": list(rig.cameras), "reference": rig.reference,
-                      "rotations": np.asarray(rig.rotations, float),
-                      "centres_m": np.asarray(rig.centres_m, float), "focal_px": np.asarray(rig.focal_px, float),
-                      "walker_m": np.asarray(rig.walker_m, float)}
+    arrays = rig_arrays(rig)
+    if arrays is not None:
+        out["rig"] = arrays
     return out
+
+
+def rig_arrays(rig: Rig | None) -> dict[str, Any] | None:
+    """A pinhole rig's cameras as plain arrays for Rerun (``RerunLogger.log_rig``); None without one."""
+    if rig is None or rig.centres_m is None:
+        return None
+    return {"cameras": list(rig.cameras), "reference": rig.reference or rig.cameras[0],
+            "rotations": np.asarray(rig.rotations, float), "centres_m": np.asarray(rig.centres_m, float),
+            "focal_px": np.asarray(rig.focal_px, float), "walker_m": np.asarray(rig.walker_m, float)}
 
 
 def register_stage(bundle: StageBundle, model: AppearanceModel | None = None) -> StageBundle:
@@ -404,16 +411,18 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
 
 
 def update_rig(acc: RigAccumulator, est: WalkEstimate, first_index: int, calibrate: bool
-               ) -> tuple[RigAccumulator, dict | None]:
+               ) -> tuple[RigAccumulator, dict | None, dict | None]:
     """Add a live window's postures to a rig's accumulator and, if asked, calibrate it (in a
-    worker): ``(accumulator, calibration or None)``; the accumulator travels to the worker and
-    back, so that the service process holds the state and the worker none."""
+    worker): ``(accumulator, calibration or None, pinhole cameras for Rerun or None)``; the
+    accumulator travels to the worker and back, so that the service process holds the state and
+    the worker none."""
     acc.add(est, first_index)
     if not calibrate:
-        return acc, None
+        return acc, None, None
     rig = acc.calibrate()
     return acc, json_safe({"source": rig.source, "frames": acc.n_frames, "windows": acc.windows,
-                           "calibration": rig.to_dict(), "body": rig.body_dict(), "notes": rig.notes})
+                           "calibration": rig.to_dict(), "body": rig.body_dict(), "notes": rig.notes}), \
+        rig_arrays(rig)
 
 
 # ---------------------------------------------------------------------------- batch jobs

@@ -297,12 +297,17 @@ def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, r
 
 def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, rendered):
     """GET /v1/rigs/{rig}/calibration: the rig from the mNBP postures of 6 frames per window,
-    recalibrated after every window, in its own low-priority process; the viewpoints go on."""
+    recalibrated after every window, in its own low-priority process; the viewpoints go on. Its
+    pinhole cameras are logged to Rerun (the frusta beside the viewpoints' cameras)."""
+    from rerun.chunk import RrdReader
+
     from estimator._selfcal_core import geodesic_deg
     from estimator.rig import rotations_from_viewpoints
 
+    rrd = tmp_path / "live.rrd"
     settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
-                             feedback=False, max_wait_ms=400.0, live_rig_frames=6, live_rig_every=1)
+                             feedback=False, max_wait_ms=400.0, live_rig_frames=6, live_rig_every=1,
+                             rerun=f"save:{rrd}")
     with ServerThread(settings) as srv:
         assert srv.client.get(f"/v1/rigs/{RIG}/calibration").status_code == 404  # no such rig yet
         _run_agents(settings.zenoh_listen[0], rendered)
@@ -322,6 +327,10 @@ def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, ren
     assert geodesic_deg(r, truth) < 30.0, (geodesic_deg(r, truth), cal["notes"])
     assert cal["body"]["stature_m"] == 1.75
     assert "posecal_live_rig_seconds_count" in metrics
+    assert cal["calibration"]["cameras"]["c1"]["focal_px"] > 0  # pinhole cameras, hence frusta
+    paths = {c.entity_path.lstrip("/") for c in RrdReader(rrd).stream()}
+    for cam in ("c0", "c1"):
+        assert f"rigs/{RIG}/world/rig/{cam}" in paths, sorted(p for p in paths if "/world/" in p)
 
 
 def test_window_results_are_kept_in_window_order():
