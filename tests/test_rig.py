@@ -184,6 +184,21 @@ def test_an_implausible_pinhole_result_is_refused(walk):
     assert any("pinhole cameras refused" in n for n in rig.notes)
 
 
+def test_the_scaled_orthographic_start_on_fewer_frames(walk):
+    """``start_frames``: the scaled-orthographic adjustment on the middle frames, the pinhole one on
+    all (the posture on every frame, the rig close to the one started from all frames); when the
+    pinhole result is refused the posture is the start's, on its frames only."""
+    seq, _, measured = walk
+    whole = calibrate_rig(measured)
+    short = calibrate_rig(measured, RigConfig(start_frames=12))
+    assert short.focal_px is not None and np.isfinite(short.joints3d).all()
+    assert max(geodesic_deg(a, b) for a, b in zip(short.rotations, whole.rotations)) < 1.0
+    refused = calibrate_rig(measured, RigConfig(start_frames=12, pinhole_max_rms=1e-6))
+    assert refused.focal_px is None
+    posed = np.isfinite(refused.joints3d).all(axis=(1, 2))
+    assert np.array_equal(np.flatnonzero(posed), np.arange(6, 18)), np.flatnonzero(posed)
+
+
 def test_a_second_round_of_posture_and_calibration(walk):
     """rounds=2: 3D mNBP over all views with the pinhole cameras, then the pinhole adjustment again
     (Wang-Leow §5). The round runs, says so, and keeps a sane rig."""
