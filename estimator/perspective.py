@@ -124,7 +124,6 @@ class PerspectiveRig:
     focal_log_std: np.ndarray | None = None
     principal_px: np.ndarray | None = None
     median_px: float = float("nan")
-    cost: float = float("nan")
 
     def cameras(self, scale: float = 1.0) -> PinholeCameras:
         """These cameras as matrices (:class:`estimator.pinhole.PinholeCameras`), their centres
@@ -294,7 +293,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     depth = np.einsum("ca,ca->c", rots[:, 2], x.reshape(-1, 3).mean(axis=0)[None] - ce)  # walker's mean depth
     size = fo / depth
     log_std = _focal_log_std(sol.jac, rmse / np.sqrt(2.0), o_f, n_f) if free_focal else None
-    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal, median, sol.cost)
+    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal, median)
 
 
 def _per_camera(value, shape: tuple[int, ...], name: str, default: np.ndarray | None) -> np.ndarray | None:
