@@ -267,7 +267,7 @@ def main() -> None:
     ap.add_argument("--noise-share", default=None,
                     help="Gaussian noise as a share of the walker's image height, MIN,MAX drawn per rig "
                          "(default: 2.5 px)")
-    ap.add_argument("--outliers", type=float, default=0.02, help="share of keypoints displaced by 20-60 px")
+    ap.add_argument("--outliers", type=float, default=0.02, help="share of keypoints displaced (by 20-60 px, or as --outlier-share says)")
     ap.add_argument("--outlier-share", default=None,
                     help="outliers' displacement as a share of the walker's image height, MIN,MAX (default: "
                          "20-60 px, which is 0.06-0.17 of the median walker at 2.5-4 m)")

@@ -43,7 +43,8 @@ class LMResult:
     nfev : int
         Residual evaluations.
     converged : bool
-        The cost stopped decreasing (relative change below ``ftol``) before ``max_nfev``.
+        Stopped before ``max_nfev``: a good step (gain ratio above 0.25) lowered the cost by
+        less than ``ftol`` of it, or no step lowered it at all (the damping grew past 1e16).
     """
 
     x: np.ndarray
@@ -70,8 +71,8 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
         blocks of ``block_size`` parameters, no residual touching two blocks
         (``J^T J`` block-diagonal there); every other parameter is shared.
     max_nfev, ftol : int, float
-        At most ``max_nfev`` residual evaluations; stop once an accepted step
-        lowers the cost by less than ``ftol`` of it.
+        At most ``max_nfev`` steps tried (residual evaluations, and solves that
+        failed); stop once a good step lowers the cost by less than ``ftol`` of it.
     """
     x = np.asarray(x0, float).copy()
     n = x.size
@@ -81,31 +82,32 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
     cost = 0.5 * float(r @ r)
     J = jac(x).tocsr()
     nfev, lam, nu, converged = 1, 1e-3, 2.0, False
+    h = g = None
     while nfev < max_nfev:
-        h = (J.T @ J).tocsr()
-        g = J.T @ r
-        diag = h.diagonal()
-        floor = 1e-9 * max(float(diag.max()), 1e-300)
+        if h is None:  # the normal equations at a new point (kept while steps are rejected)
+            h = (J.T @ J).tocsr()
+            g = J.T @ r
+            diag = h.diagonal()
+            damp = np.maximum(diag, 1e-9 * max(float(diag.max()), 1e-300))
         try:
-            step = _schur_step(h, g, lam * np.maximum(diag, floor), shared, local, block_size, n_blocks)
+            step = _schur_step(h, g, lam * damp, shared, local, block_size, n_blocks)
         except np.linalg.LinAlgError:
             step = np.full(n, np.nan)
-        if not np.all(np.isfinite(step)):
-            lam, nu = lam * nu, nu * 2.0
-            if lam > 1e16:
-                break
-            continue
-        x_new = x + step
-        r_new = fun(x_new)
-        nfev += 1
-        cost_new = 0.5 * float(r_new @ r_new)
-        predicted = 0.5 * float(step @ (lam * np.maximum(diag, floor) * step - g))
-        rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
-        if rho > 0 and np.isfinite(cost_new):
-            done = cost - cost_new < ftol * cost
+        if np.all(np.isfinite(step)):
+            x_new = x + step
+            r_new = fun(x_new)
+            cost_new = 0.5 * float(r_new @ r_new)
+            predicted = 0.5 * float(step @ (lam * damp * step - g))
+            rho = (cost - cost_new) / predicted if predicted > 0 and np.isfinite(cost_new) else -1.0
+        else:
+            rho = -1.0
+        nfev += 1  # a failed solve counts too: the loop always ends
+        if rho > 0:
+            done = rho > 0.25 and cost - cost_new < ftol * cost  # a small decrease alone is no minimum
             x, r, cost = x_new, r_new, cost_new
             J = jac(x).tocsr()
-            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            h = None
+            lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-15)
             nu = 2.0
             if done:
                 converged = True
@@ -126,6 +128,8 @@ def _schur_step(h: scipy.sparse.csr_matrix, g: np.ndarray, damping: np.ndarray, 
     coo = h[local][:, local].tocoo()
     blocks = np.zeros((n_blocks, size, size))
     same = coo.row // size == coo.col // size
+    if not np.all(same[coo.data != 0]):
+        raise ValueError("a residual touches two blocks: J^T J is not block-diagonal there")
     blocks[coo.row[same] // size, coo.row[same] % size, coo.col[same] % size] = coo.data[same]
     blocks[:, np.arange(size), np.arange(size)] += damping[local].reshape(n_blocks, size)
     inv = np.linalg.inv(blocks)  # (B, k, k): each block positive definite once damped

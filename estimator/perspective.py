@@ -11,8 +11,8 @@ result and adjusts pinhole cameras: per camera a rotation, a centre and a
 focal length (principal point at the image centre), per frame the 13 joints
 in metres, with constant bone lengths: Levenberg–Marquardt with the analytic
 Jacobian, each step solved by eliminating the frames' joints first (the Schur
-complement, :mod:`estimator.bundle`). A robust loss (soft-L1) was measured
-worse on mNBP postures (3.96 / 8.26 deg against 3.60 / 7.79) and is not offered.
+complement, :mod:`estimator.bundle`); optionally rounds of Cauchy reweighting
+(``PerspectiveConfig.reweight``) for sparse gross errors such as a detector's.
 The metric scale comes from the walker's stature (the chain
 ankle-knee-hip-shoulder-head of the model's body at ``height_m``).
 
@@ -106,7 +106,7 @@ class PerspectiveRig:
     focal_log_std : ndarray of shape (C,) or None
         Posterior standard deviation of each free focal length's logarithm
         (about its relative error; Laplace approximation at the optimum, image
-        noise = the rms reprojection error, the focal prior included); None
+        noise = the rms of the reprojection residuals as weighted, the focal prior included); None
         when the focal lengths were given.
     principal_px : ndarray of shape (C, 2) or None
         The principal points the cameras were adjusted with.
@@ -183,6 +183,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         focal = f0
     ln = np.asarray(links, int).reshape(-1, 2)
     lengths0 = np.nanmedian(np.linalg.norm(x0[:, ln[:, 0]] - x0[:, ln[:, 1]], axis=-1), axis=0)
+    scale0 = float(np.nanmean(lengths0)) if len(ln) else 1.0
     free_focal = config.focal_px is None
     rv0 = Rotation.from_matrix(rotations[1:]).as_rotvec()
     p0 = np.concatenate([rv0.ravel(), centres[1:].ravel(), np.log(focal) if free_focal else [], x0.ravel(),
@@ -216,6 +217,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
             res.append((np.log(fo) - np.log(f0)) / config.focal_sigma)
         if rotation_prior is not None:
             res.append(prior_w * _rotation_gap(rv[1:], prior_rot).ravel())
+        if len(ln):
+            res.append([GAUGE_WEIGHT * (lk.mean() / scale0 - 1.0)])
         return np.concatenate(res)
 
     n_obs = len(obs_c)
@@ -243,6 +246,10 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         jac_rows.append(np.repeat(n_res + np.arange(n_r), 3))
         jac_cols.append(np.repeat(np.arange(n_r).reshape(-1, 3), 3, axis=0))
         n_res += n_r
+    if len(ln):
+        jac_rows.append(np.full(len(ln), n_res))
+        jac_cols.append(o_l + np.arange(len(ln)))
+        n_res += 1
     jac_rows = np.concatenate(jac_rows)
     jac_cols = np.concatenate([c.ravel() for c in jac_cols])
     shape = (n_res, o_l + len(ln))
@@ -273,6 +280,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         if rotation_prior is not None:
             gap = _rotation_gap(rv[1:], prior_rot)
             vals.append((prior_w * np.linalg.inv(_left_jacobian(gap)) @ _left_jacobian(rv[1:])).ravel())
+        if len(ln):
+            vals.append(np.full(len(ln), GAUGE_WEIGHT / (len(ln) * scale0)))
         return scipy.sparse.csr_matrix((np.concatenate(vals), (jac_rows, jac_cols)), shape=shape)
 
     sol = levenberg_marquardt(residuals, jacobian, p0, block_start=o_x, block_size=3 * j, n_blocks=t,
@@ -281,7 +290,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     for _ in range(config.reweight):
         rv, ce, fo, x, _ = unpack(sol.x)
         dist = np.linalg.norm(_project(x, rv, ce, fo, principal)[obs_c, obs_t, obs_j] - y_obs, axis=-1)
-        scale = config.robust_scale * np.median(dist) / 1.1774  # a Gaussian 2D norm's median is 1.1774 sigma
+        scale = max(config.robust_scale * np.median(dist) / 1.1774, 1e-6)  # 2D Gaussian: median 1.1774 sigma
         w_obs[:] = base * np.repeat(1.0 / np.sqrt(1.0 + (dist / scale) ** 2), 2)  # Cauchy IRLS
         sol = levenberg_marquardt(residuals, jacobian, sol.x, block_start=o_x, block_size=3 * j, n_blocks=t,
                                   max_nfev=config.max_nfev)
@@ -292,8 +301,16 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     rots = Rotation.from_rotvec(rv).as_matrix()
     depth = np.einsum("ca,ca->c", rots[:, 2], x.reshape(-1, 3).mean(axis=0)[None] - ce)  # walker's mean depth
     size = fo / depth
-    log_std = _focal_log_std(sol.jac, rmse / np.sqrt(2.0), o_f, n_f) if free_focal else None
+    sigma = float(np.sqrt(np.mean(sol.fun[:y_obs.size] ** 2)))  # per coordinate, as weighted in the Jacobian
+    log_std = _focal_log_std(sol.jac, sigma, o_f, n_f) if free_focal else None
     return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal, median)
+
+
+GAUGE_WEIGHT = 1e4
+"""Weight of the residual that holds the mean bone length at its start. Scaling the joints, the
+centres and the bone lengths together leaves every reprojection unchanged (camera 0 at the origin),
+but shrinks the bone residuals: unpinned, the exact solver let the whole scene shrink towards zero
+(from about 960 units to 0.18 on a test walk) and the bone constraint faded with it."""
 
 
 def _per_camera(value, shape: tuple[int, ...], name: str, default: np.ndarray | None) -> np.ndarray | None:

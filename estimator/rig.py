@@ -388,6 +388,8 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     if config.perspective and len(frames) > config.start_frames:  # the start: the middle frames in a row
         mid = len(frames) // 2 - config.start_frames // 2
         start = frames[mid:mid + config.start_frames]
+        if np.any(posed[use][:, start].sum(axis=1) < config.min_frames):  # a camera hardly seen there
+            start = frames
     try:
         smooth = config.consecutive and len(start) > 1 and bool(np.all(np.diff(start) == 1))
         cal = self_calibrate(tracks[use][:, start], refine=True, upright=config.upright,
@@ -446,8 +448,9 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
                   focal_px=full(pinhole.focal_px), centres_m=full(pinhole.centres * k),
                   walker_m=np.nanmean(pinhole.joints3d.reshape(-1, 3), axis=0) * k,
                   image_sizes=full(np.array([estimate.tracks[names[c]].image_size for c in use], float)))
-        how = (f"scaled orthographic bundle adjustment from the {start_used}, then pinhole cameras "
-               f"(reprojection {pinhole.rmse_px:.1f} px rms)")
+        how = (f"scaled orthographic bundle adjustment from the {start_used}"
+               + (f" on the middle {len(start)} frames" if len(start) < len(frames) else "")
+               + f", then pinhole cameras (reprojection {pinhole.rmse_px:.1f} px rms)")
     rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {len(frames)} frames"
                      + (f" (every {frames[1] - frames[0]}th)" if len(frames) > 1 and frames[1] - frames[0] > 1 else "")
                      + f"; metres at a stature of {config.height_m} m")

@@ -6,7 +6,8 @@
 - the pinhole adjustment's analytic Jacobian equals finite differences
   (free and known focal lengths, weights, the rotation prior);
 - Cauchy reweighting resists gross outliers that plain least squares follows;
-- the rotation prior pulls cameras towards it in proportion to its weight.
+- the rotation prior pulls cameras towards it in proportion to its weight;
+- the scene keeps its scale (scaling it changes no reprojection but shrinks the bone residuals).
 """
 
 from __future__ import annotations
@@ -62,9 +63,13 @@ def test_lm_stops_at_max_nfev():
 
 
 def _walk(n_frames: int = 8, seed: int = 0):
-    """A small random 'walker' (13 joints, metres) 5 m in front of three cameras 0, 40 and -70 deg apart."""
+    """A small random rigid 'walker' (13 points, metres; constant bone lengths) turning and moving 5 m in
+    front of three cameras 0, 40 and -70 deg apart, and its pixels."""
     rng = np.random.default_rng(seed)
-    x = rng.normal(size=(n_frames, 13, 3)) * 0.3 + [0.0, 0.0, 5.0]
+    body = rng.normal(size=(13, 3)) * 0.3
+    turn = Rotation.from_euler("y", np.linspace(0.0, 30.0, n_frames)[:, None], degrees=True).as_matrix()
+    x = np.einsum("tab,jb->tja", turn, body) + np.stack([np.linspace(-0.5, 0.5, n_frames), np.zeros(n_frames),
+                                                         np.full(n_frames, 5.0)], 1)[:, None]
     rots = np.stack([Rotation.from_euler("y", a, degrees=True).as_matrix() for a in (0, 40, -70)])
     walker = np.array([0.0, 0.0, 5.0])
     centres = walker - np.einsum("cba,b->ca", rots, walker)  # each camera sees the walker on its axis
@@ -125,10 +130,25 @@ def test_rotation_prior_pulls_in_proportion_to_its_weight():
     prior = rots.copy()
     prior[1] = Rotation.from_rotvec([0.0, np.radians(5.0), 0.0]).as_matrix() @ rots[1]
     gap = {}
-    for weight in (0.0, 30.0, 1e6):
+    for weight in (0.0, 300.0, 1e6):
         pin = perspective_refine(y, np.tile([640.0, 480.0], (3, 1)), rots, np.ones(3), list(RIGID_LINKS),
                                  config=PerspectiveConfig(focal_px=800.0), rotation_prior=(prior, weight))
         gap[weight] = (geodesic_deg(pin.rotations[1], rots[1]), geodesic_deg(pin.rotations[1], prior[1]))
-    assert gap[0.0][0] < 0.3
+    assert gap[0.0][0] < 0.5
     assert gap[1e6][1] < 0.1
-    assert gap[0.0][0] < gap[30.0][0] < gap[1e6][0]
+    assert gap[0.0][1] > gap[300.0][1] > gap[1e6][1]  # nearer the prior as its weight grows
+    assert gap[300.0][0] > 0.5  # and it moved off the data's answer
+
+
+def test_the_scene_keeps_its_scale():
+    """Joints, centres and bone lengths scaled together reproject the same; the mean bone length is
+    held at its start, so the exact solver does not shrink the scene to nothing (it did: 960 -> 0.18)."""
+    y, rots, rng = _walk(n_frames=20, seed=5)
+    y = y + rng.normal(0, 1.0, y.shape)
+    pin = perspective_refine(y, np.tile([640.0, 480.0], (3, 1)), rots, np.ones(3), list(RIGID_LINKS),
+                             config=PerspectiveConfig(focal_px=800.0))
+    lengths = np.linalg.norm(pin.joints3d[:, [a for a, _ in RIGID_LINKS]] - pin.joints3d[:, [b for _, b in RIGID_LINKS]],
+                             axis=-1)
+    depth = np.linalg.norm(pin.joints3d.reshape(-1, 3).mean(axis=0))
+    assert 0.5 * 800.0 < depth < 2.0 * 800.0, depth  # where the start put it: at camera 0's focal length
+    assert np.all(lengths.std(axis=0) < 0.05 * lengths.mean(axis=0)), lengths.std(axis=0)
