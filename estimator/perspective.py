@@ -62,6 +62,8 @@ class PerspectiveConfig:
     max_nfev : int
         At most this many evaluations of the residuals (Levenberg–Marquardt
         steps tried, :func:`estimator.bundle.levenberg_marquardt`), per round.
+        Most adjustments converge in 20-40; one walk of the evaluation on
+        exact joints needed 94 (at 60 it stopped 2.8 deg off, at 94 0.4).
     reweight, robust_scale : int, float
         Rounds of iteratively reweighted least squares after the first
         adjustment: each joint's residual weighted by Cauchy's
@@ -79,7 +81,7 @@ class PerspectiveConfig:
     focal_start: float = 1.5
     focal_sigma: float = 0.5
     bone_weight: float = 1.0
-    max_nfev: int = 60
+    max_nfev: int = 100
     reweight: int = 0
     robust_scale: float = 2.5
 
