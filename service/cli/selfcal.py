@@ -448,6 +448,13 @@ Laplace posterior is optimistic where the focal length is weakly determined (a w
 noise: 3 % posterior, 10-25 % actual error; docs/SELFCAL.md), hence the low threshold."""
 
 
+WEAK_PERSPECTIVE = 0.3
+"""Free focal lengths are reported as poorly determined when no camera sees the walker's depth vary by
+this share of its distance (:meth:`PerspectiveRig.depth_spread`): 0.6-0.9 at 3 m (focal lengths within
+1 %), 0.15 at 15 m (3-12 % off), 0.03-0.04 at 40-60 m (6-32 % off). The posterior alone missed the far
+cases once the scene's scale was held (1-2 % for focal lengths 30 % off)."""
+
+
 FIT_SHARE = 0.05
 """A pinhole fit whose median reprojection distance exceeds this share of the walker's median image height
 is reported. The median, not the rms: reweighting leaves the gross outliers unfitted, and their share of
@@ -466,9 +473,16 @@ def _fit_notes(pin, tracks: np.ndarray) -> list[str]:
 
 
 def _focal_notes(pin, cameras: list[str]) -> list[str]:
-    """Warnings for focal lengths the tracks hardly constrain (:attr:`PerspectiveRig.focal_log_std`)."""
+    """Warnings for focal lengths the tracks hardly constrain: the walker shows little perspective in
+    every camera (:meth:`PerspectiveRig.depth_spread` below ``WEAK_PERSPECTIVE``), or a camera's
+    posterior is wide (:attr:`PerspectiveRig.focal_log_std`)."""
     if pin.focal_log_std is None:
         return []
+    spread = float(np.nanmax(pin.depth_spread()))
+    if spread < WEAK_PERSPECTIVE:
+        return [f"the walker shows little perspective (its depth varies by {100 * spread:.0f} % of its distance at "
+                "most): focal lengths and distances are poorly determined (their ratio is not); give --focal or "
+                "--intrinsics"]
     return [f"camera {name!r}: the focal length is poorly determined ({pin.focal_px[c]:.0f} px, posterior std "
             f"about {100 * pin.focal_log_std[c]:.0f} %): focal length and distance trade off when the walker shows "
             "little perspective; give --focal or --intrinsics"
