@@ -291,10 +291,9 @@ def main() -> None:
     for r in range(args.rigs):
         rig = random_rig(rng, hips, stretch[:, :13], distance)
         w, h = rig["size"]
-        noise = {c["name"]: 2.5 if share is None else rng.uniform(*share) * image_height(stretch[:, :13], c)
-                 for c in rig["cameras"]}
-        jump = {c["name"]: (20.0, 60.0) if far is None else tuple(np.multiply(far, image_height(stretch[:, :13], c)))
-                for c in rig["cameras"]}
+        tall = {c["name"]: image_height(stretch[:, :13], c) for c in rig["cameras"]}
+        noise = {c: 2.5 if share is None else rng.uniform(*share) * h_c for c, h_c in tall.items()}
+        jump = {c: (20.0, 60.0) if far is None else tuple(np.multiply(far, h_c)) for c, h_c in tall.items()}
         dets = {c["name"]: detections(rng, pts, c, noise[c["name"]], args.swaps, args.outliers, jump[c["name"]])
                 for c in rig["cameras"]}
         with tempfile.TemporaryDirectory() as tmp:

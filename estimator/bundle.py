@@ -123,8 +123,9 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
 def _schur_step(h: scipy.sparse.csr_matrix, g: np.ndarray, damping: np.ndarray, shared: np.ndarray,
                 local: np.ndarray, size: int, n_blocks: int) -> np.ndarray:
     """The damped Gauss–Newton step ``-(H + diag(damping))^-1 g``, the blocks eliminated first."""
-    h_ss = h[shared][:, shared].toarray() + np.diag(damping[shared])
-    h_sl = h[shared][:, local].toarray().reshape(len(shared), n_blocks, size)
+    rows = h[shared]
+    h_ss = rows[:, shared].toarray() + np.diag(damping[shared])
+    h_sl = rows[:, local].toarray().reshape(len(shared), n_blocks, size)
     coo = h[local][:, local].tocoo()
     blocks = np.zeros((n_blocks, size, size))
     same = coo.row // size == coo.col // size

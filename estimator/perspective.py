@@ -219,10 +219,13 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         fo = np.exp(p[o_f:o_x]) if free_focal else f0
         return rv, ce, fo, p[o_x:o_l].reshape(t, j, 3), p[o_l:]
 
+    def gap(rv, ce, fo, x):
+        """Reprojection error (N, 2) of each observed joint, unweighted."""
+        return _project(x, rv, ce, fo, principal)[obs_c, obs_t, obs_j] - y_obs
+
     def residuals(p):
         rv, ce, fo, x, lk = unpack(p)
-        proj = _project(x, rv, ce, fo, principal)
-        res = [w_obs * (proj[obs_c, obs_t, obs_j] - y_obs).ravel()]
+        res = [w_obs * gap(rv, ce, fo, x).ravel()]
         if len(ln):
             res.append(bone_w * (np.linalg.norm(x[:, ln[:, 0]] - x[:, ln[:, 1]], axis=-1) - lk).ravel())
         if free_focal:
@@ -241,8 +244,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         jac_cols.append(o_f + obs_c[:, None] + np.zeros((1, 2), int))
     cam_cols = 3 * (obs_c[moved] - 1)[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3)
     jac_cols += [cam_cols, o_c + cam_cols]
-    jac_rows = [np.repeat(rows_p, 3), *([rows_p] if free_focal else []),
-                np.repeat(rows_p[np.repeat(moved, 2)], 3), np.repeat(rows_p[np.repeat(moved, 2)], 3)]
+    cam_rows = np.repeat(rows_p[np.repeat(moved, 2)], 3)  # the rotation's and the centre's
+    jac_rows = [np.repeat(rows_p, 3), *([rows_p] if free_focal else []), cam_rows, cam_rows]
     tt, kk = np.divmod(np.arange(t * len(ln)), max(len(ln), 1))
     bone_rows = 2 * n_obs + np.arange(t * len(ln))
     if len(ln):
@@ -300,16 +303,14 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
                               max_nfev=config.max_nfev)
     base = w_obs.copy()
     for _ in range(config.reweight):
-        rv, ce, fo, x, _ = unpack(sol.x)
-        dist = np.linalg.norm(_project(x, rv, ce, fo, principal)[obs_c, obs_t, obs_j] - y_obs, axis=-1)
+        dist = np.linalg.norm(gap(*unpack(sol.x)[:4]), axis=-1)
         scale = max(config.robust_scale * np.median(dist) / 1.1774, 1e-6)  # 2D Gaussian: median 1.1774 sigma
         w_obs[:] = base * np.repeat(1.0 / np.sqrt(1.0 + (dist / scale) ** 2), 2)  # Cauchy IRLS
         sol = levenberg_marquardt(residuals, jacobian, sol.x, block_start=o_x, block_size=3 * j, n_blocks=t,
                                   max_nfev=config.max_nfev)
     rv, ce, fo, x, _ = unpack(sol.x)
-    gap = _project(x, rv, ce, fo, principal)[obs_c, obs_t, obs_j] - y_obs
-    rmse = float(np.sqrt(np.mean(np.sum(gap**2, axis=-1))))  # reprojection, unweighted
-    median = float(np.median(np.linalg.norm(gap, axis=-1)))
+    dist = np.linalg.norm(gap(rv, ce, fo, x), axis=-1)  # reprojection, unweighted
+    rmse, median = float(np.sqrt(np.mean(dist**2))), float(np.median(dist))
     rots = Rotation.from_rotvec(rv).as_matrix()
     depth = np.einsum("ca,ca->c", rots[:, 2], x.reshape(-1, 3).mean(axis=0)[None] - ce)  # walker's mean depth
     size = fo / depth

@@ -862,8 +862,7 @@ class LiveService:
         ref = est.cameras.get(cameras["reference"]) if cameras is not None else None
         if self.rerun is not None and ref is not None:  # placed through this window's reference viewpoint
             self.rerun.log_rig(f"rigs/{w.rig}", w.indices[-1], cameras,
-                               (ref.viewpoint.azimuth_deg, ref.viewpoint.elevation_deg),
-                               {c: t.image_size for c, t in (est.tracks or {}).items() if t.image_size})
+                               (ref.viewpoint.azimuth_deg, ref.viewpoint.elevation_deg))
 
     def _feedback(self, w: Window, est, tracks: dict[str, CameraTrack],
                   sizes: dict[str, tuple[int, int]]) -> None:

@@ -159,8 +159,7 @@ class RerunLog:
             self._log_camera(p, cam, az, el, b.image_size.get(cam, (640, 480)))
         if "rig" in b.extra:
             ref = b.viewpoints.get(b.extra["rig"]["reference"], {})
-            self._log_rig(p, b.extra["rig"], ref.get("azimuth_deg", np.nan), ref.get("elevation_deg", np.nan),
-                          b.image_size)
+            self._log_rig(p, b.extra["rig"], ref.get("azimuth_deg", np.nan), ref.get("elevation_deg", np.nan))
 
     def _log_camera(self, p: str, cam: str, az: float, el: float, size: tuple[int, int]) -> None:
         R = world_to_camera_rotation(az, el)  # rows: u, v, viewing direction = camera RDF axes
@@ -170,16 +169,15 @@ class RerunLog:
             resolution=[int(size[0]), int(size[1])], focal_length=1.2 * float(size[0]),
             camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.8))
 
-    def log_rig(self, prefix: str, index: int, rig: dict, reference_viewpoint: tuple[float, float],
-                image_size: dict[str, tuple[int, int]]) -> None:
+    def log_rig(self, prefix: str, index: int, rig: dict, reference_viewpoint: tuple[float, float]) -> None:
         """A live rig's calibrated pinhole cameras (``worker.rig_arrays``) at frame ``index``, placed
         through the reference camera's latest viewpoint ``(azimuth, elevation)``."""
         with self._lock:
             self._setup(prefix)
             self.stream.set_time(TIMELINE, sequence=int(index))
-            self._log_rig(prefix, rig, *reference_viewpoint, image_size)
+            self._log_rig(prefix, rig, *reference_viewpoint)
 
-    def _log_rig(self, p: str, rig: dict, az: float, el: float, image_size: dict[str, tuple[int, int]]) -> None:
+    def _log_rig(self, p: str, rig: dict, az: float, el: float) -> None:
         """The calibrated pinhole cameras, placed in the person frame through the reference
         camera's viewpoint (the rig itself is relative to that camera), the walker at the origin."""
         if not (np.isfinite(az) and np.isfinite(el)):
@@ -189,7 +187,7 @@ class RerunLog:
             if not np.all(np.isfinite(rig["rotations"][k])):
                 continue  # left out of the rig
             r = rig["rotations"][k] @ r0
-            size = image_size.get(cam, (640, 480))
+            size = rig["image_sizes"][k] if np.all(np.isfinite(rig["image_sizes"][k])) else (640, 480)
             self.stream.log(f"{p}/world/rig/{cam}", rr.Transform3D(
                 translation=r0.T @ (rig["centres_m"][k] - rig["walker_m"]), mat3x3=r.T))
             self.stream.log(f"{p}/world/rig/{cam}", rr.Pinhole(

@@ -330,7 +330,9 @@ def rig_arrays(rig: Rig | None) -> dict[str, Any] | None:
         return None
     return {"cameras": list(rig.cameras), "reference": rig.reference or rig.cameras[0],
             "rotations": np.asarray(rig.rotations, float), "centres_m": np.asarray(rig.centres_m, float),
-            "focal_px": np.asarray(rig.focal_px, float), "walker_m": np.asarray(rig.walker_m, float)}
+            "focal_px": np.asarray(rig.focal_px, float), "walker_m": np.asarray(rig.walker_m, float),
+            "image_sizes": np.full((len(rig.cameras), 2), np.nan) if rig.image_sizes is None
+            else np.asarray(rig.image_sizes, float)}
 
 
 def register_stage(bundle: StageBundle, model: AppearanceModel | None = None) -> StageBundle:
