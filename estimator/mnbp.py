@@ -60,7 +60,8 @@ from .joints import JOINT_INDEX, N_JOINTS
 if TYPE_CHECKING:
     from .pipeline import WalkEstimate
 
-__all__ = ["MNBPConfig", "Posture2D", "PARTS_2D", "estimate_posture2d", "measure_postures", "posture_sequence"]
+__all__ = ["MNBPConfig", "Posture2D", "PARTS_2D", "estimate_posture2d", "estimate_postures2d", "measure_postures",
+           "posture_sequence", "posture_sequences"]
 
 _J = JOINT_INDEX
 
@@ -173,35 +174,38 @@ def _grid(n_u: int, n_v: int) -> tuple[np.ndarray, np.ndarray]:
 _GU, _GV = _grid(9, 5)
 
 
-def _sample_points(i: int, x: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points inside part ``i`` for each state in ``x`` (M, K, 2) and each part's area (M,)."""
+def _sample_points(i: int, x: np.ndarray, height: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """Points inside part ``i`` for states ``x`` (..., D): (..., K, 2), and each state's area (...).
+
+    ``height`` (the walker's image height) broadcasts against ``x``'s leading axes.
+    """
     part = PARTS_2D[i]
-    w = part.width * height
+    w = part.width * np.asarray(height, float)
     if i == 0:  # the quad of shoulders and hips, widened by half the torso's depth
         t = _torso_points(x)
-        half = 0.5 * w
+        half = (0.5 * w)[..., None]
         def widen(a, b):  # noqa: E306 - the segment a-b lengthened by `half` at both ends
             d = b - a
             d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-6)
             return a - half * d, b + half * d
         ls, rs = widen(t["right_shoulder"], t["left_shoulder"])[::-1]
         lh, rh = widen(t["right_hip"], t["left_hip"])[::-1]
-        top = rs[:, None] + (_GV[None, :, None] + 0.5) * (ls - rs)[:, None]
-        bot = rh[:, None] + (_GV[None, :, None] + 0.5) * (lh - rh)[:, None]
-        pts = bot + _GU[None, :, None] * (top - bot)
+        top = rs[..., None, :] + (_GV[:, None] + 0.5) * (ls - rs)[..., None, :]
+        bot = rh[..., None, :] + (_GV[:, None] + 0.5) * (lh - rh)[..., None, :]
+        pts = bot + _GU[:, None] * (top - bot)
         width = 0.5 * (np.linalg.norm(ls - rs, axis=-1) + np.linalg.norm(lh - rh, axis=-1))
-        return pts, x[:, 3] * width
+        return pts, x[..., 3] * width
     if part.name == "head":  # a disc of the head's width around the head joint
         centre = _limb_end(x)
-        r = np.sqrt(_GU) * 0.5 * w
+        r = np.sqrt(_GU) * 0.5 * w[..., None]
         a = (_GV + 0.5) * 2 * np.pi + _GU * 2.4  # spread the grid over the disc
-        pts = centre[:, None] + (r[:, None] * _unit(a))[None]
-        return pts, np.full(len(x), np.pi * (0.5 * w) ** 2)
-    d = _unit(x[:, 2])
-    n = np.stack([d[:, 1], -d[:, 0]], -1)
-    length = part.extend * x[:, 3]
-    pts = (x[:, None, :2] + (_GU[None, :, None] * length[:, None, None]) * d[:, None]
-           + (_GV[None, :, None] * w) * n[:, None])
+        pts = centre[..., None, :] + (r[..., None] * _unit(a))
+        return pts, np.broadcast_to(np.pi * (0.5 * w) ** 2, x.shape[:-1])
+    d = _unit(x[..., 2])
+    n = np.stack([d[..., 1], -d[..., 0]], -1)
+    length = part.extend * x[..., 3]
+    pts = (x[..., None, :2] + (_GU[:, None] * length[..., None, None]) * d[..., None, :]
+           + (_GV[:, None] * w[..., None, None]) * n[..., None, :])
     return pts, length * w
 
 
@@ -291,19 +295,26 @@ def _gauss2(d: np.ndarray, sigma: float) -> np.ndarray:
 
 
 class _Beliefs:
-    """Particles, weights and the messages each part last received, for one frame."""
+    """Particles, weights and the messages each part last received, for a batch of frames.
 
-    def __init__(self, start: list[np.ndarray], height: float, config: MNBPConfig,
-                 rng: np.random.Generator) -> None:
-        m = config.n_particles
-        self.x = [np.repeat(s[None], m, axis=0) for s in start]
-        self.w = [np.full(m, 1.0 / m) for _ in start]
-        self.received = [{k: np.ones(m) for k in _NEIGHBOURS[i]} for i in range(len(start))]
-        self.height, self.config, self.rng = height, config, rng
-        self.joint_sigma = config.joint_sigma[0] * height  # annealed with the temperature
+    ``x[i]`` is part *i*'s particles (B, M, D) for B independent problems
+    (one frame in each of B cameras) that share every array operation; each
+    has its own random generator, so a problem's draws, and its answer, do
+    not depend on the others in its batch.
+    """
+
+    def __init__(self, start: list[np.ndarray], height: np.ndarray, config: MNBPConfig,
+                 rngs: list[np.random.Generator]) -> None:
+        m, b = config.n_particles, len(rngs)
+        self.x = [np.repeat(np.asarray(s, float).reshape(b, 1, -1), m, axis=1) for s in start]
+        self.w = [np.full((b, m), 1.0 / m) for _ in start]
+        self.received = [{k: np.ones((b, m)) for k in _NEIGHBOURS[i]} for i in range(len(start))]
+        self.height, self.config, self.rngs = np.asarray(height, float).reshape(b), config, rngs
+        self.joint_sigma = config.joint_sigma[0] * self.height  # (B,), annealed with the temperature
 
     def best(self, i: int) -> np.ndarray:
-        return self.x[i][int(np.argmax(self.w[i]))]
+        """Part ``i``'s heaviest particle in each problem (B, D)."""
+        return np.take_along_axis(self.x[i], np.argmax(self.w[i], axis=1)[:, None, None], axis=1)[:, 0]
 
     @staticmethod
     def attach(parent: int, child: int, x: np.ndarray) -> np.ndarray:
@@ -316,112 +327,177 @@ class _Beliefs:
         return x[..., :2]
 
     def message(self, k: int, i: int, xi: np.ndarray) -> np.ndarray:
-        """m_ki at the candidate states ``xi`` of part ``i`` (eq. 2, particle estimate)."""
+        """m_ki at the candidate states ``xi`` (B, M, D) of part ``i`` (eq. 2, particle estimate)."""
         weights = self.w[k] / np.maximum(self.received[k][i], 1e-300)
-        weights = weights / weights.sum()
-        sigma = self.joint_sigma
+        weights = weights / weights.sum(axis=1, keepdims=True)
         if PARTS_2D[i].parent is not None and _INDEX[PARTS_2D[i].parent] == k:  # k is i's parent
-            gap = self.attach(k, i, self.x[k])[None, :, :] - self.proximal(xi)[:, None, :]
+            gap = self.attach(k, i, self.x[k])[:, None, :, :] - self.proximal(xi)[:, :, None, :]
         else:  # k is i's child
-            gap = self.proximal(self.x[k])[None, :, :] - self.attach(i, k, xi)[:, None, :]
-        return _gauss2(gap, sigma) @ weights + 1e-12
+            gap = self.proximal(self.x[k])[:, None, :, :] - self.attach(i, k, xi)[:, :, None, :]
+        kernel = _gauss2(gap, self.joint_sigma[:, None, None])
+        return np.einsum("bij,bj->bi", kernel, weights) + 1e-12
 
     def propose(self, i: int, frac: float) -> np.ndarray:
-        """Resample part ``i``'s belief and perturb it (annealed by ``frac`` in [0, 1])."""
+        """Resample part ``i``'s belief and perturb it (annealed by ``frac`` in [0, 1]).
+
+        Each problem draws from its own generator (the loop below: draws
+        only); the moves are then made on the whole batch at once.
+        """
         c, m, h = self.config, self.config.n_particles, self.height
         lerp = lambda a: a[0] + (a[1] - a[0]) * frac  # noqa: E731
-        idx = self.rng.choice(m, size=m, p=self.w[i])
-        x = self.x[i][idx].copy()
-        model = PARTS_2D[i].length * h
-        x[:, :2] += self.rng.normal(0.0, lerp(c.step_position) * h, (m, 2))
-        x[:, 2] += np.deg2rad(self.rng.normal(0.0, lerp(c.step_angle_deg), m))
-        length = np.clip(x[:, 3] + self.rng.normal(0.0, lerp(c.step_length) * model, m),
+        b = len(self.rngs)
+        child = i > 0
+        parent = _INDEX[PARTS_2D[i].parent] if child else 0
+        idx, z_pos, z_ang, z_len = (np.empty((b, m), np.int64), np.empty((b, m, 2)), np.empty((b, m)),
+                                    np.empty((b, m)))
+        half, wide = np.zeros((b, m), bool), np.zeros((b, m), bool)
+        pick, z_att, turn = np.zeros((b, m), np.int64), np.zeros((b, m, 2)), np.zeros((b, m))
+        for n, rng in enumerate(self.rngs):
+            idx[n] = rng.choice(m, size=m, p=self.w[i][n])
+            z_pos[n], z_ang[n], z_len[n] = rng.standard_normal((m, 2)), rng.standard_normal(m), rng.standard_normal(m)
+            if child:
+                half[n] = rng.random(m) < 0.5
+                k = int(half[n].sum())
+                pick[n, half[n]] = rng.choice(m, size=k, p=self.w[parent][n])
+                z_att[n, half[n]] = rng.standard_normal((k, 2))
+                wide[n] = rng.random(m) < c.explore * (1.0 - frac)
+                turn[n, wide[n]] = rng.uniform(-1, 1, int(wide[n].sum()))
+        best = self.best(i)
+        x = np.take_along_axis(self.x[i], idx[..., None], axis=1)
+        model = PARTS_2D[i].length * h[:, None]
+        x[..., :2] += (lerp(c.step_position) * h)[:, None, None] * z_pos
+        x[..., 2] += np.deg2rad(lerp(c.step_angle_deg) * z_ang)
+        length = np.clip(x[..., 3] + (lerp(c.step_length) * model) * z_len,
                          c.length_range[0] * model, c.length_range[1] * model)
-        if i == 0:  # the torso moves as a whole: its shape is the start's (see module docstring)
-            x[:, 4:8] *= (length / x[:, 3])[:, None]
-        x[:, 3] = length
-        if i > 0:  # half of a child's particles start at its parent's attachment point
-            parent = _INDEX[PARTS_2D[i].parent]
-            half = self.rng.random(m) < 0.5
-            pick = self.rng.choice(m, size=int(half.sum()), p=self.w[parent])
-            x[half, :2] = _attach(parent, i, self.x[parent][pick]) + self.rng.normal(
-                0.0, self.joint_sigma, (int(half.sum()), 2))
-            wide = self.rng.random(m) < c.explore * (1.0 - frac)  # annealed global moves
-            x[wide, 2] = self.best(i)[2] + np.deg2rad(self.rng.uniform(-1, 1, int(wide.sum())) * c.explore_deg)
-        x[0] = self.best(i)  # keep the current best
+        if not child:  # the torso moves as a whole: its shape is the start's (see module docstring)
+            x[..., 4:8] *= (length / x[..., 3])[..., None]
+        x[..., 3] = length
+        if child:  # half of a child's particles start at its parent's attachment point
+            anchor = _attach(parent, i, np.take_along_axis(self.x[parent], pick[..., None], axis=1))
+            x[..., :2] = np.where(half[..., None], anchor + self.joint_sigma[:, None, None] * z_att, x[..., :2])
+            # annealed global moves: a fresh angle near the current best
+            x[..., 2] = np.where(wide, best[:, None, 2] + np.deg2rad(turn * c.explore_deg), x[..., 2])
+        x[:, 0] = best  # keep the current best
         return x
 
 
 class SilhouetteView:
-    """One silhouette as mNBP sees it: ``phi_i(x_i, X_-i^(n-1), z)`` (eq. 1-3).
+    """Silhouettes as mNBP sees them: ``phi_i(x_i, X_-i^(n-1), z)`` (eq. 1-3).
 
-    Keeps each part's current best drawn (OpenCV capsules) so that part *i*
-    is scored against the pixels the other parts leave unexplained: ``G = 0``
-    where another part is drawn, ``+1`` on the silhouette, ``-1`` off it. A
-    count of the parts drawn on each pixel makes "another part" one
-    comparison at the candidates' points, with no image-sized work per call.
+    One or several silhouettes (a batch: one frame's cameras), packed in one
+    flat buffer so that every candidate of every silhouette is scored in the
+    same array operations. Keeps each part's current best drawn (OpenCV
+    capsules) so that part *i* is scored against the pixels the other parts
+    leave unexplained: ``G = 0`` where another part is drawn, ``+1`` on the
+    silhouette, ``-1`` off it. A count of the parts drawn on each pixel makes
+    "another part" one comparison at the candidates' points, with no
+    image-sized work per call.
     """
 
-    def __init__(self, silhouette: np.ndarray, height: float, states: list[np.ndarray]) -> None:
-        self.base = _observation(silhouette)
-        self.height = height
-        self.drawn = [np.zeros(silhouette.shape, np.uint8) for _ in PARTS_2D]
+    def __init__(self, silhouettes: list[np.ndarray], heights: np.ndarray, states: list[np.ndarray]) -> None:
+        self.shapes = np.array([s.shape for s in silhouettes], np.int64).reshape(-1, 2)  # (B, 2): rows, columns
+        sizes = self.shapes.prod(axis=1)
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        self.base = np.concatenate([_observation(s).ravel() for s in silhouettes])
+        self.height = np.asarray(heights, float).reshape(len(silhouettes))
+        self.drawn = [np.zeros(int(sizes.sum()), np.uint8) for _ in PARTS_2D]
         for i, x in enumerate(states):
-            _draw(self.drawn[i], i, x, height)
+            self._draw(i, x)
         self.count = np.sum(self.drawn, axis=0, dtype=np.uint8)  # parts drawn on each pixel
 
+    def _image(self, flat: np.ndarray, b: int) -> np.ndarray:
+        (h, w), o = self.shapes[b], self.offsets[b]
+        return flat[o:o + h * w].reshape(h, w)
+
+    def _draw(self, i: int, x: np.ndarray) -> None:
+        for b in range(len(self.height)):
+            _draw(self._image(self.drawn[i], b), i, x[b], self.height[b])
+
     def log_phi(self, i: int, x: np.ndarray) -> np.ndarray:
-        """``log phi_i`` of candidate states ``x`` (M, ...) of part ``i``, in units of height^2:
+        """``log phi_i`` of candidate states ``x`` (B, M, D) of part ``i``, in units of height^2:
         the mean of ``G`` at each candidate's points times its area; off the image ``-1``."""
-        pts, area = _sample_points(i, x, self.height)
-        h, w = self.base.shape
+        pts, area = _sample_points(i, x, self.height[:, None])
+        h, w = self.shapes[:, 0, None, None], self.shapes[:, 1, None, None]
         ij = np.round(pts).astype(np.int64)
         inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
-        flat = np.clip(ij[..., 1], 0, h - 1) * w + np.clip(ij[..., 0], 0, w - 1)
-        others = self.count.ravel()[flat] > self.drawn[i].ravel()[flat]  # X_-i^(n-1) explains these
-        vals = np.where(inside, np.where(others, 0.0, self.base.ravel()[flat]), -1.0)
-        return vals.mean(axis=1) * area / self.height ** 2
+        flat = (self.offsets[:, None, None] + np.minimum(np.maximum(ij[..., 1], 0), h - 1) * w
+                + np.minimum(np.maximum(ij[..., 0], 0), w - 1))
+        others = self.count[flat] > self.drawn[i][flat]  # X_-i^(n-1) explains these
+        vals = np.where(inside, np.where(others, 0.0, self.base[flat]), -1.0)
+        return vals.mean(axis=-1) * area / self.height[:, None] ** 2
 
     def redraw(self, i: int, x: np.ndarray) -> None:
+        """Record part ``i``'s new estimate ``x`` (B, D) for the other parts' observations."""
         self.count -= self.drawn[i]
         self.drawn[i][:] = 0
-        _draw(self.drawn[i], i, x, self.height)
+        self._draw(i, x)
         self.count += self.drawn[i]
 
-    def score(self) -> float:
-        """Sum of ``G`` over the whole drawn body / silhouette area (1 = perfect)."""
-        body = self.count > 0
-        base = self.base
-        return float((np.where(body, base, 0.0).sum() - (base > 0)[~body].sum()) / max(1, (base > 0).sum()))
+    def score(self) -> np.ndarray:
+        """Per silhouette (B,): sum of ``G`` over the whole drawn body / silhouette area (1 = perfect)."""
+        out = np.empty(len(self.height))
+        for b in range(len(out)):
+            body, base = self._image(self.count, b) > 0, self._image(self.base, b)
+            out[b] = (np.where(body, base, 0.0).sum() - (base > 0)[~body].sum()) / max(1, (base > 0).sum())
+        return out
 
 
-def anneal(beliefs: _Beliefs, log_phi, redraw, prior_energy, config: MNBPConfig, scale: float) -> None:
+def anneal(beliefs: _Beliefs, log_phi, redraw, prior_energy, config: MNBPConfig, scale: np.ndarray | float) -> None:
     """The mNBP iterations (§3): parts root to leaves and back, ``config.n_iterations`` times.
 
-    ``log_phi(i, x)`` scores candidate states (in units of the walker's
-    height squared, summed over the views), ``redraw(i, best)`` records part
-    *i*'s new estimate for the others' observations, ``prior_energy(i, x)``
-    is the unary prior; ``scale`` is the walker's size in the states' units
-    (the articulation width is a fraction of it). The temperature and the
-    articulation width decrease geometrically (the paper's lambda).
+    ``log_phi(i, x)`` scores candidate states (B, M, D) (in units of the
+    walker's height squared, summed over the views), ``redraw(i, best)``
+    records part *i*'s new estimates (B, D) for the others' observations,
+    ``prior_energy(i, x)`` is the unary prior; ``scale`` is the walker's size
+    in the states' units, per problem (the articulation width is a fraction
+    of it). The temperature and the articulation width decrease
+    geometrically (the paper's lambda).
     """
     c = config
     n_parts = len(beliefs.x)
     order = list(range(n_parts)) + list(range(n_parts - 1, -1, -1))
     temps = np.geomspace(c.temperature[0], c.temperature[1], c.n_iterations)
-    sigmas = np.geomspace(c.joint_sigma[0], c.joint_sigma[1], c.n_iterations) * scale
+    sigmas = np.geomspace(c.joint_sigma[0], c.joint_sigma[1], c.n_iterations)
     for n, temp in enumerate(temps):
         frac = n / max(1, c.n_iterations - 1)
-        beliefs.joint_sigma = sigmas[n]
+        beliefs.joint_sigma = sigmas[n] * np.asarray(scale, float) * np.ones(len(beliefs.rngs))
         for i in order:
             x = beliefs.propose(i, frac)
             log_w = log_phi(i, x) / temp - prior_energy(i, x)
             incoming = {k: beliefs.message(k, i, x) for k in _NEIGHBOURS[i]}
             for msg in incoming.values():
                 log_w += np.log(msg)
-            w = np.exp(log_w - log_w.max())
-            beliefs.x[i], beliefs.w[i], beliefs.received[i] = x, w / w.sum(), incoming
+            w = np.exp(log_w - log_w.max(axis=1, keepdims=True))
+            beliefs.x[i], beliefs.w[i], beliefs.received[i] = x, w / w.sum(axis=1, keepdims=True), incoming
             redraw(i, beliefs.best(i))
+
+
+def estimate_postures2d(silhouettes: list[np.ndarray], starts: np.ndarray, *, heights: np.ndarray | None = None,
+                        priors: np.ndarray | None = None, seeds: list[int] | None = None,
+                        config: MNBPConfig = MNBPConfig()) -> list[Posture2D]:
+    """2D postures on several silhouettes at once (one frame's cameras): :func:`estimate_posture2d`
+    for each, batched through the same array operations; each answer is the one
+    :func:`estimate_posture2d` gives with ``config.seed`` = its seed (default: ``config.seed``)."""
+    starts = np.asarray(starts, float)
+    priors = starts if priors is None else np.asarray(priors, float)
+    if heights is None:
+        heights = [image_height(s) for s in silhouettes]
+    heights = np.asarray(heights, float)
+    seeds = [config.seed] * len(silhouettes) if seeds is None else seeds
+    rngs = [np.random.default_rng(s) for s in seeds]
+
+    def batch(joints: np.ndarray) -> list[np.ndarray]:  # per part, the states (B, D)
+        per = [states_from_joints(j, h) for j, h in zip(joints, heights)]
+        return [np.stack([p[i] for p in per]) for i in range(len(PARTS_2D))]
+
+    beliefs = _Beliefs(batch(starts), heights, config, rngs)
+    prior_states = batch(priors)
+    view = SilhouetteView(silhouettes, heights, [beliefs.best(i) for i in range(len(PARTS_2D))])
+    anneal(beliefs, view.log_phi, view.redraw,
+           lambda i, x: _prior_energy(i, x, prior_states[i], heights, config), config, heights)
+    best = [beliefs.best(i) for i in range(len(PARTS_2D))]
+    return [Posture2D(joints_from_states([s[b] for s in best]), float(score), [s[b] for s in best])
+            for b, score in enumerate(view.score())]
 
 
 def estimate_posture2d(silhouette: np.ndarray, start: np.ndarray, *, height: float | None = None,
@@ -439,16 +515,9 @@ def estimate_posture2d(silhouette: np.ndarray, start: np.ndarray, *, height: flo
     prior : ndarray of shape (13, 2), optional
         Centre of the weak unary prior (default: ``start``).
     """
-    if height is None:
-        height = image_height(silhouette)
-    rng = np.random.default_rng(config.seed)
-    beliefs = _Beliefs(states_from_joints(np.asarray(start, float), height), height, config, rng)
-    prior_states = states_from_joints(np.asarray(start if prior is None else prior, float), height)
-    view = SilhouetteView(silhouette, height, [beliefs.best(i) for i in range(len(PARTS_2D))])
-    anneal(beliefs, view.log_phi, view.redraw,
-           lambda i, x: _prior_energy(i, x, prior_states[i], height, config), config, height)
-    states = [beliefs.best(i) for i in range(len(PARTS_2D))]
-    return Posture2D(joints_from_states(states), view.score(), states)
+    return estimate_postures2d([silhouette], np.asarray(start, float)[None],
+                               heights=None if height is None else [height],
+                               priors=None if prior is None else np.asarray(prior, float)[None], config=config)[0]
 
 
 def image_height(silhouette: np.ndarray) -> float:
@@ -457,73 +526,104 @@ def image_height(silhouette: np.ndarray) -> float:
     return float(rows[-1] - rows[0] + 1) if rows.size else float(silhouette.shape[0])
 
 
-def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: float, c: MNBPConfig) -> np.ndarray:
-    """Unary prior: squared distance of the part's points from the starting posture's.
+def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: np.ndarray, c: MNBPConfig) -> np.ndarray:
+    """Unary prior (B, M): squared distance of the part's points from the starting posture's.
 
-    Weak for the limbs (``prior_sigma``), tight for the torso
+    ``x`` (B, M, D) are candidates, ``centre`` (B, D) the starting states,
+    ``height`` (B,). Weak for the limbs (``prior_sigma``), tight for the torso
     (``torso_prior_sigma``): its quad-and-edges outline is too crude for its
     silhouette to place the shoulder and hip centres, which lie inside it
     (measured, ``bench/eval_mnbp.py``: letting it move within 1 % of the
     height made shoulders and hips 0.02-0.03 worse in median error than the
     model placement, 0.6 % better with it held within 0.3 %).
     """
-    sigma2 = ((c.torso_prior_sigma if i == 0 else c.prior_sigma) * height) ** 2
+    sigma2 = ((c.torso_prior_sigma if i == 0 else c.prior_sigma) * np.asarray(height, float)[:, None]) ** 2
+    centre = centre[:, None]
     if i == 0:
-        t, t0 = _torso_points(x), _torso_points(centre[None])
+        t, t0 = _torso_points(x), _torso_points(centre)
         d = sum(((t[k] - t0[k]) ** 2).sum(-1) for k in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"))
         return 0.5 * d / 4 / sigma2
-    d = ((_limb_end(x) - _limb_end(centre[None])) ** 2).sum(-1) + ((x[:, :2] - centre[None, :2]) ** 2).sum(-1)
+    d = ((_limb_end(x) - _limb_end(centre)) ** 2).sum(-1) + ((x[..., :2] - centre[..., :2]) ** 2).sum(-1)
     return 0.5 * d / 2 / sigma2
+
+
+def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np.ndarray], starts: list[np.ndarray],
+                      *, config: MNBPConfig = MNBPConfig(), carry: float = 0.5,
+                      seeds: list[int] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """2D postures over several cameras' frames, in full-frame pixels.
+
+    For camera *c*, ``silhouettes[c]`` are crops at ``boxes[c]`` (T, 4: x, y,
+    w, h) and ``starts[c]`` (T, 13, 2) the starting joints in the full frame
+    (Izo–Grimson's model placement, which also centres each frame's prior).
+    Each frame starts from its own start plus ``carry`` x the previous
+    frame's correction (its posture minus its start): the previous posture
+    carries over relative to the model, which moves with the walker, so the
+    walker's travel between frames does not drag it back. Cameras are
+    independent: the frames of one instant are solved as one batch
+    (:func:`estimate_postures2d`), camera *c*'s frame *t* with seed
+    ``seeds[c] + t`` (default ``config.seed + t`` for every camera).
+    Returns per camera joints (T, 13, 2), NaN where no silhouette, and scores (T,).
+    """
+    n_cams = len(silhouettes)
+    seeds = [config.seed] * n_cams if seeds is None else list(seeds)
+    starts = [np.asarray(s, float) for s in starts]
+    boxes = [np.asarray(b, float) for b in boxes]
+    out = [np.full((len(s), N_JOINTS, 2), np.nan) for s in silhouettes]
+    scores = [np.full(len(s), np.nan) for s in silhouettes]
+    correction = np.zeros((n_cams, N_JOINTS, 2))
+    for t in range(max((len(s) for s in silhouettes), default=0)):
+        active = []
+        for c in range(n_cams):
+            ok = (t < len(silhouettes[c]) and silhouettes[c][t] is not None and np.all(np.isfinite(starts[c][t]))
+                  and np.all(np.isfinite(boxes[c][t])))
+            if ok:
+                active.append(c)
+            else:
+                correction[c] = 0.0
+        if not active:
+            continue
+        origin = np.stack([boxes[c][t, :2] for c in active])[:, None]
+        model = np.stack([starts[c][t] for c in active])
+        posts = estimate_postures2d([silhouettes[c][t] for c in active], model + carry * correction[active] - origin,
+                                    priors=model - origin, seeds=[seeds[c] + t for c in active], config=config)
+        for c, post, o, m in zip(active, posts, origin, model):
+            out[c][t], scores[c][t] = post.joints + o, post.score
+            correction[c] = out[c][t] - m
+    return out, scores
 
 
 def posture_sequence(silhouettes: list[np.ndarray | None], boxes: np.ndarray, starts: np.ndarray, *,
                      config: MNBPConfig = MNBPConfig(), carry: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """2D postures over one camera's frames, in full-frame pixels.
-
-    ``silhouettes`` are crops at ``boxes`` (T, 4: x, y, w, h) and ``starts``
-    (T, 13, 2) the starting joints in the full frame (Izo–Grimson's model
-    placement, which also centres each frame's prior). Each frame starts from
-    its own start plus ``carry`` x the previous frame's correction (its
-    posture minus its start): the previous posture carries over relative to
-    the model, which moves with the walker, so the walker's travel between
-    frames does not drag it back.
-    Returns joints (T, 13, 2), NaN where no silhouette, and scores (T,).
-    """
-    T = len(silhouettes)
-    out, scores = np.full((T, N_JOINTS, 2), np.nan), np.full(T, np.nan)
-    correction = np.zeros((N_JOINTS, 2))
-    for t, sil in enumerate(silhouettes):
-        if sil is None or not np.all(np.isfinite(starts[t])) or not np.all(np.isfinite(boxes[t])):
-            correction[:] = 0.0
-            continue
-        origin = boxes[t, :2]
-        start = starts[t] + carry * correction
-        post = estimate_posture2d(sil, start - origin, prior=starts[t] - origin,
-                                  config=replace(config, seed=config.seed + t))
-        out[t], scores[t] = post.joints + origin, post.score
-        correction = out[t] - starts[t]
-    return out, scores
+    """2D postures over one camera's frames, in full-frame pixels (:func:`posture_sequences`
+    for one camera). Returns joints (T, 13, 2), NaN where no silhouette, and scores (T,)."""
+    joints, scores = posture_sequences([silhouettes], [boxes], [starts], config=config, carry=carry)
+    return joints[0], scores[0]
 
 
 def measure_postures(estimate: WalkEstimate, config: MNBPConfig = MNBPConfig()) -> WalkEstimate:
     """The estimate with each camera's ``joints2d`` measured by mNBP (this stage's entry).
 
-    Runs :func:`posture_sequence` on the silhouettes the estimate was made
+    Runs :func:`posture_sequences` on the silhouettes the estimate was made
     from (``estimate.tracks``, after clean-up), started from its model
-    placement, which is kept as ``model_joints2d``. A track without
-    full-frame boxes (crops alone) is left as placed, and said in its notes.
+    placement, which is kept as ``model_joints2d``; the cameras' frames of
+    one instant go through mNBP as one batch. A track without full-frame
+    boxes (crops alone) is left as placed, and said in its notes.
     """
     if estimate.tracks is None:
         return estimate
-    cameras = {}
+    cameras, measured = {}, []
     for k, (name, cam) in enumerate(estimate.cameras.items()):
         track = estimate.tracks.get(name)
         if track is None or not track.full_frame:
             cameras[name] = replace(cam, notes=cam.notes + ["joints2d: the model's placement (no full-frame boxes)"])
-            continue
-        joints, _ = posture_sequence(track.silhouettes, track.boxes, cam.joints2d,
-                                     config=replace(config, seed=config.seed + 1000 * k))
-        cameras[name] = replace(cam, joints2d=joints, model_joints2d=cam.joints2d)
+        else:
+            measured.append((k, name, cam, track))
+    joints, _ = posture_sequences([tr.silhouettes for _, _, _, tr in measured], [tr.boxes for *_, tr in measured],
+                                  [cam.joints2d for _, _, cam, _ in measured], config=config,
+                                  seeds=[config.seed + 1000 * k for k, *_ in measured])
+    for (_, name, cam, _), j in zip(measured, joints):
+        cameras[name] = replace(cam, joints2d=j, model_joints2d=cam.joints2d)
+    cameras = {name: cameras[name] for name in estimate.cameras}
     return replace(estimate, cameras=cameras,
                    notes=estimate.notes + ["joints2d measured on each silhouette by mNBP (Wang-Leow §3); "
                                            "model_joints2d: the gait model's placement"])

@@ -90,7 +90,7 @@ class _Beliefs3D(_Beliefs):
 
     def __init__(self, start: list[np.ndarray], stature: float, lengths: np.ndarray, config: MNBP3DConfig,
                  rng: np.random.Generator) -> None:
-        super().__init__(start, stature, config.mnbp, rng)
+        super().__init__(start, np.array([stature]), config.mnbp, [rng])
         self.lengths, self.config3d = lengths, config
 
     @staticmethod
@@ -108,10 +108,12 @@ class _Beliefs3D(_Beliefs):
         return x[..., :3]
 
     def propose(self, i: int, frac: float) -> np.ndarray:
-        """Resample part ``i``'s belief and perturb it in 3D (annealed by ``frac`` in [0, 1])."""
-        c, m, h, rng = self.config, self.config.n_particles, self.height, self.rng
+        """Resample part ``i``'s belief and perturb it in 3D (annealed by ``frac`` in [0, 1]).
+
+        One problem (a batch of one: the frame's 3D posture), shape (1, M, D)."""
+        c, m, h, rng = self.config, self.config.n_particles, self.height[0], self.rngs[0]
         lerp = lambda a: a[0] + (a[1] - a[0]) * frac  # noqa: E731
-        x = self.x[i][rng.choice(m, size=m, p=self.w[i])].copy()
+        x = self.x[i][0][rng.choice(m, size=m, p=self.w[i][0])]
         if i == 0:  # rigid: a small rotation about the centroid and a shift
             pts = x.reshape(m, 4, 3)
             centroid = pts.mean(axis=1, keepdims=True)
@@ -128,12 +130,12 @@ class _Beliefs3D(_Beliefs):
             length = np.clip(length + rng.normal(0.0, lerp(c.step_length) * own, m), (1 - tol) * own, (1 + tol) * own)
             parent = _INDEX[PARTS_2D[i].parent]
             half = rng.random(m) < 0.5  # half of a child's particles start at its parent's attachment point
-            pick = rng.choice(m, size=int(half.sum()), p=self.w[parent])
-            prox[half] = self.attach(parent, i, self.x[parent][pick]) + rng.normal(
-                0.0, self.joint_sigma, (int(half.sum()), 3))
+            pick = rng.choice(m, size=int(half.sum()), p=self.w[parent][0])
+            prox[half] = self.attach(parent, i, self.x[parent][0][pick]) + rng.normal(
+                0.0, self.joint_sigma[0], (int(half.sum()), 3))
             wide = rng.random(m) < c.explore * (1.0 - frac)  # annealed global moves about the best direction
             if wide.any():
-                best = self.best(i)
+                best = self.best(i)[0]
                 b = (best[3:] - best[:3]) / max(float(np.linalg.norm(best[3:] - best[:3])), 1e-9)
                 axis = np.cross(b, rng.normal(size=(int(wide.sum()), 3)))
                 axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-9)
@@ -141,8 +143,8 @@ class _Beliefs3D(_Beliefs):
                 u[wide] = Rotation.from_rotvec(axis * angle[:, None]).apply(b)
             u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
             x = np.concatenate([prox, prox + u * length[:, None]], axis=1)
-        x[0] = self.best(i)  # keep the current best
-        return x
+        x[0] = self.best(i)[0]  # keep the current best
+        return x[None]
 
 
 def _to_view(i: int, x: np.ndarray, camera: PinholeCameras, origin: np.ndarray, height: float) -> np.ndarray:
@@ -154,9 +156,10 @@ def _to_view(i: int, x: np.ndarray, camera: PinholeCameras, origin: np.ndarray, 
 
 
 def _prior_energy3d(i: int, x: np.ndarray, centre: np.ndarray, stature: float, config: MNBP3DConfig) -> np.ndarray:
-    """Unary prior: mean squared distance of the part's points from the start's, over 2 sigma^2."""
+    """Unary prior (..., M) of candidates ``x`` (..., M, D): mean squared distance of the part's
+    points from the start's ``centre`` (D,), over 2 sigma^2."""
     sigma = (config.mnbp.torso_prior_sigma if i == 0 else config.mnbp.prior_sigma) * stature
-    d = ((x - centre[None]).reshape(len(x), -1, 3) ** 2).sum(-1).mean(-1)
+    d = ((x - centre).reshape(*x.shape[:-1], -1, 3) ** 2).sum(-1).mean(-1)
     return 0.5 * d / sigma ** 2
 
 
@@ -194,27 +197,21 @@ def estimate_posture3d(silhouettes: list[np.ndarray | None], origins: np.ndarray
     rng = np.random.default_rng(seed)
     start_states = states_from_joints3d(np.asarray(start, float))
     beliefs = _Beliefs3D(start_states, stature, lengths, config, rng)
-    views = []
-    for c, sil in enumerate(silhouettes):
-        if sil is None or not sil.any():
-            continue
-        h, cam = image_height(sil), cameras.select(c)
-        views.append((cam, origins[c], h, SilhouetteView(sil, h, [_to_view(i, s[None], cam, origins[c], h)[0]
-                                                                  for i, s in enumerate(start_states)])))
-    if not views:
+    seen = [c for c, sil in enumerate(silhouettes) if sil is not None and sil.any()]
+    if not seen:
         return Posture3D(np.asarray(start, float).copy(), float("nan"))
+    views = [(cameras.select(c), origins[c], image_height(silhouettes[c])) for c in seen]
 
-    def log_phi(i: int, x: np.ndarray) -> np.ndarray:
-        return sum(view.log_phi(i, _to_view(i, x, cam, o, h)) for cam, o, h, view in views)
+    def to_views(i: int, x: np.ndarray) -> np.ndarray:  # 3D states (M, D) -> 2D states in every view (C, M, D2)
+        return np.stack([_to_view(i, x, cam, o, h) for cam, o, h in views])
 
-    def redraw(i: int, best: np.ndarray) -> None:
-        for cam, o, h, view in views:
-            view.redraw(i, _to_view(i, best[None], cam, o, h)[0])
-
-    anneal(beliefs, log_phi, redraw, lambda i, x: _prior_energy3d(i, x, start_states[i], stature, config),
-           config.mnbp, stature)
-    joints = joints_from_states3d([beliefs.best(i) for i in range(len(PARTS_2D))])
-    return Posture3D(joints, float(np.mean([view[-1].score() for view in views])))
+    view = SilhouetteView([silhouettes[c] for c in seen], [h for *_, h in views],
+                          [to_views(i, s[None])[:, 0] for i, s in enumerate(start_states)])
+    anneal(beliefs, lambda i, x: view.log_phi(i, to_views(i, x[0])).sum(axis=0, keepdims=True),
+           lambda i, best: view.redraw(i, to_views(i, best)[:, 0]),
+           lambda i, x: _prior_energy3d(i, x, start_states[i], stature, config), config.mnbp, stature)
+    joints = joints_from_states3d([beliefs.best(i)[0] for i in range(len(PARTS_2D))])
+    return Posture3D(joints, float(np.mean(view.score())))
 
 
 def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.ndarray, cameras: PinholeCameras,
