@@ -3,7 +3,7 @@
 Every sequence is synthesised (pyrender silhouettes, ground-truth joints),
 estimated by ``estimate_walk`` (Izo–Grimson: viewpoints, phase, the model's
 joints placed on each silhouette), then each camera's frames go through
-``estimator.mnbp.posture_sequence`` started from that placement. Errors are
+``estimator.mnbp.posture_sequences`` (all its cameras at once) started from that placement. Errors are
 per joint, frame and camera, in units of the walker's image height (the
 silhouette crop's rows), against the rendered truth.
 
@@ -38,7 +38,7 @@ from tqdm import tqdm  # noqa: E402
 
 from estimator.gait import GaitStyle  # noqa: E402
 from estimator.joints import JOINT_NAMES, MIRROR  # noqa: E402
-from estimator.mnbp import MNBPConfig, posture_sequence  # noqa: E402
+from estimator.mnbp import MNBPConfig, posture_sequences  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.skeleton import BodyShape  # noqa: E402
@@ -87,12 +87,15 @@ def evaluate(kind: str, n: int, seed: int, model, config: MNBPConfig) -> dict[st
         seq = synthesize(spec, motion=motion)
         tracks = tracks_from_sequence(seq)
         est = estimate_walk(tracks, model)
-        for cam, c in est.cameras.items():
+        names = list(est.cameras)
+        t0 = time.perf_counter()
+        measured, _ = posture_sequences([tracks[n].silhouettes for n in names], [tracks[n].boxes for n in names],
+                                        [est.cameras[n].joints2d for n in names], config=config)
+        rows["ms"].append((time.perf_counter() - t0) * 1e3 / sum(len(tracks[n].silhouettes) for n in names))
+        for cam, joints in zip(names, measured):
+            c = est.cameras[cam]
             truth = np.array([f["joints2d"][cam] for f in seq.truth["frames"]])
             height = np.array([np.nan if s is None else s.shape[0] for s in tracks[cam].silhouettes])
-            t0 = time.perf_counter()
-            joints, _ = posture_sequence(tracks[cam].silhouettes, tracks[cam].boxes, c.joints2d, config=config)
-            rows["ms"].append((time.perf_counter() - t0) * 1e3 / len(height))
             for name, j in (("model", c.joints2d), ("mnbp", joints)):
                 rows[name].append(np.linalg.norm(j - truth, axis=-1) / height[:, None])
                 rows[f"swap_{name}"].append(swapped(j, truth))

@@ -285,13 +285,13 @@ def _proximal_joint(part: _Part) -> str:
 # --------------------------------------------------------------------- inference
 
 
-def _observation(silhouette: np.ndarray) -> np.ndarray:
-    """``+1`` on the silhouette, ``-1`` off it (float32), before other parts are drawn."""
-    return np.where(silhouette > 0, 1.0, -1.0).astype(np.float32)
-
-
-def _gauss2(d: np.ndarray, sigma: float) -> np.ndarray:
-    return np.exp(np.einsum("...k,...k->...", d, d) * (-0.5 / sigma ** 2))
+def _kernel(a: np.ndarray, b: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Gaussian kernel (B, M, N) between points ``a`` (B, M, k) and ``b`` (B, N, k), widths ``sigma`` (B,)."""
+    d2 = (a[:, :, None, 0] - b[:, None, :, 0]) ** 2
+    for k in range(1, a.shape[-1]):
+        d2 += (a[:, :, None, k] - b[:, None, :, k]) ** 2
+    d2 *= (-0.5 / np.asarray(sigma, float) ** 2)[:, None, None]
+    return np.exp(d2, out=d2)
 
 
 class _Beliefs:
@@ -331,52 +331,52 @@ class _Beliefs:
         weights = self.w[k] / np.maximum(self.received[k][i], 1e-300)
         weights = weights / weights.sum(axis=1, keepdims=True)
         if PARTS_2D[i].parent is not None and _INDEX[PARTS_2D[i].parent] == k:  # k is i's parent
-            gap = self.attach(k, i, self.x[k])[:, None, :, :] - self.proximal(xi)[:, :, None, :]
+            kernel = _kernel(self.proximal(xi), self.attach(k, i, self.x[k]), self.joint_sigma)
         else:  # k is i's child
-            gap = self.proximal(self.x[k])[:, None, :, :] - self.attach(i, k, xi)[:, :, None, :]
-        kernel = _gauss2(gap, self.joint_sigma[:, None, None])
-        return np.einsum("bij,bj->bi", kernel, weights) + 1e-12
+            kernel = _kernel(self.attach(i, k, xi), self.proximal(self.x[k]), self.joint_sigma)
+        return np.matmul(kernel, weights[..., None])[..., 0] + 1e-12
+
+    def draws(self, n_uniform: int, n_normal: int) -> tuple[np.ndarray, np.ndarray]:
+        """``n_uniform`` uniform and ``n_normal`` standard normal rows of M draws per problem,
+        (B, n, M) each, every problem from its own generator (two calls each)."""
+        m = self.config.n_particles
+        return (np.stack([rng.random((n_uniform, m)) for rng in self.rngs]),
+                np.stack([rng.standard_normal((n_normal, m)) for rng in self.rngs]))
+
+    def resample(self, w: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Indices (B, M) drawn from each row of weights ``w`` (B, M) by the uniforms ``u`` (B, M)
+        (multinomial resampling: the inverse of each row's cumulative weights)."""
+        cdf = np.cumsum(w, axis=1)
+        cdf /= cdf[:, -1:]
+        idx = np.stack([np.searchsorted(c, v, side="right") for c, v in zip(cdf, u)])
+        return np.minimum(idx, w.shape[1] - 1)
 
     def propose(self, i: int, frac: float) -> np.ndarray:
-        """Resample part ``i``'s belief and perturb it (annealed by ``frac`` in [0, 1]).
-
-        Each problem draws from its own generator (the loop below: draws
-        only); the moves are then made on the whole batch at once.
-        """
-        c, m, h = self.config, self.config.n_particles, self.height
+        """Resample part ``i``'s belief and perturb it (annealed by ``frac`` in [0, 1])."""
+        c, h = self.config, self.height
         lerp = lambda a: a[0] + (a[1] - a[0]) * frac  # noqa: E731
-        b = len(self.rngs)
-        child = i > 0
-        parent = _INDEX[PARTS_2D[i].parent] if child else 0
-        idx, z_pos, z_ang, z_len = (np.empty((b, m), np.int64), np.empty((b, m, 2)), np.empty((b, m)),
-                                    np.empty((b, m)))
-        half, wide = np.zeros((b, m), bool), np.zeros((b, m), bool)
-        pick, z_att, turn = np.zeros((b, m), np.int64), np.zeros((b, m, 2)), np.zeros((b, m))
-        for n, rng in enumerate(self.rngs):
-            idx[n] = rng.choice(m, size=m, p=self.w[i][n])
-            z_pos[n], z_ang[n], z_len[n] = rng.standard_normal((m, 2)), rng.standard_normal(m), rng.standard_normal(m)
-            if child:
-                half[n] = rng.random(m) < 0.5
-                k = int(half[n].sum())
-                pick[n, half[n]] = rng.choice(m, size=k, p=self.w[parent][n])
-                z_att[n, half[n]] = rng.standard_normal((k, 2))
-                wide[n] = rng.random(m) < c.explore * (1.0 - frac)
-                turn[n, wide[n]] = rng.uniform(-1, 1, int(wide[n].sum()))
+        u, z = self.draws(5, 6)
         best = self.best(i)
-        x = np.take_along_axis(self.x[i], idx[..., None], axis=1)
+        x = np.take_along_axis(self.x[i], self.resample(self.w[i], u[:, 0])[..., None], axis=1)
         model = PARTS_2D[i].length * h[:, None]
-        x[..., :2] += (lerp(c.step_position) * h)[:, None, None] * z_pos
-        x[..., 2] += np.deg2rad(lerp(c.step_angle_deg) * z_ang)
-        length = np.clip(x[..., 3] + (lerp(c.step_length) * model) * z_len,
+        x[..., :2] += (lerp(c.step_position) * h)[:, None, None] * z[:, 0:2].transpose(0, 2, 1)
+        x[..., 2] += np.deg2rad(lerp(c.step_angle_deg) * z[:, 2])
+        length = np.clip(x[..., 3] + (lerp(c.step_length) * model) * z[:, 3],
                          c.length_range[0] * model, c.length_range[1] * model)
-        if not child:  # the torso moves as a whole: its shape is the start's (see module docstring)
+        if i == 0:  # the torso moves as a whole: its shape is the start's (see module docstring)
             x[..., 4:8] *= (length / x[..., 3])[..., None]
         x[..., 3] = length
-        if child:  # half of a child's particles start at its parent's attachment point
+        if i > 0:  # half of a child's particles start at its parent's attachment point
+            parent = _INDEX[PARTS_2D[i].parent]
+            pick = self.resample(self.w[parent], u[:, 1])
             anchor = _attach(parent, i, np.take_along_axis(self.x[parent], pick[..., None], axis=1))
-            x[..., :2] = np.where(half[..., None], anchor + self.joint_sigma[:, None, None] * z_att, x[..., :2])
-            # annealed global moves: a fresh angle near the current best
-            x[..., 2] = np.where(wide, best[:, None, 2] + np.deg2rad(turn * c.explore_deg), x[..., 2])
+            half = (u[:, 2] < 0.5)[..., None]
+            x[..., :2] = np.where(half, anchor + self.joint_sigma[:, None, None] * z[:, 4:6].transpose(0, 2, 1),
+                                  x[..., :2])
+            # annealed global moves: a fresh angle within explore_deg of the current best
+            wide = u[:, 3] < c.explore * (1.0 - frac)
+            turn = (2.0 * u[:, 4] - 1.0) * c.explore_deg
+            x[..., 2] = np.where(wide, best[:, None, 2] + np.deg2rad(turn), x[..., 2])
         x[:, 0] = best  # keep the current best
         return x
 
@@ -386,28 +386,36 @@ class SilhouetteView:
 
     One or several silhouettes (a batch: one frame's cameras), packed in one
     flat buffer so that every candidate of every silhouette is scored in the
-    same array operations. Keeps each part's current best drawn (OpenCV
-    capsules) so that part *i* is scored against the pixels the other parts
-    leave unexplained: ``G = 0`` where another part is drawn, ``+1`` on the
-    silhouette, ``-1`` off it. A count of the parts drawn on each pixel makes
-    "another part" one comparison at the candidates' points, with no
-    image-sized work per call.
+    same array operations; each image has a border of one pixel of ``-1``
+    with nothing drawn, onto which every point off the image is clipped.
+    Keeps each part's current best drawn (OpenCV capsules) so that part *i*
+    is scored against the pixels the other parts leave unexplained: ``G = 0``
+    where another part is drawn, ``+1`` on the silhouette, ``-1`` off it. A
+    count of the parts drawn on each pixel makes "another part" one
+    comparison at the candidates' points, with no image-sized work per call.
     """
 
     def __init__(self, silhouettes: list[np.ndarray], heights: np.ndarray, states: list[np.ndarray]) -> None:
         self.shapes = np.array([s.shape for s in silhouettes], np.int64).reshape(-1, 2)  # (B, 2): rows, columns
-        sizes = self.shapes.prod(axis=1)
+        padded = self.shapes + 2
+        sizes = padded.prod(axis=1)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        self.base = np.concatenate([_observation(s).ravel() for s in silhouettes])
+        self.base = np.concatenate([np.pad(np.where(s > 0, 1, -1).astype(np.int8), 1, constant_values=-1).ravel()
+                                    for s in silhouettes])
         self.height = np.asarray(heights, float).reshape(len(silhouettes))
         self.drawn = [np.zeros(int(sizes.sum()), np.uint8) for _ in PARTS_2D]
+        # pixel (row, col) of image b, -1 <= row <= rows, -1 <= col <= cols, is origin + row * stride + col
+        self._rows, self._cols = (self.shapes[:, k, None, None] for k in (0, 1))
+        self._stride = self._cols + 2
+        self._origin = self.offsets[:, None, None] + self._stride + 1
         for i, x in enumerate(states):
             self._draw(i, x)
         self.count = np.sum(self.drawn, axis=0, dtype=np.uint8)  # parts drawn on each pixel
 
-    def _image(self, flat: np.ndarray, b: int) -> np.ndarray:
-        (h, w), o = self.shapes[b], self.offsets[b]
-        return flat[o:o + h * w].reshape(h, w)
+    def _image(self, flat: np.ndarray, b: int, border: bool = False) -> np.ndarray:
+        (h, w), o = self.shapes[b] + 2, self.offsets[b]
+        image = flat[o:o + h * w].reshape(h, w)
+        return image if border else image[1:-1, 1:-1]
 
     def _draw(self, i: int, x: np.ndarray) -> None:
         for b in range(len(self.height)):
@@ -417,14 +425,11 @@ class SilhouetteView:
         """``log phi_i`` of candidate states ``x`` (B, M, D) of part ``i``, in units of height^2:
         the mean of ``G`` at each candidate's points times its area; off the image ``-1``."""
         pts, area = _sample_points(i, x, self.height[:, None])
-        h, w = self.shapes[:, 0, None, None], self.shapes[:, 1, None, None]
         ij = np.round(pts).astype(np.int64)
-        inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
-        flat = (self.offsets[:, None, None] + np.minimum(np.maximum(ij[..., 1], 0), h - 1) * w
-                + np.minimum(np.maximum(ij[..., 0], 0), w - 1))
-        others = self.count[flat] > self.drawn[i][flat]  # X_-i^(n-1) explains these
-        vals = np.where(inside, np.where(others, 0.0, self.base[flat]), -1.0)
-        return vals.mean(axis=-1) * area / self.height[:, None] ** 2
+        flat = (self._origin + np.clip(ij[..., 1], -1, self._rows) * self._stride
+                + np.clip(ij[..., 0], -1, self._cols))
+        g = self.base[flat] * (self.count[flat] <= self.drawn[i][flat])  # X_-i^(n-1) explains the others
+        return g.sum(axis=-1) / g.shape[-1] * area / self.height[:, None] ** 2
 
     def redraw(self, i: int, x: np.ndarray) -> None:
         """Record part ``i``'s new estimate ``x`` (B, D) for the other parts' observations."""
@@ -437,8 +442,8 @@ class SilhouetteView:
         """Per silhouette (B,): sum of ``G`` over the whole drawn body / silhouette area (1 = perfect)."""
         out = np.empty(len(self.height))
         for b in range(len(out)):
-            body, base = self._image(self.count, b) > 0, self._image(self.base, b)
-            out[b] = (np.where(body, base, 0.0).sum() - (base > 0)[~body].sum()) / max(1, (base > 0).sum())
+            body, on = self._image(self.count, b) > 0, self._image(self.base, b) > 0
+            out[b] = (on[body].sum() - (~on)[body].sum() - on[~body].sum()) / max(1, on.sum())
         return out
 
 
@@ -548,7 +553,7 @@ def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: np.ndarray,
 
 
 def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np.ndarray], starts: list[np.ndarray],
-                      *, config: MNBPConfig = MNBPConfig(), carry: float = 0.5,
+                      *, config: MNBPConfig = MNBPConfig(), carry: float = 0.5, chain: int | None = 15,
                       seeds: list[int] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """2D postures over several cameras' frames, in full-frame pixels.
 
@@ -558,10 +563,15 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
     Each frame starts from its own start plus ``carry`` x the previous
     frame's correction (its posture minus its start): the previous posture
     carries over relative to the model, which moves with the walker, so the
-    walker's travel between frames does not drag it back. Cameras are
-    independent: the frames of one instant are solved as one batch
-    (:func:`estimate_postures2d`), camera *c*'s frame *t* with seed
-    ``seeds[c] + t`` (default ``config.seed + t`` for every camera).
+    walker's travel between frames does not drag it back.
+
+    A camera's frames are cut into chains of about ``chain`` consecutive
+    frames (equal lengths; ``None``: one chain) along which the correction
+    carries; a chain's first frame starts from its model placement alone.
+    Chains and cameras are independent, so one step of every chain is solved
+    as one batch (:func:`estimate_postures2d`); camera *c*'s frame *t* draws
+    from seed ``seeds[c] + t`` (default ``config.seed + t``), so a frame's
+    posture does not depend on the other cameras.
     Returns per camera joints (T, 13, 2), NaN where no silhouette, and scores (T,).
     """
     n_cams = len(silhouettes)
@@ -570,33 +580,42 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
     boxes = [np.asarray(b, float) for b in boxes]
     out = [np.full((len(s), N_JOINTS, 2), np.nan) for s in silhouettes]
     scores = [np.full(len(s), np.nan) for s in silhouettes]
-    correction = np.zeros((n_cams, N_JOINTS, 2))
-    for t in range(max((len(s) for s in silhouettes), default=0)):
+    lanes = []  # (camera, its frames in order)
+    for c, sils in enumerate(silhouettes):
+        n = len(sils)
+        for frames in np.array_split(np.arange(n), max(1, -(-n // chain)) if chain else 1):
+            if len(frames):
+                lanes.append((c, frames))
+    correction = np.zeros((len(lanes), N_JOINTS, 2))
+    for step in range(max((len(f) for _, f in lanes), default=0)):
         active = []
-        for c in range(n_cams):
-            ok = (t < len(silhouettes[c]) and silhouettes[c][t] is not None and np.all(np.isfinite(starts[c][t]))
-                  and np.all(np.isfinite(boxes[c][t])))
-            if ok:
-                active.append(c)
+        for k, (c, frames) in enumerate(lanes):
+            t = frames[step] if step < len(frames) else None
+            if (t is not None and silhouettes[c][t] is not None and np.all(np.isfinite(starts[c][t]))
+                    and np.all(np.isfinite(boxes[c][t]))):
+                active.append((k, c, t))
             else:
-                correction[c] = 0.0
+                correction[k] = 0.0
         if not active:
             continue
-        origin = np.stack([boxes[c][t, :2] for c in active])[:, None]
-        model = np.stack([starts[c][t] for c in active])
-        posts = estimate_postures2d([silhouettes[c][t] for c in active], model + carry * correction[active] - origin,
-                                    priors=model - origin, seeds=[seeds[c] + t for c in active], config=config)
-        for c, post, o, m in zip(active, posts, origin, model):
+        ks = [k for k, _, _ in active]
+        origin = np.stack([boxes[c][t, :2] for _, c, t in active])[:, None]
+        model = np.stack([starts[c][t] for _, c, t in active])
+        posts = estimate_postures2d([silhouettes[c][t] for _, c, t in active],
+                                    model + carry * correction[ks] - origin, priors=model - origin,
+                                    seeds=[seeds[c] + t for _, c, t in active], config=config)
+        for (k, c, t), post, o, m in zip(active, posts, origin, model):
             out[c][t], scores[c][t] = post.joints + o, post.score
-            correction[c] = out[c][t] - m
+            correction[k] = out[c][t] - m
     return out, scores
 
 
 def posture_sequence(silhouettes: list[np.ndarray | None], boxes: np.ndarray, starts: np.ndarray, *,
-                     config: MNBPConfig = MNBPConfig(), carry: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+                     config: MNBPConfig = MNBPConfig(), carry: float = 0.5,
+                     chain: int | None = 15) -> tuple[np.ndarray, np.ndarray]:
     """2D postures over one camera's frames, in full-frame pixels (:func:`posture_sequences`
     for one camera). Returns joints (T, 13, 2), NaN where no silhouette, and scores (T,)."""
-    joints, scores = posture_sequences([silhouettes], [boxes], [starts], config=config, carry=carry)
+    joints, scores = posture_sequences([silhouettes], [boxes], [starts], config=config, carry=carry, chain=chain)
     return joints[0], scores[0]
 
 

@@ -30,7 +30,7 @@ from .camera import world_to_camera_rotation
 from .gait import load_gait
 from ._selfcal_core import geodesic_deg
 from .joints import JOINT_INDEX, N_JOINTS
-from .mnbp import MNBPConfig, measure_postures, posture_sequence
+from .mnbp import MNBPConfig, measure_postures, posture_sequences
 from .mnbp3d import MNBP3DConfig, posture_sequence3d
 from .pipeline import WalkEstimate, concat_estimates, take_frames
 from .perspective import PerspectiveConfig, PerspectiveRig, perspective_refine
@@ -526,6 +526,7 @@ class RigAccumulator:
     posture: MNBPConfig = field(default_factory=MNBPConfig)
     frames_per_window: int = 2
     _parts: list[WalkEstimate] = field(default_factory=list, repr=False)
+    _indices: list[np.ndarray] = field(default_factory=list, repr=False)  # each part's frame indices
     _last_index: int = -1
     windows: int = 0
 
@@ -537,10 +538,12 @@ class RigAccumulator:
             return 0
         pick = np.unique(new[np.linspace(0, len(new) - 1, min(self.frames_per_window, len(new))).round().astype(int)])
         self._parts.append(measure_postures(take_frames(estimate, pick), self.posture))
+        self._indices.append(first_index + pick)
         self._last_index = first_index + n - 1
         self.windows += 1
         while self.n_frames - len(self._parts[0].phase) >= self.config.max_frames:
             self._parts.pop(0)
+            self._indices.pop(0)
         return len(pick)
 
     @property
@@ -548,15 +551,31 @@ class RigAccumulator:
         """Frames with measured postures kept."""
         return sum(len(p.phase) for p in self._parts)
 
+    @property
+    def frame_indices(self) -> np.ndarray:
+        """The frame index of each frame kept, in the order :meth:`calibrate` sees them."""
+        return np.concatenate(self._indices) if self._indices else np.zeros(0, int)
+
     def calibrate(self) -> Rig:
         """The rig over the frames kept (the viewpoints' rig, with a note, while they are too few)."""
         if not self._parts:
             raise ValueError("no window added yet")
         return calibrate_rig(concat_estimates(self._parts), replace(self.config, consecutive=False))
 
+    def newest_posture(self, rig: Rig) -> tuple[int, np.ndarray] | None:
+        """The newest frame of :meth:`calibrate`'s ``rig`` with the whole person's posture: its
+        frame index and joints (13, 3) (person frame, metres); None when there is none."""
+        if rig.joints3d is None:
+            return None
+        whole = np.flatnonzero(np.isfinite(rig.joints3d).all(axis=(1, 2)))
+        if not len(whole):
+            return None
+        return int(self.frame_indices[whole[-1]]), np.asarray(rig.joints3d[whole[-1]], float)
+
     def reset(self) -> None:
         """Forget every frame (a camera moved: the rig is another one)."""
         self._parts.clear()
+        self._indices.clear()
         self._last_index, self.windows = -1, 0
 
 
@@ -586,9 +605,8 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
                                          config=config.round3d, seed=1000 * r)
         tracks = project(cams, joints3d)
         if config.polish is not None:
-            tracks = np.stack([posture_sequence(sils[c], boxes[c], tracks[c], carry=0.0,
-                                                config=replace(config.polish, seed=1000 * r + 100 * c))[0]
-                               for c in range(len(names))])
+            tracks = np.stack(posture_sequences(sils, list(boxes), list(tracks), carry=0.0, config=config.polish,
+                                                seeds=[1000 * r + 100 * c for c in range(len(names))])[0])
         try:
             new = perspective_refine(tracks, sizes, pinhole.rotations, pinhole.scales, list(RIGID_LINKS),
                                      config=config.pinhole, initial=replace(pinhole, joints3d=joints3d),

@@ -15,7 +15,8 @@ coordinate spaces, under a prefix per rig (``rigs/<rig>``) or job
     <P>/phase/observed/<cam>              per-camera phase observation (scalar)
     <P>/phase/hmm                         the HMM (Viterbi) path (scalar)
     <P>/world/skeleton                    3D joints (person frame), keypoints + bones
-    <P>/world/person                      the person's posture (self-calibrated), 1 m to the left
+    <P>/world/person                      the person's posture (self-calibrated), 1 m to the left (jobs: every
+                                          frame; live rigs: the newest frame of each calibration)
     <P>/world/cameras/<cam>               estimated camera: Transform3D + Pinhole
     <P>/world/cameras/<cam>/box           silhouette box in that camera's image
     <P>/world/cameras/<cam>/joints        2D joints in that camera's image
@@ -137,10 +138,8 @@ class RerunLog:
             s.log(f"{p}/world/skeleton", rr.Points3D(
                 b.joints3d[t], class_ids=_WALKER, keypoint_ids=np.arange(len(JOINT_NAMES)), radii=0.03))
             person = b.extra.get("person")
-            ok = np.isfinite(person[t]).all(axis=1) if person is not None else np.zeros(0, bool)
-            if ok.any():
-                s.log(f"{p}/world/person", rr.Points3D(
-                    person[t][ok] + PERSON_OFFSET_M, class_ids=_WALKER, keypoint_ids=np.flatnonzero(ok), radii=0.03))
+            if person is not None:
+                self._log_person(p, person[t])
             for cam, views in b.extra.get("feedback", {}).items():
                 if t < len(views) and views[t] is not None:
                     for name, img in zip(("raw", "prior", "refined"), views[t]):
@@ -171,11 +170,23 @@ class RerunLog:
 
     def log_rig(self, prefix: str, index: int, rig: dict, reference_viewpoint: tuple[float, float]) -> None:
         """A live rig's calibrated pinhole cameras (``worker.rig_arrays``) at frame ``index``, placed
-        through the reference camera's latest viewpoint ``(azimuth, elevation)``."""
+        through the reference camera's latest viewpoint ``(azimuth, elevation)``, and the person's
+        newest posture (``rig["person"]``: frame index, joints) at its own frame."""
         with self._lock:
             self._setup(prefix)
             self.stream.set_time(TIMELINE, sequence=int(index))
             self._log_rig(prefix, rig, *reference_viewpoint)
+            if rig.get("person") is not None:
+                frame, joints = rig["person"]
+                self.stream.set_time(TIMELINE, sequence=int(frame))
+                self._log_person(prefix, np.asarray(joints, float))
+
+    def _log_person(self, p: str, joints: np.ndarray) -> None:
+        """The person's posture (13, 3), its joints that are known, 1 m beside the model's skeleton."""
+        ok = np.isfinite(joints).all(axis=1)
+        if ok.any():
+            self.stream.log(f"{p}/world/person", rr.Points3D(
+                joints[ok] + PERSON_OFFSET_M, class_ids=_WALKER, keypoint_ids=np.flatnonzero(ok), radii=0.03))
 
     def _log_rig(self, p: str, rig: dict, az: float, el: float) -> None:
         """The calibrated pinhole cameras, placed in the person frame through the reference

@@ -325,6 +325,15 @@ class LiveEstimate(_ResultBase):
     published_ns: int
 
 
+class LivePerson(BaseModel):
+    """The person's posture at the newest frame of a live rig's calibration."""
+
+    frame_index: int = Field(description="the frame it belongs to (the rig lags the viewpoints by lag_windows)")
+    joints3d: list[list[float]] = Field(
+        description="13 joints (DESIGN order) x (x, y, z): person frame (x walking direction, y left, z up), "
+                    "metres at the rig's stature, centred on the joints' centroid")
+
+
 class LiveCalibration(BaseModel):
     """A live rig's calibration (``GET /v1/rigs/{rig}/calibration``)."""
 
@@ -339,6 +348,8 @@ class LiveCalibration(BaseModel):
     updated_ns: int
     calibration: RigResult = Field(description="the rig, as a batch result's rig")
     body: Body | None
+    person: LivePerson | None = Field(None, description="the person's posture at the newest frame with "
+                                                        "all 13 joints; null while the rig is the viewpoints'")
     notes: list[str]
 
 

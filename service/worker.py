@@ -415,16 +415,21 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
 def update_rig(acc: RigAccumulator, est: WalkEstimate, first_index: int, calibrate: bool
                ) -> tuple[RigAccumulator, dict | None, dict | None]:
     """Add a live window's postures to a rig's accumulator and, if asked, calibrate it (in a
-    worker): ``(accumulator, calibration or None, pinhole cameras for Rerun or None)``; the
-    accumulator travels to the worker and back, so that the service process holds the state and
-    the worker none."""
+    worker): ``(accumulator, calibration or None, pinhole cameras for Rerun or None)``, the latter
+    two with the newest frame's posture of the person (``person``); the accumulator travels to the
+    worker and back, so that the service process holds the state and the worker none."""
     acc.add(est, first_index)
     if not calibrate:
         return acc, None, None
     rig = acc.calibrate()
+    newest = acc.newest_posture(rig)
+    person = None if newest is None else {"frame_index": newest[0], "joints3d": np.round(newest[1], 4).tolist()}
+    arrays = rig_arrays(rig)
+    if arrays is not None and newest is not None:
+        arrays["person"] = newest
     return acc, json_safe({"source": rig.source, "frames": acc.n_frames, "windows": acc.windows,
-                           "calibration": rig.to_dict(), "body": rig.body_dict(), "notes": rig.notes}), \
-        rig_arrays(rig)
+                           "calibration": rig.to_dict(), "body": rig.body_dict(), "person": person,
+                           "notes": rig.notes}), arrays
 
 
 # ---------------------------------------------------------------------------- batch jobs

@@ -11,8 +11,10 @@ from estimator.mnbp import (
     PARTS_2D,
     MNBPConfig,
     estimate_posture2d,
+    estimate_postures2d,
     joints_from_states,
     posture_sequence,
+    posture_sequences,
     states_from_joints,
 )
 from estimator.pipeline import tracks_from_sequence
@@ -169,3 +171,43 @@ def test_cli_estimate_reports_the_measured_posture_and_keeps_the_model_placement
     assert all(len(f["person_joints3d"]) == 13 for f in measured)
     assert results["model"]["rig"]["source"] == "viewpoints" and results["model"]["body"] is None
     assert all("person_joints3d" not in f for f in placed)
+
+
+def test_a_batch_gives_each_silhouette_its_own_answer(walk):
+    """Several silhouettes solved as one batch: each answer is the one it gets alone with its seed,
+    whatever else is in the batch (its own generator, no shared reduction)."""
+    tracks, truth = walk
+    config = MNBPConfig(n_iterations=2)
+    items = [(c, t) for c in ("c0", "c1") for t in (0, 3)]
+    sils = [tracks[c].silhouettes[t] for c, t in items]
+    starts = np.stack([truth[c][t] - tracks[c].boxes[t, :2] + 4.0 for c, t in items])
+    batch = estimate_postures2d(sils, starts, seeds=[10, 11, 12, 13], config=config)
+    for k, post in enumerate(batch):
+        alone = estimate_posture2d(sils[k], starts[k], config=MNBPConfig(n_iterations=2, seed=10 + k))
+        assert np.allclose(post.joints, alone.joints, rtol=0, atol=1e-9)
+        assert post.score == pytest.approx(alone.score, abs=1e-12)
+    # a different seed gives a different sample (the seeds reach the problems)
+    other = estimate_postures2d(sils[:1], starts[:1], seeds=[99], config=config)[0]
+    assert not np.allclose(other.joints, batch[0].joints)
+
+
+def test_cameras_and_chains_do_not_change_a_cameras_postures(walk):
+    """posture_sequences over two cameras = each camera alone; chains cut where the correction stops
+    carrying, so a chain of one frame is the frame solved from its start alone."""
+    tracks, truth = walk
+    config = MNBPConfig(n_iterations=2)
+    names = ("c0", "c1")
+    starts = [truth[c] + 3.0 for c in names]
+    both, scores = posture_sequences([list(tracks[c].silhouettes) for c in names], [tracks[c].boxes for c in names],
+                                     starts, config=config, chain=3, seeds=[0, 1000])
+    for k, c in enumerate(names):
+        alone, s = posture_sequences([list(tracks[c].silhouettes)], [tracks[c].boxes], [starts[k]], config=config,
+                                     chain=3, seeds=[1000 * k])
+        assert np.allclose(both[k], alone[0], rtol=0, atol=1e-9) and np.allclose(scores[k], s[0])
+    # chain=1: no carry at all, the same as carry=0 over one chain
+    a, _ = posture_sequence(list(tracks["c0"].silhouettes), tracks["c0"].boxes, starts[0], config=config, chain=1)
+    b, _ = posture_sequence(list(tracks["c0"].silhouettes), tracks["c0"].boxes, starts[0], config=config,
+                            chain=None, carry=0.0)
+    c, _ = posture_sequence(list(tracks["c0"].silhouettes), tracks["c0"].boxes, starts[0], config=config, chain=None)
+    assert np.allclose(a, b, rtol=0, atol=1e-9)
+    assert not np.allclose(a[1:], c[1:])  # the carry does change the later frames

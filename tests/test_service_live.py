@@ -298,7 +298,8 @@ def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, r
 def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, rendered):
     """GET /v1/rigs/{rig}/calibration: the rig from the mNBP postures of 6 frames per window,
     recalibrated after every window, in its own low-priority process; the viewpoints go on. Its
-    pinhole cameras are logged to Rerun (the frusta beside the viewpoints' cameras)."""
+    pinhole cameras are logged to Rerun (the frusta beside the viewpoints' cameras), and so is the
+    person's newest posture, which the calibration answers too."""
     from rerun.chunk import RrdReader
 
     from estimator._selfcal_core import geodesic_deg
@@ -328,9 +329,16 @@ def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, ren
     assert cal["body"]["stature_m"] == 1.75
     assert "posecal_live_rig_seconds_count" in metrics
     assert cal["calibration"]["cameras"]["c1"]["focal_px"] > 0  # pinhole cameras, hence frusta
+    # the person's newest posture: 13 joints in the person frame, metres, standing upright
+    person = np.array(cal["person"]["joints3d"])
+    assert person.shape == (13, 3) and np.isfinite(person).all()
+    assert cal["person"]["frame_index"] <= cal["last_index"]
+    assert 1.2 < person[:, 2].max() - person[:, 2].min() < 2.0, person  # head over ankles, at 1.75 m
+    assert abs(person[:, 2].mean()) < 0.3  # centred on the joints' centroid
     paths = {c.entity_path.lstrip("/") for c in RrdReader(rrd).stream()}
     for cam in ("c0", "c1"):
         assert f"rigs/{RIG}/world/rig/{cam}" in paths, sorted(p for p in paths if "/world/" in p)
+    assert f"rigs/{RIG}/world/person" in paths  # beside the model's skeleton
 
 
 def test_window_results_are_kept_in_window_order():
