@@ -109,6 +109,7 @@ class MNBPConfig:
     joint_sigma: tuple[float, float] = (0.08, 0.015)  # first / last iteration
     prior_sigma: float = 0.12
     torso_prior_sigma: float = 0.003  # see _prior_energy
+    along_sigma: float | None = None  # e.g. 0.02: limbs held along their start's axis (see _prior_energy)
     step_position: tuple[float, float] = (0.03, 0.006)
     step_angle_deg: tuple[float, float] = (20.0, 4.0)
     step_length: tuple[float, float] = (0.12, 0.03)  # fraction of the part's model length
@@ -541,6 +542,15 @@ def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: np.ndarray,
     (measured, ``bench/eval_mnbp.py``: letting it move within 1 % of the
     height made shoulders and hips 0.02-0.03 worse in median error than the
     model placement, 0.6 % better with it held within 0.3 %).
+
+    With ``along_sigma``, a limb's (and the head's) distal end is also held
+    at its start's distance from the start's proximal point: a silhouette
+    places a limb well across its axis and poorly along it (a tube does not
+    show where the knee is), the model's placement the reverse. Measured
+    (docs/POSTURE.md, "Along the limbs"): with 0.02, 2D joints 12-14 % and 3D
+    postures 6-9 % nearer the truth, but the rig's rotations 0.3-1.0 deg
+    worse in median (the prior pulls every view's joints towards the model
+    placed at the viewpoints' rig), so it is off by default.
     """
     sigma2 = ((c.torso_prior_sigma if i == 0 else c.prior_sigma) * np.asarray(height, float)[:, None]) ** 2
     centre = centre[:, None]
@@ -549,7 +559,11 @@ def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: np.ndarray,
         d = sum(((t[k] - t0[k]) ** 2).sum(-1) for k in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"))
         return 0.5 * d / 4 / sigma2
     d = ((_limb_end(x) - _limb_end(centre)) ** 2).sum(-1) + ((x[..., :2] - centre[..., :2]) ** 2).sum(-1)
-    return 0.5 * d / 2 / sigma2
+    energy = 0.5 * d / 2 / sigma2
+    if c.along_sigma is not None:  # the distal end's distance from the start's proximal point
+        along = np.linalg.norm(_limb_end(x) - centre[..., :2], axis=-1) - centre[..., 3]
+        energy = energy + 0.5 * (along / (c.along_sigma * np.asarray(height, float)[:, None])) ** 2
+    return energy
 
 
 def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np.ndarray], starts: list[np.ndarray],

@@ -515,7 +515,7 @@ class RigAccumulator:
     the walker; the cameras themselves are fixed for much longer, and the
     self-calibration wants more frames than a window has. Each window adds
     the mNBP postures of at most ``frames_per_window`` of its frames not seen
-    before (evenly spread: mNBP costs about 60 ms per frame and camera, so a
+    before (evenly spread: mNBP costs about 30 ms per frame and camera, so a
     window's worth would not keep up with live rates); :meth:`calibrate` runs
     :func:`calibrate_rig` on the last ``config.max_frames`` of them joined in
     time (:func:`estimator.pipeline.concat_estimates`). :meth:`reset` when a

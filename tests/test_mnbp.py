@@ -211,3 +211,23 @@ def test_cameras_and_chains_do_not_change_a_cameras_postures(walk):
     c, _ = posture_sequence(list(tracks["c0"].silhouettes), tracks["c0"].boxes, starts[0], config=config, chain=None)
     assert np.allclose(a, b, rtol=0, atol=1e-9)
     assert not np.allclose(a[1:], c[1:])  # the carry does change the later frames
+
+
+def test_the_along_prior_holds_a_limb_end_at_its_distance_not_its_direction():
+    """MNBPConfig.along_sigma: a distal end slid along the limb costs much more than with the
+    isotropic prior alone; the limb turned about its proximal end costs nothing more."""
+    from estimator.mnbp import _prior_energy
+
+    h = np.array([200.0])
+    start = states_from_joints(_standing(20.0), 200.0)
+    k = next(i for i, p in enumerate(PARTS_2D) if p.name == "left_forearm")
+    centre = start[k][None]
+    slid, turned = centre.copy(), centre.copy()
+    slid[0, 3] += 0.04 * 200.0  # 8 px longer: the wrist slides along the forearm
+    turned[0, 2] += np.deg2rad(30.0)  # the same length, turned about the elbow
+    cands = np.stack([centre, slid, turned], axis=1)  # (1, 3, D)
+    plain = _prior_energy(k, cands, centre, h, MNBPConfig())[0]
+    along = _prior_energy(k, cands, centre, h, MNBPConfig(along_sigma=0.02))[0]
+    assert plain[0] == along[0] == 0.0
+    assert along[1] - plain[1] > 1.5  # (0.04 / 0.02)^2 / 2 = 2
+    assert along[2] == pytest.approx(plain[2], abs=1e-9)
