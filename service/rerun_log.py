@@ -195,8 +195,9 @@ class RerunLog:
             return
         r0 = world_to_camera_rotation(az, el)  # person frame -> reference camera
         for k, cam in enumerate(rig["cameras"]):
-            if not np.all(np.isfinite(rig["rotations"][k])):
-                continue  # left out of the rig
+            if not np.all(np.isfinite(rig["rotations"][k])):  # left out of the rig: no stale frustum
+                self.stream.log(f"{p}/world/rig/{cam}", rr.Clear(recursive=True))
+                continue
             r = rig["rotations"][k] @ r0
             size = rig["image_sizes"][k] if np.all(np.isfinite(rig["image_sizes"][k])) else (640, 480)
             self.stream.log(f"{p}/world/rig/{cam}", rr.Transform3D(

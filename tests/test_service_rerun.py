@@ -79,3 +79,28 @@ def test_rrd_holds_every_stage_of_live_windows_and_jobs(tmp_path: Path):
         for layer in ("raw", "prior", "refined"):
             assert f"jobs/{job['id']}/feedback/{cam}/{layer}" in paths
     assert any(p == "" or p == "/" for p in {c.entity_path for c in chunks if c.is_static})  # the AnnotationContext
+
+
+def test_a_camera_left_out_of_a_live_rig_loses_its_frustum(tmp_path: Path):
+    """A live rig recalibrated without a camera clears that camera's pinhole in Rerun (no stale
+    frustum from an older calibration); the cameras still in the rig are drawn again, and the
+    person's newest posture is drawn at its own frame."""
+    from service.rerun_log import RerunLog
+
+    rrd = tmp_path / "rig.rrd"
+    log = RerunLog(("save", str(rrd)))
+    rig = {"cameras": ["c0", "c1"], "reference": "c0", "rotations": np.stack([np.eye(3)] * 2),
+           "centres_m": np.array([[0.0, 0, 0], [4.0, 0, 0]]), "focal_px": np.array([800.0, 800.0]),
+           "walker_m": np.array([0.0, 0, 6]), "image_sizes": np.array([[640.0, 480], [640, 480]])}
+    log.log_rig("rigs/r", 10, rig, (90.0, 10.0))
+    without_c1 = {**rig, "rotations": np.stack([np.eye(3), np.full((3, 3), np.nan)]),
+                  "person": (17, np.zeros((13, 3)))}
+    log.log_rig("rigs/r", 20, without_c1, (90.0, 10.0))
+    log.close()
+    fields = {}
+    for chunk in RrdReader(rrd).stream():
+        fields.setdefault(chunk.entity_path.lstrip("/"), set()).update(chunk.to_record_batch().schema.names)
+    assert any(f.startswith("Pinhole:") for f in fields["rigs/r/world/rig/c1"])  # drawn at first
+    assert "Clear:is_recursive" in fields["rigs/r/world/rig/c1"]  # then cleared
+    assert "Clear:is_recursive" not in fields["rigs/r/world/rig/c0"]
+    assert "Points3D:positions" in fields["rigs/r/world/person"]
