@@ -25,7 +25,14 @@ rig's 3D posture against the truth: per frame after a similarity alignment
 stature; the model's posture (``joints3d`` of the gait model at the decoded
 phase) the same way. Segment lengths relative to stature against the truth's.
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_rig_from_silhouettes.py [--sequences 12]
+``--damage KIND`` (a kind of :mod:`estimator.damage`: ``salt``, ``blobs``,
+``holes``, ``cut_limb``, ``shadow``, ``second_person``, kinds joined by ``+``,
+or ``all``) damages every camera's silhouettes as ``bench/eval_damage.py``
+does before anything else runs (the same walks and cameras as without it):
+the whole path (clean-up, viewpoints, mNBP, the rig) then works on them. The
+rows on the renders' exact joints are the same with or without damage.
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_rig_from_silhouettes.py [--sequences 12] [--damage all]
 """
 
 from __future__ import annotations
@@ -45,9 +52,11 @@ from tqdm import tqdm  # noqa: E402
 from eval_mnbp import MOCAP, body  # noqa: E402
 from estimator.gait import GaitStyle  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
+from estimator.damage import damage_sequence, parse_damage  # noqa: E402
 from estimator.mnbp import measure_postures  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
+from estimator.sequence import Sequence  # noqa: E402
 from estimator.perspective import perspective_refine  # noqa: E402
 from estimator.rig import (RigConfig, aligned_error, calibrate_rig, rotations_from_viewpoints,  # noqa: E402
                            segment_lengths, viewpoint_rotations)
@@ -65,7 +74,10 @@ def main() -> None:
     parser.add_argument("--gait", choices=("cmu", "stylised"), default="cmu",
                         help="the CMU walks (default) or the model's gait stylised (arm swing x1.8, "
                              "short steps, high knees), on random bodies either way")
+    parser.add_argument("--damage", help="damage every silhouette first (estimator.damage kinds, e.g. all)")
     args = parser.parse_args()
+    if args.damage:
+        parse_damage(args.damage)  # an unknown kind stops here, before the model loads
     from service.cli.model import get_default_model
 
     model = get_default_model(progress=True)
@@ -76,11 +88,19 @@ def main() -> None:
                                       "true 2D joints: + pinhole": []}
     failed = {k: 0 for k in errors}
     worse, e3d, e3d_two, e3d_model, seg_err, sources = [], [], [], [], [], []
+    lost = 0
     for i in tqdm(range(args.sequences), desc="sequences"):
         spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=30, seed=1000 * args.seed + i, shape=body(rng),
                          style=STYLISED if args.gait == "stylised" else None)
         seq = synthesize(spec, motion=motions[i % 2] if args.gait == "cmu" else None)
-        est = estimate_walk(tracks_from_sequence(seq), model)
+        if args.damage:
+            seq = Sequence(seq.fps, seq.cameras, seq.image_size,
+                           damage_sequence(seq.silhouettes, args.damage, seed=spec.seed, truth=seq.truth), seq.truth)
+        try:
+            est = estimate_walk(tracks_from_sequence(seq), model)
+        except ValueError:  # nothing left of the walker in some camera: the walk fails as a whole
+            lost += 1
+            continue
         measured = measure_postures(est)
         cams = seq.cameras
         truth = list(rotations_from_viewpoints([(seq.truth["cameras"][c]["azimuth_deg"],
@@ -117,7 +137,9 @@ def main() -> None:
         if two.joints3d is not None:
             e3d_two += list(aligned_error(two.joints3d, true3d) / stature)
         e3d_model += list(aligned_error(est.joints3d, true3d) / stature)
-    print(f"\n{args.sequences} walks, {len(errors['viewpoints'])} camera pairs\n")
+    damaged = f", silhouettes damaged by {args.damage}" if args.damage else ""
+    print(f"\n{args.sequences} walks{damaged}, {len(errors['viewpoints'])} camera pairs"
+          f"{f'; {lost} walks not estimated at all' if lost else ''}\n")
     print("| rotations from | median | p90 | max | failed walks |\n|---|---|---|---|---|")
     for name, e in errors.items():
         print(f"| {name} | {np.median(e):.2f} | {np.percentile(e, 90):.2f} | {np.max(e):.2f} | {failed[name]} |")
