@@ -38,7 +38,7 @@ from .mnbp import (_ATTACH, _INDEX, PARTS_2D, MNBPConfig, SilhouetteView, _Belie
                    limb_state, part_points, torso_state)
 
 __all__ = ["MNBP3DConfig", "Posture3D", "estimate_posture3d", "joints_from_states3d", "part_lengths",
-           "posture_sequence3d", "states_from_joints3d"]
+           "posture_sequence3d", "postures3d", "states_from_joints3d"]
 
 _J = JOINT_INDEX
 _TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
@@ -86,11 +86,12 @@ def joints_from_states3d(states: list[np.ndarray]) -> np.ndarray:
 
 
 class _Beliefs3D(_Beliefs):
-    """Particles of 3D part states; messages as in 2D (the base class), 3D proposals."""
+    """Particles of 3D part states for a batch of frames; messages as in 2D (the base class),
+    3D proposals."""
 
     def __init__(self, start: list[np.ndarray], stature: float, lengths: np.ndarray, config: MNBP3DConfig,
-                 rng: np.random.Generator) -> None:
-        super().__init__(start, np.array([stature]), config.mnbp, [rng])
+                 rngs: list[np.random.Generator]) -> None:
+        super().__init__(start, np.full(len(rngs), stature), config.mnbp, rngs)
         self.lengths, self.config3d = lengths, config
 
     @staticmethod
@@ -108,58 +109,54 @@ class _Beliefs3D(_Beliefs):
         return x[..., :3]
 
     def propose(self, i: int, frac: float) -> np.ndarray:
-        """Resample part ``i``'s belief and perturb it in 3D (annealed by ``frac`` in [0, 1]).
-
-        One problem (a batch of one: the frame's 3D posture), shape (1, M, D)."""
-        c, m, h, rng = self.config, self.config.n_particles, self.height[0], self.rngs[0]
+        """Resample part ``i``'s belief and perturb it in 3D (annealed by ``frac`` in [0, 1])."""
+        c, h = self.config, self.height[:, None, None]
         lerp = lambda a: a[0] + (a[1] - a[0]) * frac  # noqa: E731
-        x = self.x[i][0][rng.choice(m, size=m, p=self.w[i][0])]
+        u, z = self.draws(5, 13)
+        b, m = u.shape[0], u.shape[2]
+        normal = lambda k: z[:, k:k + 3].transpose(0, 2, 1)  # noqa: E731 - three rows as (B, M, 3)
+        best = self.best(i)
+        x = np.take_along_axis(self.x[i], self.resample(self.w[i], u[:, 0])[..., None], axis=1)
         if i == 0:  # rigid: a small rotation about the centroid and a shift
-            pts = x.reshape(m, 4, 3)
-            centroid = pts.mean(axis=1, keepdims=True)
-            turn = Rotation.from_rotvec(rng.normal(0.0, 0.5 * np.deg2rad(lerp(c.step_angle_deg)), (m, 3))).as_matrix()
-            pts = centroid + np.einsum("mab,mkb->mka", turn, pts - centroid)
-            pts += rng.normal(0.0, lerp(c.step_position) * h, (m, 1, 3))
-            x = pts.reshape(m, 12)
+            pts = x.reshape(b, m, 4, 3)
+            centroid = pts.mean(axis=2, keepdims=True)
+            turn = Rotation.from_rotvec((0.5 * np.deg2rad(lerp(c.step_angle_deg)) * normal(0)).reshape(-1, 3))
+            pts = centroid + np.einsum("nab,nkb->nka", turn.as_matrix(), (pts - centroid).reshape(-1, 4, 3)
+                                       ).reshape(b, m, 4, 3)
+            pts = pts + (lerp(c.step_position) * h * normal(3))[:, :, None]
+            x = pts.reshape(b, m, 12)
         else:
-            prox = x[:, :3] + rng.normal(0.0, lerp(c.step_position) * h, (m, 3))
-            d = x[:, 3:] - x[:, :3]
-            length = np.linalg.norm(d, axis=1)
-            u = d / np.maximum(length, 1e-9)[:, None] + rng.normal(0.0, np.deg2rad(lerp(c.step_angle_deg)), (m, 3))
+            prox = x[..., :3] + lerp(c.step_position) * h * normal(0)
+            d = x[..., 3:] - x[..., :3]
+            length = np.linalg.norm(d, axis=-1)
+            direction = d / np.maximum(length, 1e-9)[..., None] + np.deg2rad(lerp(c.step_angle_deg)) * normal(3)
             own, tol = self.lengths[i], self.config3d.length_tolerance
-            length = np.clip(length + rng.normal(0.0, lerp(c.step_length) * own, m), (1 - tol) * own, (1 + tol) * own)
+            length = np.clip(length + lerp(c.step_length) * own * z[:, 6], (1 - tol) * own, (1 + tol) * own)
             parent = _INDEX[PARTS_2D[i].parent]
-            half = rng.random(m) < 0.5  # half of a child's particles start at its parent's attachment point
-            pick = rng.choice(m, size=int(half.sum()), p=self.w[parent][0])
-            prox[half] = self.attach(parent, i, self.x[parent][0][pick]) + rng.normal(
-                0.0, self.joint_sigma[0], (int(half.sum()), 3))
-            wide = rng.random(m) < c.explore * (1.0 - frac)  # annealed global moves about the best direction
-            if wide.any():
-                best = self.best(i)[0]
-                b = (best[3:] - best[:3]) / max(float(np.linalg.norm(best[3:] - best[:3])), 1e-9)
-                axis = np.cross(b, rng.normal(size=(int(wide.sum()), 3)))
-                axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-9)
-                angle = np.deg2rad(rng.uniform(-1, 1, int(wide.sum())) * c.explore_deg)
-                u[wide] = Rotation.from_rotvec(axis * angle[:, None]).apply(b)
-            u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
-            x = np.concatenate([prox, prox + u * length[:, None]], axis=1)
-        x[0] = self.best(i)[0]  # keep the current best
-        return x[None]
-
-
-def _to_view(i: int, x: np.ndarray, camera: PinholeCameras, origin: np.ndarray, height: float) -> np.ndarray:
-    """3D states ``x`` (M, D) of part ``i`` as 2D states in one ``camera``'s crop at ``origin``."""
-    p = project(camera, x.reshape(len(x), -1, 3))[0] - origin
-    if i == 0:
-        return torso_state(p[:, 0], p[:, 1], p[:, 2], p[:, 3], height)
-    return limb_state(p[:, 0], p[:, 1], height)
+            # half of a child's particles start at its parent's attachment point
+            anchor = self.attach(parent, i, np.take_along_axis(self.x[parent], self.resample(
+                self.w[parent], u[:, 1])[..., None], axis=1)) + self.joint_sigma[:, None, None] * normal(7)
+            prox = np.where((u[:, 2] < 0.5)[..., None], anchor, prox)
+            # annealed global moves: a direction turned about a random axis square to the best's
+            axis0 = best[:, 3:] - best[:, :3]
+            axis0 = axis0 / np.maximum(np.linalg.norm(axis0, axis=-1, keepdims=True), 1e-9)
+            spin = np.cross(axis0[:, None], normal(10))
+            spin /= np.maximum(np.linalg.norm(spin, axis=-1, keepdims=True), 1e-9)
+            angle = np.deg2rad((2.0 * u[:, 4] - 1.0) * c.explore_deg)
+            turned = Rotation.from_rotvec((spin * angle[..., None]).reshape(-1, 3)).apply(
+                np.repeat(axis0, m, axis=0)).reshape(b, m, 3)
+            direction = np.where((u[:, 3] < c.explore * (1.0 - frac))[..., None], turned, direction)
+            direction /= np.maximum(np.linalg.norm(direction, axis=-1, keepdims=True), 1e-9)
+            x = np.concatenate([prox, prox + direction * length[..., None]], axis=-1)
+        x[:, 0] = best  # keep the current best
+        return x
 
 
 def _prior_energy3d(i: int, x: np.ndarray, centre: np.ndarray, stature: float, config: MNBP3DConfig) -> np.ndarray:
-    """Unary prior (..., M) of candidates ``x`` (..., M, D): mean squared distance of the part's
-    points from the start's ``centre`` (D,), over 2 sigma^2."""
+    """Unary prior (B, M) of candidates ``x`` (B, M, D): mean squared distance of the part's
+    points from each frame's start ``centre`` (B, D), over 2 sigma^2."""
     sigma = (config.mnbp.torso_prior_sigma if i == 0 else config.mnbp.prior_sigma) * stature
-    d = ((x - centre).reshape(*x.shape[:-1], -1, 3) ** 2).sum(-1).mean(-1)
+    d = ((x - centre[:, None]).reshape(*x.shape[:-1], -1, 3) ** 2).sum(-1).mean(-1)
     return 0.5 * d / sigma ** 2
 
 
@@ -175,49 +172,77 @@ def part_lengths(joints3d: np.ndarray) -> np.ndarray:
     return out
 
 
-def estimate_posture3d(silhouettes: list[np.ndarray | None], origins: np.ndarray, cameras: PinholeCameras,
-                       start: np.ndarray, *, stature: float, lengths: np.ndarray,
-                       config: MNBP3DConfig = MNBP3DConfig(), seed: int = 0) -> Posture3D:
-    """The 3D posture of one frame from every view's silhouette, started from ``start`` (13, 3).
+def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, cameras: PinholeCameras,
+               starts: np.ndarray, *, stature: float, lengths: np.ndarray, config: MNBP3DConfig = MNBP3DConfig(),
+               seeds: list[int]) -> list[Posture3D]:
+    """3D postures of several frames at once, each from every view's silhouette (one batch).
 
     Parameters
     ----------
-    silhouettes : list of (H, W) uint8 or None
-        One crop per camera (None: that camera did not see the walker).
-    origins : ndarray of shape (C, 2)
+    silhouettes : list over frames of lists over cameras of (H, W) uint8 or None
+        Each frame's crop per camera (None: that camera did not see the walker).
+    origins : ndarray of shape (B, C, 2)
         Each crop's top-left corner in the full frame (the cameras' pixels).
     cameras : PinholeCameras
-    start : ndarray of shape (13, 3)
-        Starting joints (round one's), in the cameras' world units; also the prior's centre.
+    starts : ndarray of shape (B, 13, 3)
+        Starting joints (round one's), in the cameras' world units; also the prior's centres.
     stature : float
         The walker's stature in those units.
     lengths : ndarray of shape (P,)
         Each part's own length (:func:`part_lengths`).
+    seeds : list of int
+        One per frame: a frame's answer depends on its seed alone, not on the batch.
     """
-    rng = np.random.default_rng(seed)
-    start_states = states_from_joints3d(np.asarray(start, float))
-    beliefs = _Beliefs3D(start_states, stature, lengths, config, rng)
-    seen = [c for c, sil in enumerate(silhouettes) if sil is not None and sil.any()]
-    if not seen:
-        return Posture3D(np.asarray(start, float).copy(), float("nan"))
-    views = [(cameras.select(c), origins[c], image_height(silhouettes[c])) for c in seen]
+    starts = np.asarray(starts, float)
+    views = [(b, c) for b, sils in enumerate(silhouettes) for c, sil in enumerate(sils)
+             if sil is not None and sil.any()]
+    posed = sorted({b for b, _ in views})
+    out = [Posture3D(s.copy(), float("nan")) for s in starts]
+    if not posed:
+        return out
+    slot = {b: k for k, b in enumerate(posed)}  # the frames with a view, as the batch's problems
+    vb = np.array([slot[b] for b, _ in views])
+    vc = np.array([c for _, c in views])
+    origin = np.asarray(origins, float)[[b for b, _ in views], vc][:, None]  # (V, 1, 2)
+    heights = np.array([image_height(silhouettes[b][c]) for b, c in views])
+    first = np.flatnonzero(np.r_[True, vb[1:] != vb[:-1]])  # each problem's first view (views are by frame)
+    per = [states_from_joints3d(starts[b]) for b in posed]
+    start_states = [np.stack([p[i] for p in per]) for i in range(len(PARTS_2D))]
 
-    def to_views(i: int, x: np.ndarray) -> np.ndarray:  # 3D states (M, D) -> 2D states in every view (C, M, D2)
-        return np.stack([_to_view(i, x, cam, o, h) for cam, o, h in views])
+    def to_views(i: int, x: np.ndarray) -> np.ndarray:
+        """3D states (B, M, D) -> 2D states (V, M, D2) in every view of their frame."""
+        p = project(cameras, x.reshape(*x.shape[:2], -1, 3))[vc, vb] - origin[:, None]
+        if i == 0:
+            return torso_state(p[..., 0, :], p[..., 1, :], p[..., 2, :], p[..., 3, :], heights[:, None])
+        return limb_state(p[..., 0, :], p[..., 1, :], heights[:, None])
 
-    view = SilhouetteView([silhouettes[c] for c in seen], [h for *_, h in views],
-                          [to_views(i, s[None])[:, 0] for i, s in enumerate(start_states)])
-    anneal(beliefs, lambda i, x: view.log_phi(i, to_views(i, x[0])).sum(axis=0, keepdims=True),
-           lambda i, best: view.redraw(i, to_views(i, best)[:, 0]),
+    beliefs = _Beliefs3D(start_states, stature, lengths, config, [np.random.default_rng(seeds[b]) for b in posed])
+    view = SilhouetteView([silhouettes[b][c] for b, c in views], heights,
+                          [to_views(i, s[:, None])[:, 0] for i, s in enumerate(start_states)])
+    anneal(beliefs, lambda i, x: np.add.reduceat(view.log_phi(i, to_views(i, x)), first, axis=0),
+           lambda i, best: view.redraw(i, to_views(i, best[:, None])[:, 0]),
            lambda i, x: _prior_energy3d(i, x, start_states[i], stature, config), config.mnbp, stature)
-    joints = joints_from_states3d([beliefs.best(i)[0] for i in range(len(PARTS_2D))])
-    return Posture3D(joints, float(np.mean(view.score())))
+    best = [beliefs.best(i) for i in range(len(PARTS_2D))]
+    scores = np.add.reduceat(view.score(), first) / np.diff(np.r_[first, len(views)])
+    for k, b in enumerate(posed):
+        out[b] = Posture3D(joints_from_states3d([s[k] for s in best]), float(scores[k]))
+    return out
+
+
+def estimate_posture3d(silhouettes: list[np.ndarray | None], origins: np.ndarray, cameras: PinholeCameras,
+                       start: np.ndarray, *, stature: float, lengths: np.ndarray,
+                       config: MNBP3DConfig = MNBP3DConfig(), seed: int = 0) -> Posture3D:
+    """The 3D posture of one frame from every view's silhouette, started from ``start`` (13, 3)
+    (:func:`postures3d` for one frame; ``origins`` (C, 2))."""
+    return postures3d([silhouettes], np.asarray(origins, float)[None], cameras, np.asarray(start, float)[None],
+                      stature=stature, lengths=lengths, config=config, seeds=[seed])[0]
 
 
 def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.ndarray, cameras: PinholeCameras,
                        starts: np.ndarray, *, stature: float, config: MNBP3DConfig = MNBP3DConfig(),
                        seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """3D postures (T, 13, 3) and scores (T,) of a segment: :func:`estimate_posture3d` per frame.
+    """3D postures (T, 13, 3) and scores (T,) of a segment, its frames solved as one batch
+    (:func:`postures3d`, frame *t* with seed ``seed + t``).
 
     ``silhouettes[c][t]`` are crops at ``boxes[c, t]`` (x, y, w, h, full frame),
     ``starts`` (T, 13, 3) round one's joints; a frame whose start is not
@@ -226,11 +251,12 @@ def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.nda
     starts = np.asarray(starts, float)
     lengths = part_lengths(starts)
     out, scores = starts.copy(), np.full(len(starts), np.nan)
-    for t in range(len(starts)):
-        if not np.all(np.isfinite(starts[t])):
-            continue
-        sils = [s[t] if np.all(np.isfinite(boxes[c, t])) else None for c, s in enumerate(silhouettes)]
-        post = estimate_posture3d(sils, boxes[:, t, :2], cameras, starts[t], stature=stature, lengths=lengths,
-                                  config=config, seed=seed + t)
+    frames = [t for t in range(len(starts)) if np.all(np.isfinite(starts[t]))]
+    if not frames:
+        return out, scores
+    sils = [[s[t] if np.all(np.isfinite(boxes[c, t])) else None for c, s in enumerate(silhouettes)] for t in frames]
+    posts = postures3d(sils, np.moveaxis(boxes[:, frames, :2], 0, 1), cameras, starts[frames], stature=stature,
+                       lengths=lengths, config=config, seeds=[seed + t for t in frames])
+    for t, post in zip(frames, posts):
         out[t], scores[t] = post.joints, post.score
     return out, scores

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -82,3 +84,25 @@ def test_a_camera_without_a_silhouette_is_left_out_and_unseen_frames_keep_their_
     assert np.array_equal(out[1], world[1]) and np.isnan(scores[1])
     assert np.all(np.isnan(out[3])) and np.isnan(scores[3])
     assert np.isfinite(scores[2]) and np.isfinite(out[2]).all()
+
+
+def test_frames_solved_as_one_batch_are_each_as_solved_alone(rig):
+    """posture_sequence3d solves a segment's frames as one batch (postures3d): each frame's answer
+    is the one it gets alone with its seed, camera 2's missing view included."""
+    from estimator.mnbp3d import estimate_posture3d
+
+    seq, cams, world, sils, boxes = rig
+    stature = seq.truth["body"]["height"]
+    sils = [list(s) for s in sils]
+    sils[2][2] = None
+    boxes = boxes.copy()
+    boxes[2, 2] = np.nan
+    start = world + np.random.default_rng(1).normal(0.0, 0.02 * stature, world.shape)
+    config = MNBP3DConfig(mnbp=replace(MNBP3DConfig().mnbp, n_iterations=2))
+    out, scores = posture_sequence3d(sils, boxes, cams, start, stature=stature, config=config, seed=7)
+    lengths = part_lengths(start)
+    for t in range(len(world)):
+        alone = estimate_posture3d([s[t] for s in sils], boxes[:, t, :2], cams, start[t], stature=stature,
+                                   lengths=lengths, config=config, seed=7 + t)
+        assert np.allclose(out[t], alone.joints, rtol=0, atol=1e-9), t
+        assert scores[t] == pytest.approx(alone.score, abs=1e-12)
