@@ -91,6 +91,14 @@ class EstimateConfig:
         examples at the decoded phases, and the phases again.
     phase_shift_px : int
         ... comparing each input shifted by up to this many canvas pixels.
+    settle_ahead_behind : bool
+        Exemplar path, two cameras or more: where a camera's motion cue is
+        contested (head and height disagree) or absent, its ahead/behind is
+        the one whose phase evidence agrees best with the other cameras'
+        (:func:`_settle_ahead_behind`), by at least ``settle_margin`` of the
+        HMM's log-probability per frame. Only cameras whose two sides are at
+        least 60 deg apart (``|cos azimuth| >= settle_min_cos``) are settled
+        so: nearer the walker's side the fold costs little.
     """
 
     method: str = "exemplars"
@@ -106,6 +114,9 @@ class EstimateConfig:
     vote_outlier_deg: float = 45.0
     phase_refine: bool = True
     phase_shift_px: int = 1
+    settle_ahead_behind: bool = True
+    settle_margin: float = 0.5
+    settle_min_cos: float = 0.5
 
     def __post_init__(self) -> None:
         if self.method not in ("exemplars", "paper"):
@@ -236,6 +247,7 @@ class WalkEstimate:
                 "growth_per_frame": round(c.cue.growth, 5),
                 "growth_se": round(c.cue.growth_se, 5) if np.isfinite(c.cue.growth_se) else None,
                 "growth_from": c.cue.source,
+                "growth_contested": c.cue.conflict,
                 "travel_heights_per_frame": round(c.cue.travel, 5),
             }
             d["notes"] = c.notes
@@ -577,7 +589,7 @@ def _biweight(u: np.ndarray) -> np.ndarray:
 
 
 def _vote(cloud: _Cloud, n_frames: int, cue: MotionCue | None, config: EstimateConfig,
-          iterations: int = 3) -> tuple[Viewpoint, np.ndarray]:
+          iterations: int = 3, ahead: bool | None = None) -> tuple[Viewpoint, np.ndarray]:
     """The viewpoint of a camera's cloud with outlying frames voting less; and each frame's weight.
 
     Each frame votes with weight 1 in the paper's fit (§3 step 4), so a few
@@ -598,7 +610,7 @@ def _vote(cloud: _Cloud, n_frames: int, cue: MotionCue | None, config: EstimateC
         weight = _biweight(np.maximum(cloud.best - med, 0.0) / max(config.frame_outlier_mads * mad, 1e-9))
         if weight.sum() <= 0:
             weight = np.ones(n_frames)
-    vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue)
+    vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue, ahead=ahead)
     if np.isfinite(config.vote_outlier_deg):
         match = weight
         for _ in range(iterations):
@@ -607,7 +619,7 @@ def _vote(cloud: _Cloud, n_frames: int, cue: MotionCue | None, config: EstimateC
             if w.sum() <= 0:
                 break
             weight = w
-            vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue)
+            vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue, ahead=ahead)
     return vp, weight
 
 
@@ -723,6 +735,7 @@ def estimate_walk(
     distances: dict[str, np.ndarray] = {}
     log_emission = np.zeros((T, n_phases))
     inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # per camera: frames, registered, packed
+    evidence: dict[str, np.ndarray] = {}  # per camera: its frames' phase costs (frames, n_phases)
     for name, track in tracks.items():
         present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
         labels = np.full(T, -1, np.int64)
@@ -763,7 +776,7 @@ def estimate_walk(
         else:
             bits = pack(registered)
             vp, _ = _vote(_cloud_exemplars(model, exemplars, bits, d, config), len(bits), cue, config)
-            log_emission[present] -= _phase_evidence(exemplars, bits, vp, obs, present, config)
+            evidence[name] = _phase_evidence(exemplars, bits, vp, obs, present, config)
             inputs[name] = (present, registered, bits)
         cams[name] = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes,
                                     reports.get(name))
@@ -771,13 +784,19 @@ def estimate_walk(
     if all(c.viewpoint.n_samples == 0 for c in cams.values()):
         raise ValueError("no non-empty silhouette in the window")
     hmm = config.hmm
-    if exemplars is None:
-        log_emission = hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
     with np.errstate(divide="ignore"):
         log_start, log_trans = np.log(hmm.startprob_), np.log(hmm.transmat_)
+    sides: dict[str, bool] = {}
+    if exemplars is None:
+        log_emission = hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
+    else:
+        if config.settle_ahead_behind:
+            sides = _settle_ahead_behind(exemplars, inputs, evidence, cams, log_start, log_trans, config)
+        for name, ev in evidence.items():
+            log_emission[inputs[name][0]] -= ev
     log_prob, states = viterbi(log_start, log_trans, log_emission)
     if exemplars is not None and config.phase_refine and inputs:
-        log_emission = _refine_at_phases(exemplars, inputs, states, cams, T, config)
+        log_emission = _refine_at_phases(exemplars, inputs, states, cams, T, config, sides)
         log_prob, states = viterbi(log_start, log_trans, log_emission)
     phase_posterior = posterior(log_start, log_trans, log_emission)
 
@@ -818,9 +837,86 @@ def _phase_evidence(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint, obs: 
     return (pd - pd.min(axis=1, keepdims=True)) / config.tau_phase
 
 
+def _mirrored(vp: Viewpoint) -> Viewpoint:
+    """The viewpoint on the other side of the ahead/behind fold (azimuth ``180 - a``)."""
+    return replace(vp, azimuth_deg=(180.0 - vp.azimuth_deg) % 360.0, flip="cameras")
+
+
+def _contested(camera: CameraEstimate) -> bool:
+    """Whether a camera's ahead/behind rests on no motion cue, or on a head path the height contradicted.
+
+    The height alone is trusted on a conflict (a walker who changes speed
+    bends the head's path); the head alone is not, when the feet were cut (the
+    cut heights were dropped, and the head may be the one misled). A cue too
+    weak to decide is not contested: the window may hold a turn, where the
+    cameras' phases agree best on a side that is right for half of it
+    (measured: phase within 1/20 on 0.5 of the frames against 0.9).
+    """
+    cue = camera.cue
+    return cue is None or (cue.conflict and cue.source == "head")
+
+
+def _settle_ahead_behind(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                         evidence: dict[str, np.ndarray], cams: dict[str, CameraEstimate], log_start: np.ndarray,
+                         log_trans: np.ndarray, config: EstimateConfig) -> dict[str, bool]:
+    """Ahead/behind of the cameras whose motion cue is contested or absent, from the other cameras' phase.
+
+    Seen from azimuth ``a`` or ``180 - a`` (in front of the walker or behind),
+    a silhouette looks alike at phases half a cycle apart, so a camera on the
+    wrong side of the fold sees the phase shifted by half a cycle. The cameras
+    are synchronized and share one phase (§6): of the assignments of sides to
+    the contested cameras (a shadow cut at the feet makes the height and the
+    head disagree on whether the walker approaches; cropped input has no
+    cue), the one whose summed phase evidence the HMM decodes most probably is
+    kept, if it beats the cues' own choice by ``config.settle_margin`` per
+    frame. Each camera's ``evidence`` and viewpoint are updated in place;
+    returns the side (True: ahead) of every camera whose side was settled so,
+    for the later re-votes.
+    """
+    names = [n for n in inputs if np.isfinite(cams[n].viewpoint.azimuth_deg)]
+    contested = [n for n in names if _contested(cams[n]) and abs(np.cos(np.deg2rad(cams[n].viewpoint.azimuth_deg)))
+                 >= config.settle_min_cos][:8]  # 2^8 decodes at most
+    if len(names) < 2 or not contested:
+        return {}
+    T = len(next(iter(cams.values())).labels)
+    other = np.zeros((T, len(log_start)))
+    for n in names:
+        if n not in contested:
+            other[inputs[n][0]] -= evidence[n]
+    mirror = {n: _mirrored(cams[n].viewpoint) for n in contested}
+    flipped_ev = {}
+    for n in contested:
+        present, _, bits = inputs[n]
+        flipped_ev[n] = _phase_evidence(index, bits, mirror[n], np.full(T, np.nan), present, config)
+    best, best_lp, kept_lp = None, -np.inf, -np.inf
+    for choice in np.ndindex(*(2,) * len(contested)):
+        total = other.copy()
+        for n, flip in zip(contested, choice):
+            total[inputs[n][0]] -= flipped_ev[n] if flip else evidence[n]
+        lp = viterbi(log_start, log_trans, total)[0]
+        if not any(choice):
+            kept_lp = lp
+        if lp > best_lp:
+            best, best_lp = choice, lp
+    if best is None or not any(best) or best_lp - kept_lp <= config.settle_margin * T:
+        return {}
+    sides = {}
+    for n, flip in zip(contested, best):
+        if flip:
+            c = cams[n]
+            c.viewpoint, evidence[n] = mirror[n], flipped_ev[n]
+            c.observations = np.full(T, np.nan)
+            _phase_evidence(index, inputs[n][2], c.viewpoint, c.observations, inputs[n][0], config)
+            sides[n] = bool(np.cos(np.deg2rad(c.viewpoint.azimuth_deg)) >= 0)
+            c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was "
+                           f"{'contested' if c.cue is not None else 'absent'}; log-probability "
+                           f"{best_lp - kept_lp:.1f} better over {T} frames)")
+    return sides
+
+
 def _refine_at_phases(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                       states: np.ndarray, cams: dict[str, CameraEstimate], T: int,
-                      config: EstimateConfig) -> np.ndarray:
+                      config: EstimateConfig, sides: dict[str, bool] | None = None) -> np.ndarray:
     """Each camera's viewpoint again from the examples at the decoded phases; the phases' new
     log-emission (T, n_phases), to decode again.
 
@@ -836,7 +932,7 @@ def _refine_at_phases(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, 
     for name, (present, registered, bits) in inputs.items():
         c = cams[name]
         c.viewpoint, weight = _vote(_cloud_at_phases(index, by_phase, registered, states[present], config),
-                                    len(present), c.cue, config)
+                                    len(present), c.cue, config, ahead=(sides or {}).get(name))
         c.observations = np.full(T, np.nan)
         log_emission[present] -= _phase_evidence(index, bits, c.viewpoint, c.observations, present, config)
         outliers = int(np.sum(weight < 0.5))

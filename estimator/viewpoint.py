@@ -47,6 +47,11 @@ class MotionCue:
         What ``growth`` was measured from: ``"head"`` (the perspective curvature
         of the head's image path), ``"height"`` (the silhouette's height), or
         ``"head+height"`` (both, weighted by their errors).
+    conflict : bool
+        The head and the height disagreed (by more than ``motion_cue``'s
+        ``conflict`` errors) and one of them was dropped: the sign of
+        ``growth`` is then contested, and :func:`estimator.pipeline.estimate_walk`
+        lets the other cameras settle ahead/behind.
     """
 
     growth: float
@@ -54,6 +59,7 @@ class MotionCue:
     n_frames: int
     growth_se: float = 0.0
     source: str = "height"
+    conflict: bool = False
 
     def signs(self, *, z: float = 3.0, min_travel: float = 0.01) -> tuple[int, int]:
         """(sign of cos azimuth, sign of sin azimuth) the motion implies; 0 = no evidence.
@@ -172,7 +178,7 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     # Heights are whole pixels: their log is known to 1 / (sqrt(12) h) at best.
     growth, se = _theil_sen(t, np.log(h), floor=1.0 / (np.sqrt(12.0) * np.median(h)))
     travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
-    source = "height"
+    source, conflict_seen = "height", False
     if heads is not None:
         heads = np.asarray(heads, dtype=float)
         if heads.shape != (len(boxes), 2):
@@ -184,13 +190,15 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
             travel, _ = _theil_sen(th, heads[hk, 0] / np.median(h))
             if np.isfinite(se_head):
                 if abs(growth - g_head) > conflict * np.hypot(se, se_head):
+                    conflict_seen = True
                     if feet_cut:
                         growth, se, source = g_head, se_head, "head"
                 else:
                     wa, wb = 1 / se**2, 1 / se_head**2
                     growth, se, source = (wa * growth + wb * g_head) / (wa + wb), float(np.sqrt(1 / (wa + wb))), \
                         "head+height"
-    return MotionCue(growth=growth, travel=travel, n_frames=int(ok.sum()), growth_se=se, source=source)
+    return MotionCue(growth=growth, travel=travel, n_frames=int(ok.sum()), growth_se=se, source=source,
+                     conflict=conflict_seen)
 
 
 @dataclass(frozen=True)
@@ -207,8 +215,10 @@ class Viewpoint:
         Square root of the larger eigenvalue: the ellipse's semi-major axis.
     flip : str
         How the ahead/behind ambiguity was settled: ``"motion"`` (by the motion
-        cue), ``"majority"`` (no motion cue: the larger mode) or ``"none"`` (the
-        cloud had one clear mode, or a cue too weak to decide).
+        cue), ``"cameras"`` (by the phase the other cameras see, when this
+        camera's cue was contested or absent), ``"majority"`` (no motion cue:
+        the larger mode) or ``"none"`` (the cloud had one clear mode, or a cue
+        too weak to decide).
     flip_margin : float
         ``|w_ahead - w_behind|``: how unevenly the cloud's weight lies on the two
         sides before folding (1 = all on one side).
@@ -253,6 +263,7 @@ def estimate_viewpoint(
     weights: np.ndarray | None = None,
     *,
     cue: MotionCue | None = None,
+    ahead: bool | None = None,
 ) -> Viewpoint:
     """Fit the viewpoint ellipse to a cloud of example viewpoints.
 
@@ -264,6 +275,11 @@ def estimate_viewpoint(
         Per-sample weights (e.g. 1 / cluster size, or match quality).
     cue : MotionCue, optional
         The walker's motion in this camera's full frame, to settle ahead/behind.
+    ahead : bool, optional
+        Ahead/behind settled elsewhere (by the other cameras' phase,
+        :func:`estimator.pipeline.estimate_walk`): the cloud is folded onto
+        the side in front of the walker (``cos(azimuth) > 0``) if True,
+        behind it if False, whatever the cue says; ``flip`` is ``"cameras"``.
     """
     az = np.asarray(azimuth_deg, dtype=float) % 360.0
     el = np.asarray(elevation_deg, dtype=float)
@@ -277,15 +293,17 @@ def estimate_viewpoint(
     w = w / w.sum()
     cos_sign, sin_sign = cue.signs() if cue is not None else (0, 0)
     r = np.deg2rad(az)
-    ahead = np.cos(r) >= 0
-    share_ahead = float(w[ahead].sum())
-    if cos_sign != 0:
+    in_front = np.cos(r) >= 0
+    share_ahead = float(w[in_front].sum())
+    if ahead is not None:
+        side, flip = bool(ahead), "cameras"
+    elif cos_sign != 0:
         side, flip = cos_sign > 0, "motion"
     else:
         side, flip = share_ahead >= 0.5, "majority" if cue is None else "none"
     margin = abs(2 * share_ahead - 1)
     # Fold a -> 180 - a onto the chosen side (ahead: cos > 0).
-    folded = np.where(ahead == side, az, (180.0 - az) % 360.0)
+    folded = np.where(in_front == side, az, (180.0 - az) % 360.0)
     if sin_sign != 0:
         # Near-frontal views: the image's travel direction says which side.
         wrong = np.sign(np.sin(np.deg2rad(folded))) == -sin_sign

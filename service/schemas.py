@@ -158,6 +158,8 @@ class MotionCue(_Open):
     growth_per_frame: float = Field(description="relative change of the walker's image size per frame, > 0 approaching")
     growth_se: float | None = Field(description="standard error of growth_per_frame")
     growth_from: Literal["height", "head", "head+height"]
+    growth_contested: bool = Field(False, description="head and height disagreed: one was dropped, and the "
+                                   "other cameras' phase may settle ahead/behind (flip 'cameras')")
     travel_heights_per_frame: float = Field(description="horizontal motion per frame in body heights, > 0 rightwards")
 
 
@@ -168,7 +170,7 @@ class ResultCamera(_Open):
     elevation_deg: float | None
     spread_deg: float | None
     covariance_deg2: list[list[float]] | None
-    flip: str = Field(description="how ahead/behind was settled: motion, majority or none")
+    flip: str = Field(description="how ahead/behind was settled: motion, cameras, majority or none")
     flip_margin: float | None
     n_samples: int
     motion_cue: MotionCue | None

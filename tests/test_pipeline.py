@@ -214,6 +214,53 @@ def test_a_shadow_cut_off_the_feet_leaves_the_motion_cue_to_the_head(small_model
             assert c.cue.signs()[0] == np.sign(cos)
 
 
+def test_cameras_whose_motion_cue_is_contested_take_the_side_the_other_cameras_phase_agrees_with(
+        small_model, mocap_dir):
+    """A shadow cut at the feet of a walker who speeds up (CMU 07_05): height and head
+    disagree on whether the walker approaches, the head wins and puts two of three
+    cameras on the wrong side of the ahead/behind fold (azimuth 180 - a, 75 and 150
+    deg off). Those cameras then see the phase half a cycle off the third's; taking
+    the sides whose phases agree puts all three within 10 deg."""
+    from estimator.damage import damage_sequence
+    from estimator.mocap import read_motion
+    from estimator.sequence import Sequence
+    from estimator.skeleton import BodyShape
+
+    shape = BodyShape(height=1.88, leg_length=1.09, arm_length=0.90, trunk_length=1.07, shoulder_width=0.95,
+                      hip_width=1.02, girth=1.12)
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=23003, shape=shape, image_size=(320, 240)),
+                     motion=read_motion(os.path.join(mocap_dir, "07_05.amc")))
+    sils = damage_sequence(seq.silhouettes, "shadow", seed=23003, truth=seq.truth)
+    tracks = tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size, sils, seq.truth))
+    true_az = {c: seq.truth["cameras"][c]["azimuth_deg"] for c in seq.cameras}
+    alone = estimate_walk(tracks, small_model, config=EstimateConfig(settle_ahead_behind=False))
+    wrong = [c for c in seq.cameras if az_error(alone.cameras[c].viewpoint.azimuth_deg, true_az[c]) > 60]
+    assert len(wrong) == 2 and all(alone.cameras[c].cue.conflict for c in wrong)  # the failure, without
+
+    est = estimate_walk(tracks, small_model)
+    for c in seq.cameras:
+        assert az_error(est.cameras[c].viewpoint.azimuth_deg, true_az[c]) < 10, c
+    for c in wrong:
+        assert est.cameras[c].viewpoint.flip == "cameras"
+        assert any("settled by the other cameras" in n for n in est.cameras[c].notes)
+    true_phase = np.array([f["phase"] for f in seq.truth["frames"]])
+    assert np.median(phase_error(est.phase, true_phase)) < 0.1 < np.median(phase_error(alone.phase, true_phase))
+    assert est.to_result()["cameras"][wrong[0]]["motion_cue"]["growth_contested"] is True
+
+
+def test_one_camera_or_agreeing_cues_are_left_as_the_cues_say(sequences, small_model):
+    """Nothing to settle: every camera's cue is uncontested, or only one camera sees."""
+    seq = sequences[0]
+    tracks = tracks_from_sequence(seq)
+    est = estimate_walk(tracks, small_model)
+    off = estimate_walk(tracks, small_model, config=EstimateConfig(settle_ahead_behind=False))
+    for c in seq.cameras:
+        assert est.cameras[c].viewpoint.azimuth_deg == off.cameras[c].viewpoint.azimuth_deg
+        assert est.cameras[c].viewpoint.flip != "cameras"
+    one = estimate_walk({seq.cameras[0]: tracks[seq.cameras[0]]}, small_model)
+    assert one.cameras[seq.cameras[0]].viewpoint.flip != "cameras"
+
+
 def test_the_shift_search_at_the_decoded_phases_is_exact(small_model, sequences):
     """_cloud_at_phases tries the shifts only where the triangle inequality lets them matter:
     its cloud is the one of the exhaustive search over every shift and example."""

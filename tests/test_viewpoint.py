@@ -40,6 +40,17 @@ def test_motion_settles_the_front_back_flip(true_az):
     assert vp0.flip == "majority" and vp0.flip_margin < 0.5
 
 
+def test_a_side_settled_elsewhere_overrides_the_cue():
+    """``ahead`` (the side the other cameras' phase chose) folds the cloud there, whatever the cue."""
+    rng = np.random.default_rng(2)
+    a, e = cloud(rng, 40.0, 5.0, n=300)
+    cue = MotionCue(growth=0.01, travel=-0.05, n_frames=30)  # approaching: ahead, 40 deg
+    assert abs(estimate_viewpoint(a, e, cue=cue).azimuth_deg - 40.0) < 3.0
+    behind = estimate_viewpoint(a, e, cue=cue, ahead=False)
+    assert abs(behind.azimuth_deg - 140.0) < 3.0 and behind.flip == "cameras"
+    assert abs(estimate_viewpoint(a, e, ahead=True).azimuth_deg - 40.0) < 3.0
+
+
 @pytest.mark.parametrize("az", [0.0, 60.0, 90.0, 160.0, 250.0])
 def test_motion_cue_from_rendered_walks(az):
     seq = synthesize(SynthSpec(n_cameras=1, n_frames=20, seed=5, azimuths=(az,), elevations=(5.0,), image_size=(320, 240)))
