@@ -24,6 +24,11 @@ rig's 3D posture against the truth: per frame after a similarity alignment
 (Procrustes with scale), mean over the 13 joints, divided by the true
 stature; the model's posture (``joints3d`` of the gait model at the decoded
 phase) the same way. Segment lengths relative to stature against the truth's.
+The 2D joints per frame and camera against the renders' (divided by the
+walker's image height, as ``bench/eval_mnbp.py``): the model placed on the
+silhouette, each view's mNBP alone, and what the result reports
+(:func:`estimator.rig.attach_rig`: the rig's 3D posture projected into each
+camera).
 
 ``--damage KIND`` (a kind of :mod:`estimator.damage`: ``salt``, ``blobs``,
 ``holes``, ``cut_limb``, ``shadow``, ``second_person``, kinds joined by ``+``,
@@ -58,7 +63,7 @@ from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.sequence import Sequence  # noqa: E402
 from estimator.perspective import perspective_refine  # noqa: E402
-from estimator.rig import (RigConfig, aligned_error, calibrate_rig, rotations_from_viewpoints,  # noqa: E402
+from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig, rotations_from_viewpoints,  # noqa: E402
                            segment_lengths, viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
@@ -88,6 +93,8 @@ def main() -> None:
                                       "true 2D joints: + pinhole": []}
     failed = {k: 0 for k in errors}
     worse, e3d, e3d_two, e3d_model, seg_err, sources = [], [], [], [], [], []
+    e2d: dict[str, list[np.ndarray]] = {"model placement": [], "mNBP, each view alone": [],
+                                        "reported (default rig)": [], "reported (2 rounds)": []}
     lost = 0
     for i in tqdm(range(args.sequences), desc="sequences"):
         spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=30, seed=1000 * args.seed + i, shape=body(rng),
@@ -137,6 +144,17 @@ def main() -> None:
         if two.joints3d is not None:
             e3d_two += list(aligned_error(two.joints3d, true3d) / stature)
         e3d_model += list(aligned_error(est.joints3d, true3d) / stature)
+        for name, result in (("reported (default rig)", attach_rig(measured, rig)),
+                             ("reported (2 rounds)", attach_rig(measured, two))):
+            for cam in cams:
+                true2d = np.array([f["joints2d"][cam] for f in seq.truth["frames"]], float)
+                height = np.array([np.nan if s is None else s.shape[0] for s in est.tracks[cam].silhouettes])
+                pairs = [(name, result.cameras[cam].joints2d)]
+                if name.endswith("default rig)"):
+                    pairs += [("model placement", measured.cameras[cam].model_joints2d),
+                              ("mNBP, each view alone", measured.cameras[cam].joints2d)]
+                for key, j in pairs:
+                    e2d[key].append((np.linalg.norm(j - true2d, axis=-1) / height[:, None]).ravel())
     damaged = f", silhouettes damaged by {args.damage}" if args.damage else ""
     print(f"\n{args.sequences} walks{damaged}, {len(errors['viewpoints'])} camera pairs"
           f"{f'; {lost} walks not estimated at all' if lost else ''}\n")
@@ -153,6 +171,12 @@ def main() -> None:
         if e.size:
             print(f"3D posture error / stature, {name}: median {np.median(e):.4f}, p90 {np.percentile(e, 90):.4f} "
                   f"({e.size} frames)")
+    for name, e in e2d.items():
+        e = np.concatenate(e) if e else np.array([])
+        e = e[np.isfinite(e)]
+        if e.size:
+            print(f"2D joint error / walker image height, {name}: median {np.median(e):.4f}, "
+                  f"p90 {np.percentile(e, 90):.4f} ({e.size} joints)")
     if seg_err:
         print(f"segment lengths relative to stature, error: median {100 * np.median(seg_err):.1f} %, "
               f"p90 {100 * np.percentile(seg_err, 90):.1f} %")

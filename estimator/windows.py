@@ -17,7 +17,7 @@ whole recording, exactly as one window would.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,7 +26,7 @@ from .appearance import AppearanceModel
 from .matchcache import MatchCache
 from .mnbp import MNBPConfig, measure_postures
 from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, track_length
-from .rig import RigConfig, calibrate_rig
+from .rig import RigConfig, attach_rig, calibrate_rig
 from .viewpoint import azimuth_difference_deg, circular_mean_deg
 
 __all__ = ["Segment", "SegmentedWalk", "ViewpointTrack", "segment_walk", "window_starts", "window_tracks"]
@@ -286,7 +286,7 @@ def segment_walk(
         if est is not None and posture is not None:
             est = measure_postures(est, posture)
         if est is not None and rig is not None:
-            est = replace(est, rig=calibrate_rig(est, rig))
+            est = attach_rig(est, calibrate_rig(est, rig))
         segments.append(Segment(a, b, first, last, est, j - i, err))
         for w in windows[i:j]:
             w["segment"] = s
