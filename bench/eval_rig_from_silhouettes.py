@@ -37,7 +37,8 @@ does before anything else runs (the same walks and cameras as without it):
 the whole path (clean-up, viewpoints, mNBP, the rig) then works on them. The
 rows on the renders' exact joints are the same with or without damage.
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_rig_from_silhouettes.py [--sequences 12] [--damage all]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_rig_from_silhouettes.py [--sequences 12] [--damage all] \
+        [--plot docs/img/rig_errors.png]
 """
 
 from __future__ import annotations
@@ -63,8 +64,8 @@ from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.sequence import Sequence  # noqa: E402
 from estimator.perspective import perspective_refine  # noqa: E402
-from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig, rotations_from_viewpoints,  # noqa: E402
-                           segment_lengths, viewpoint_rotations)
+from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig,  # noqa: E402
+                           rotations_from_viewpoints, segment_lengths, similarity_aligned, viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
 
@@ -80,6 +81,8 @@ def main() -> None:
                         help="the CMU walks (default) or the model's gait stylised (arm swing x1.8, "
                              "short steps, high knees), on random bodies either way")
     parser.add_argument("--damage", help="damage every silhouette first (estimator.damage kinds, e.g. all)")
+    parser.add_argument("--plot", type=Path, help="write a PNG: the rotation and 2D error distributions, and the "
+                                                  "first walk's person posture over the truth")
     args = parser.parse_args()
     if args.damage:
         parse_damage(args.damage)  # an unknown kind stops here, before the model loads
@@ -96,6 +99,7 @@ def main() -> None:
     e2d: dict[str, list[np.ndarray]] = {"model placement": [], "mNBP, each view alone": [],
                                         "reported (default rig)": [], "reported (2 rounds)": []}
     lost = 0
+    overlay = None  # the first walk's middle frame: (person posture aligned to the truth, the truth)
     for i in tqdm(range(args.sequences), desc="sequences"):
         spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=30, seed=1000 * args.seed + i, shape=body(rng),
                          style=STYLISED if args.gait == "stylised" else None)
@@ -139,6 +143,9 @@ def main() -> None:
         true3d = np.array([f["joints3d"] for f in seq.truth["frames"]])
         if rig.joints3d is not None:
             e3d += list(aligned_error(rig.joints3d, true3d) / stature)
+            if overlay is None:
+                mid = len(true3d) // 2
+                overlay = (similarity_aligned(rig.joints3d[mid:mid + 1], true3d[mid:mid + 1])[0], true3d[mid], i)
             true_len = {k: np.median(v) / stature for k, v in segment_lengths(true3d).items()}
             seg_err += [abs(rig.segments_m[k] / rig.height_m - true_len[k]) / true_len[k] for k in true_len]
         if two.joints3d is not None:
@@ -177,9 +184,53 @@ def main() -> None:
         if e.size:
             print(f"2D joint error / walker image height, {name}: median {np.median(e):.4f}, "
                   f"p90 {np.percentile(e, 90):.4f} ({e.size} joints)")
+    if args.plot:
+        plot(args.plot, errors, e2d, overlay, args)
     if seg_err:
         print(f"segment lengths relative to stature, error: median {100 * np.median(seg_err):.1f} %, "
               f"p90 {100 * np.percentile(seg_err, 90):.1f} %")
+
+
+def plot(path: Path, rotations: dict[str, list[float]], e2d: dict[str, list[np.ndarray]], overlay, args) -> None:
+    """Rotation errors and 2D joint errors as cumulative distributions; one frame's person
+    posture (aligned) over the truth, seen from the side and from the front."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from estimator.joints import BONES
+
+    fig, ax = plt.subplots(1, 4, figsize=(17, 4), gridspec_kw={"width_ratios": [1.3, 1.3, 0.7, 0.7]})
+    for name in ("viewpoints", "selfcal(mNBP)", "rig (default)", "rig, 2 rounds"):
+        e = np.sort(rotations[name])
+        ax[0].plot(e, np.arange(1, e.size + 1) / e.size, label=f"{name} (median {np.median(e):.1f})")
+    ax[0].set(xlabel="camera-pair rotation error (deg)", ylabel="fraction of pairs", xlim=(0, 30))
+    for name, parts in e2d.items():
+        e = np.concatenate(parts) if parts else np.array([])
+        e = np.sort(e[np.isfinite(e)])
+        if e.size:
+            ax[1].plot(e, np.arange(1, e.size + 1) / e.size, label=f"{name} (median {np.median(e):.3f})")
+    ax[1].set(xlabel="2D joint error / walker height", xlim=(0, 0.1))
+    for a, x in ((ax[0], (3, 6)), (ax[1], (0.02, 0.05))):
+        for v in x:
+            a.axvline(v, color="k", lw=0.5, ls=":")
+        a.legend(fontsize=7, loc="lower right")
+    if overlay is not None:
+        est, true, walk = overlay
+        for a, (k, name) in zip(ax[2:], ((0, "side (x forward)"), (1, "front (y left)"))):
+            for pts, style in ((true, "k-"), (est, "C3-")):
+                for i, j in BONES:
+                    a.plot(pts[[i, j], k], pts[[i, j], 2], style, lw=1.5)
+            a.set(title=f"walk {walk}, {name}", aspect="equal", xticks=[], yticks=[])
+        ax[2].plot([], [], "k-", label="truth")
+        ax[2].plot([], [], "C3-", label="person (rig), aligned")
+        ax[2].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.02))
+    title = f"{args.gait} walks, seed {args.seed}" + (f", damage {args.damage}" if args.damage else "")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    print(f"plot: {path}")
 
 
 if __name__ == "__main__":

@@ -39,7 +39,8 @@ from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
 __all__ = ["Rig", "RigAccumulator", "RigConfig", "SEGMENTS", "aligned_error", "attach_rig", "calibrate_rig",
-           "person_frame", "rotations_from_viewpoints", "segment_lengths", "stature_scale", "viewpoint_rotations"]
+           "person_frame", "rotations_from_viewpoints", "segment_lengths", "similarity_aligned", "stature_scale",
+           "viewpoint_rotations"]
 
 _J = JOINT_INDEX
 SEGMENTS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
@@ -292,22 +293,32 @@ def segment_lengths(joints3d: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def aligned_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """Per frame: mean joint distance of ``est`` (T, J, 3) to ``true`` after the similarity
-    transform (Procrustes with scale) taking the first nearest the second; NaN where fewer
-    than 4 joints are finite. For evaluations: the posture's shape, whatever its frame and size."""
-    out = np.full(len(est), np.nan)
-    for t, (a, b) in enumerate(zip(np.asarray(est, float), np.asarray(true, float))):
+def similarity_aligned(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """``est`` (T, J, 3) moved per frame by the similarity transform (Procrustes with scale) that
+    takes its finite joints nearest ``true``'s; NaN frames where fewer than 4 joints are finite in
+    both. For evaluations and figures: the posture's shape, whatever its frame and size."""
+    est, true = np.asarray(est, float), np.asarray(true, float)
+    out = np.full(est.shape, np.nan)
+    for t, (a, b) in enumerate(zip(est, true)):
         ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
         if ok.sum() < 4:
             continue
-        a0, b0 = a[ok] - a[ok].mean(0), b[ok] - b[ok].mean(0)
+        ca, cb = a[ok].mean(0), b[ok].mean(0)
+        a0, b0 = a[ok] - ca, b[ok] - cb
         u, sv, vt = np.linalg.svd(a0.T @ b0)
         d = np.sign(np.linalg.det(u @ vt))
         r = u @ np.diag([1.0, 1.0, d]) @ vt
         scale = (sv * [1.0, 1.0, d]).sum() / (a0 ** 2).sum()
-        out[t] = np.linalg.norm(scale * a0 @ r - b0, axis=1).mean()
+        out[t] = scale * (a - ca) @ r + cb
     return out
+
+
+def aligned_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Per frame: mean joint distance of ``est`` (T, J, 3) to ``true`` after
+    :func:`similarity_aligned`, over the joints finite in both; NaN where fewer than 4 are."""
+    d = np.linalg.norm(similarity_aligned(est, true) - np.asarray(true, float), axis=-1)  # (T, J)
+    ok = np.isfinite(d)
+    return np.where(ok.any(axis=1), np.where(ok, d, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1), np.nan)
 
 
 def stature_scale(joints3d: np.ndarray, height_m: float) -> float:

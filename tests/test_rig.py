@@ -16,8 +16,8 @@ from estimator.joints import N_JOINTS
 from estimator.mnbp import measure_postures
 from estimator.pipeline import estimate_walk, tracks_from_sequence
 from estimator.perspective import perspective_refine
-from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig, person_frame, rotations_from_viewpoints,
-                           segment_lengths, viewpoint_rotations)
+from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig, person_frame,
+                           rotations_from_viewpoints, segment_lengths, viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 from estimator.skeleton import BodyShape, forward_kinematics
 from estimator.synth import SynthSpec, synthesize
