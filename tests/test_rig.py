@@ -17,7 +17,7 @@ from estimator.mnbp import measure_postures
 from estimator.pipeline import estimate_walk, tracks_from_sequence
 from estimator.perspective import perspective_refine
 from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig, person_frame,
-                           rotations_from_viewpoints, segment_lengths, viewpoint_rotations)
+                           rotations_from_viewpoints, segment_lengths, smoothed, viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 from estimator.skeleton import BodyShape, forward_kinematics
 from estimator.synth import SynthSpec, synthesize
@@ -89,6 +89,20 @@ def test_the_reported_2d_postures_are_the_rigs_projection_and_nearer_the_truth(w
     plain = calibrate_rig(measured, RigConfig(perspective=False))
     assert plain.joints2d is None
     assert all(np.array_equal(attach_rig(measured, plain).cameras[c].joints2d, before[c]) for c in seq.cameras)
+
+
+def test_the_posture_is_smoothed_only_across_neighbouring_frames():
+    """[1, 2, 1] / 4 where a frame has both neighbours one frame away; a gap, an end or a NaN
+    neighbour leaves the frame as it was; a straight-line motion is unchanged."""
+    frames = np.array([0, 1, 2, 3, 7, 8, 9])
+    x = np.zeros((7, 13, 3))
+    x[:, 0, 0] = [0.0, 4.0, 0.0, 4.0, 0.0, 4.0, 0.0]
+    x[:, 1, 2] = [0.0, 0.0, 0.0, 0.0, np.nan, 8.0, 0.0]
+    out = smoothed(x, frames)
+    assert np.allclose(out[:, 0, 0], [0.0, 2.0, 2.0, 4.0, 0.0, 2.0, 0.0])  # 3 and 7: a gap beside them
+    assert out[5, 1, 2] == 8.0 and np.isnan(out[4, 1, 2])  # a NaN neighbour: as given
+    line = np.linspace(0, 1, 7)[:, None, None] * np.ones((7, 13, 3))
+    assert np.allclose(smoothed(line, np.arange(7)), line)
 
 
 def test_without_measured_postures_the_rig_is_the_viewpoints(walk):
