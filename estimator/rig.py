@@ -444,10 +444,11 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
                                   f"viewpoints' (more than {config.max_disagreement_deg:.0f}): taken as a wrong "
                                   "solution")
             return fallback
+    adjusted = cal.joints3d if pinhole is None else pinhole.joints3d
+    measured = _median_lengths(adjusted)  # lengths before any smoothing (averaging positions shortens limbs)
     if pinhole is not None and config.smooth_posture and config.consecutive:
         pinhole = replace(pinhole, joints3d=smoothed(pinhole.joints3d, frames))
     joints3d = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
-    measured = _median_lengths(joints3d)
     k = _scale_for(measured, config.height_m)
     if not np.isfinite(k):
         fallback.notes.append("rig from the viewpoints: the self-calibrated body has no length")

@@ -105,6 +105,18 @@ def test_the_posture_is_smoothed_only_across_neighbouring_frames():
     assert np.allclose(smoothed(line, np.arange(7)), line)
 
 
+def test_the_rig_smooths_the_posture_not_the_body_or_the_cameras(walk):
+    """smooth_posture changes the reported posture (and its projection), not the rotations or
+    the segment lengths (measured before: averaging positions shortens moving limbs)."""
+    _, _, measured = walk
+    on, off = calibrate_rig(measured), calibrate_rig(measured, RigConfig(smooth_posture=False))
+    assert np.allclose(on.rotations, off.rotations) and on.segments_m == off.segments_m
+    assert not np.allclose(on.joints3d, off.joints3d, equal_nan=True)
+    assert not np.allclose(on.joints2d, off.joints2d, equal_nan=True)
+    assert any("filtered [1, 2, 1] / 4" in n for n in on.notes)
+    assert not any("filtered" in n for n in off.notes)
+
+
 def test_without_measured_postures_the_rig_is_the_viewpoints(walk):
     seq, est, _ = walk
     rig = calibrate_rig(est)
