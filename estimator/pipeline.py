@@ -791,7 +791,7 @@ def estimate_walk(
         log_emission = hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
     else:
         if config.settle_ahead_behind:
-            sides = _settle_ahead_behind(exemplars, inputs, evidence, cams, log_start, log_trans, config)
+            sides = _settle_ahead_behind(exemplars, inputs, evidence, cams, log_start, log_trans, T, config)
         for name, ev in evidence.items():
             log_emission[inputs[name][0]] -= ev
     log_prob, states = viterbi(log_start, log_trans, log_emission)
@@ -858,7 +858,7 @@ def _contested(camera: CameraEstimate) -> bool:
 
 def _settle_ahead_behind(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                          evidence: dict[str, np.ndarray], cams: dict[str, CameraEstimate], log_start: np.ndarray,
-                         log_trans: np.ndarray, config: EstimateConfig) -> dict[str, bool]:
+                         log_trans: np.ndarray, T: int, config: EstimateConfig) -> dict[str, bool]:
     """Ahead/behind of the cameras whose motion cue is contested or absent, from the other cameras' phase.
 
     Seen from azimuth ``a`` or ``180 - a`` (in front of the walker or behind),
@@ -878,16 +878,14 @@ def _settle_ahead_behind(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarra
                  >= config.settle_min_cos][:8]  # 2^8 decodes at most
     if len(names) < 2 or not contested:
         return {}
-    T = len(next(iter(cams.values())).labels)
     other = np.zeros((T, len(log_start)))
     for n in names:
         if n not in contested:
             other[inputs[n][0]] -= evidence[n]
     mirror = {n: _mirrored(cams[n].viewpoint) for n in contested}
-    flipped_ev = {}
-    for n in contested:
-        present, _, bits = inputs[n]
-        flipped_ev[n] = _phase_evidence(index, bits, mirror[n], np.full(T, np.nan), present, config)
+    flipped_obs = {n: np.full(T, np.nan) for n in contested}  # each frame's phase, seen from the mirror
+    flipped_ev = {n: _phase_evidence(index, inputs[n][2], mirror[n], flipped_obs[n], inputs[n][0], config)
+                  for n in contested}
     best, best_lp, kept_lp = None, -np.inf, -np.inf
     for choice in np.ndindex(*(2,) * len(contested)):
         total = other.copy()
@@ -904,9 +902,7 @@ def _settle_ahead_behind(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarra
     for n, flip in zip(contested, best):
         if flip:
             c = cams[n]
-            c.viewpoint, evidence[n] = mirror[n], flipped_ev[n]
-            c.observations = np.full(T, np.nan)
-            _phase_evidence(index, inputs[n][2], c.viewpoint, c.observations, inputs[n][0], config)
+            c.viewpoint, evidence[n], c.observations = mirror[n], flipped_ev[n], flipped_obs[n]
             sides[n] = bool(np.cos(np.deg2rad(c.viewpoint.azimuth_deg)) >= 0)
             c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was "
                            f"{'contested' if c.cue is not None else 'absent'}; log-probability "

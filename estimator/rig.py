@@ -444,9 +444,9 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
                                   f"viewpoints' (more than {config.max_disagreement_deg:.0f}): taken as a wrong "
                                   "solution")
             return fallback
-    adjusted = cal.joints3d if pinhole is None else pinhole.joints3d
-    measured = _median_lengths(adjusted)  # lengths before any smoothing (averaging positions shortens limbs)
-    if pinhole is not None and config.smooth_posture and config.consecutive:
+    smooth = pinhole is not None and config.smooth_posture and config.consecutive
+    measured = _median_lengths(cal.joints3d if pinhole is None else pinhole.joints3d)  # before any smoothing:
+    if smooth:  # averaging positions shortens moving limbs
         pinhole = replace(pinhole, joints3d=smoothed(pinhole.joints3d, frames))
     joints3d = person_frame(cal.joints3d if pinhole is None else pinhole.joints3d)
     k = _scale_for(measured, config.height_m)
@@ -481,8 +481,7 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
         how = (f"scaled orthographic bundle adjustment from the {start_used}"
                + (f" on the middle {len(start)} frames" if len(start) < len(frames) else "")
                + f", then pinhole cameras (reprojection {pinhole.rmse_px:.1f} px rms)"
-               + ("; the posture filtered [1, 2, 1] / 4 over neighbouring frames"
-                  if config.smooth_posture and config.consecutive else ""))
+               + ("; the posture filtered [1, 2, 1] / 4 over neighbouring frames" if smooth else ""))
     rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {len(frames)} frames"
                      + (f" (every {frames[1] - frames[0]}th)" if len(frames) > 1 and frames[1] - frames[0] > 1 else "")
                      + f"; metres at a stature of {config.height_m} m")
