@@ -21,12 +21,14 @@ model's body at the given stature (:class:`RigConfig`).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .camera import world_to_camera_rotation
+from .frontier import FrontierConfig, outlines, refine_on_tangents
 from .gait import load_gait
 from ._selfcal_core import geodesic_deg
 from .joints import JOINT_INDEX, N_JOINTS
@@ -34,7 +36,7 @@ from .mnbp import MNBPConfig, measure_postures, posture_sequences
 from .mnbp3d import MNBP3DConfig, posture_sequence3d
 from .pipeline import WalkEstimate, concat_estimates, take_frames
 from .perspective import PerspectiveConfig, PerspectiveRig, perspective_refine
-from .pinhole import project
+from .pinhole import project, triangulate
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
@@ -137,6 +139,24 @@ class RigConfig:
         The estimate's frames are consecutive frames of one recording (false for frames gathered
         from many windows, :class:`RigAccumulator`): only then does the self-calibration use that
         the tracks are a smooth motion (its temporal prior), and only on frames it takes in a row.
+    tangents : FrontierConfig or None
+        With pinhole cameras, adjust them to the silhouettes' epipolar
+        tangents (:func:`estimator.frontier.refine_on_tangents`), a
+        constraint the body model does not enter, then fit the posture again
+        to the 2D postures with those cameras held (focal lengths fixed,
+        rotations under a prior of ``tangent_hold`` walker heights per
+        degree). Kept when the tangent residual falls and no camera turns
+        more than ``tangent_max_turn_deg``. Measured on the tuning walks
+        (seed 11): camera-pair rotations 2.16 / 6.08 deg -> 0.95 / 2.56
+        (median / p90); held-out seed 23: 3.89 / 7.97 -> 0.46 / 4.64
+        (docs/POSTURE.md). None: off.
+    tangent_hold : float
+    tangent_max_turn_deg : float
+    tangent_max_std_deg : float
+        ... and when the tangents alone determine every camera's rotation
+        within this (``FrontierResult.rotation_std_deg``): on the tuning
+        walks the refinements that drifted had 2.4-7.8 deg, those that
+        helped 0.06-1.3.
     smooth_posture : bool
         With pinhole cameras and ``consecutive`` frames, the adjusted 3D posture is filtered
         ``[1, 2, 1] / 4`` over each frame and its two neighbours (where both are frames of the
@@ -167,6 +187,10 @@ class RigConfig:
     consecutive: bool = True
     max_disagreement_deg: float = 45.0
     smooth_posture: bool = True
+    tangents: FrontierConfig | None = FrontierConfig()
+    tangent_hold: float = 1.0
+    tangent_max_turn_deg: float = 20.0
+    tangent_max_std_deg: float = 1.5
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
@@ -434,6 +458,10 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     changes = None
     if pinhole is not None and config.rounds > 1:
         pinhole, changes = iterate_rounds(estimate, [names[c] for c in use], frames, pinhole, config, views)
+    tangent_note = ""
+    if pinhole is not None and config.tangents is not None:
+        pinhole, tangent_note = _on_tangents(estimate, [names[c] for c in use], frames, tracks[use][:, frames],
+                                             pinhole, config)
     final = fused if pinhole is None else pinhole.rotations
     if pinhole is None:
         frames = start  # the posture is the scaled-orthographic adjustment's
@@ -481,6 +509,7 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
         how = (f"scaled orthographic bundle adjustment from the {start_used}"
                + (f" on the middle {len(start)} frames" if len(start) < len(frames) else "")
                + f", then pinhole cameras (reprojection {pinhole.rmse_px:.1f} px rms)"
+               + (f"; {tangent_note}" if tangent_note else "")
                + ("; the posture filtered [1, 2, 1] / 4 over neighbouring frames" if smooth else ""))
     rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {len(frames)} frames"
                      + (f" (every {frames[1] - frames[0]}th)" if len(frames) > 1 and frames[1] - frames[0] > 1 else "")
@@ -515,6 +544,57 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
         return None, f"the pinhole adjustment failed ({exc})"
     why_not = _insane(pin, estimate, names, config)
     return (None, why_not) if why_not else (pin, "")
+
+
+def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, tracks: np.ndarray,
+                 pinhole: PerspectiveRig, config: RigConfig) -> tuple[PerspectiveRig, str]:
+    """The pinhole rig adjusted to the silhouettes' epipolar tangents, the posture fitted again with
+    those cameras held; or the rig as given when the tangents do not help. And what was done."""
+    tr = estimate.tracks
+    shapes = [outlines([tr[n].silhouettes[t] for t in frames], tr[n].boxes[frames], tr[n].image_size)
+              for n in names]
+    try:
+        found = refine_on_tangents(pinhole.focal_px, pinhole.principal_px, pinhole.rotations, pinhole.centres,
+                                   shapes, config.tangents)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return pinhole, f"the epipolar tangents failed ({exc})"
+    if found is None:
+        return pinhole, "too few frames with epipolar tangents to refine on"
+    before, after = found.residual_px
+    turn = max(float(geodesic_deg(a, b)) for a, b in zip(found.rotations, pinhole.rotations))
+    spread = float(found.rotation_std_deg.max())
+    if not (after < before and turn <= config.tangent_max_turn_deg and spread <= config.tangent_max_std_deg):
+        return pinhole, (f"epipolar tangents not used (residual {before:.2f} -> {after:.2f} px, largest turn "
+                         f"{turn:.1f} deg, rotations determined within {spread:.1f} deg)")
+    sizes = np.array([tr[n].image_size for n in names], float)
+    height = float(np.nanmedian(np.concatenate([tr[n].boxes[:, 3] for n in names])))
+    held = replace(config.pinhole, focal_px=tuple(float(f) for f in found.focal_px),
+                   principal_px=tuple(tuple(float(v) for v in p) for p in pinhole.principal_px))
+    moved = replace(pinhole, rotations=found.rotations, centres=found.centres, focal_px=found.focal_px)
+    # the start: the joints triangulated by the new cameras; where a joint's rays nearly meet nowhere (its
+    # reprojection off by more than a tenth of the walker), the old posture scaled about camera 0 as its
+    # focal length (the walker's depth moves with it) and moved to where the frame's other joints went
+    cams = moved.cameras()
+    tri = triangulate(cams, tracks)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN frames: no shift
+        off = np.nanmax(np.linalg.norm(project(cams, tri) - tracks, axis=-1), axis=0)  # (T, J)
+        good = np.isfinite(tri).all(axis=-1) & (off < 0.1 * height)
+        scaled = pinhole.joints3d * (found.focal_px[0] / pinhole.focal_px[0])
+        shift = np.nanmedian(np.where(good[..., None], tri - scaled, np.nan), axis=1, keepdims=True)
+    start = np.where(good[..., None], tri, scaled + np.nan_to_num(shift))
+    try:
+        new = perspective_refine(tracks, sizes, None, None, list(RIGID_LINKS), config=held,
+                                 initial=replace(moved, joints3d=start),
+                                 rotation_prior=(found.rotations, config.tangent_hold * height * 180.0 / np.pi))
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return pinhole, f"epipolar tangents not used (the posture's fit failed: {exc})"
+    why_not = _insane(new, estimate, names, config)
+    if why_not:
+        return pinhole, f"epipolar tangents not used ({why_not})"
+    return new, (f"cameras refined on the silhouettes' epipolar tangents ({found.frames} frame pairs; residual "
+                 f"{before:.2f} -> {after:.2f} px median; largest turn {turn:.1f} deg; rotations determined "
+                 f"within {spread:.1f} deg)")
 
 
 def _viewpoint_prior(estimate: WalkEstimate, names: list[str], views: np.ndarray, config: RigConfig):

@@ -1,0 +1,313 @@
+"""Pinhole cameras refined on the silhouettes' epipolar tangents (frontier points).
+
+The rig from silhouettes (:mod:`estimator.rig`) adjusts pinhole cameras to the
+2D postures mNBP measures; their errors are systematic (the torso is the
+model's, the capsules are not the person's body), and with exact joints the
+same adjustment is within 0.05 deg of the truth, so the postures, not the
+cameras' model, limit the rig. A silhouette carries a constraint of its own
+that no body model enters: the two epipolar lines tangent to one camera's
+silhouette (the lines through the epipole that touch its outline) see the
+same two *frontier points* on the body as the tangent lines in the other
+camera, so each tangent line, carried across by the fundamental matrix,
+must again touch the other silhouette (Cipolla, Åström & Giblin 1995; Wong
+& Cipolla 2001; Sinha, Pollefeys & McMillan 2004, who calibrate camera
+networks from walkers' silhouettes this way). This module adjusts each
+camera's rotation, centre and focal length to those tangency conditions,
+starting from the pinhole rig, with a weak prior that holds the rotations
+near it.
+
+Choices (none of the cited papers fixes them for this case):
+
+- **Outlines as convex hulls** in full-frame pixels, the hull of the
+  boundary pixels' corners (a pixel covers +-0.5 px about its centre, the
+  coordinates' integers): an epipolar tangent touches the outline where it
+  touches its hull. Frames whose walker touches the image border are left
+  out (the border, not the body, would make the tangent).
+- **The residual** of a tangent line carried into the other image is its
+  signed distance to the other hull's supporting line parallel to it: the
+  lesser of the hull's largest signed distance and minus its smallest, in
+  pixels (0 when it touches, positive when it cuts the hull, negative when
+  it misses). It needs no matching of the two tangents, is continuous in
+  the cameras (the tangent point jumps from vertex to vertex, the line does
+  not), and is taken both ways (camera a's tangents in b, b's in a).
+- **Left out**: a frame where an epipole lies in or near the hull (the
+  tangents then span more than ``max_span_deg`` about it: cameras facing
+  each other across the walker), and camera pairs with fewer than
+  ``min_frames`` such frames.
+- **Gauge**: the reference camera (index 0) fixed; the distance of camera 1
+  from it held (a residual of weight 100 per unit of relative change), since
+  tangency fixes no scale. Every focal length is free with a log-normal
+  prior (``focal_sigma``) about its start: the pinhole adjustment on mNBP
+  postures leaves focal lengths off by factors of 2 and more, and with them
+  fixed the tangents pull the rotations the wrong way.
+- **Robust**: Cauchy-like ``soft_l1`` loss with scale ``f_scale`` pixels
+  (scipy's trust-region least squares), for frames whose outline a shadow,
+  a cut limb or a blob still changes after clean-up.
+- **Numerical Jacobian, batched**: the tangent points are vertices chosen by
+  ``argmax``, so the residuals are piecewise smooth; their derivatives are
+  taken by forward differences of all parameters in one array evaluation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+__all__ = ["FrontierConfig", "FrontierResult", "Outlines", "outlines", "paired", "refine_on_tangents", "tangent_residuals"]
+
+_CORNERS = np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])
+
+
+@dataclass(frozen=True)
+class FrontierConfig:
+    """Settings of :func:`refine_on_tangents`.
+
+    Attributes
+    ----------
+    prior_px_per_deg : float
+        A camera's turn away from its start costs as much as this many pixels of
+        tangent residual per degree. Chosen on the tuning walks (seed 11 of
+        ``bench/eval_rig_from_silhouettes.py``; docs/POSTURE.md).
+    f_scale : float
+        Pixels where the loss turns from quadratic to linear.
+    focal_sigma : float
+        Standard deviation of each log focal length's prior about its start.
+    max_span_deg : float
+        A frame's tangents are used only when the outline spans less than this
+        angle about the epipole.
+    min_frames : int
+        A camera pair is used with at least this many frames of tangents.
+    max_nfev : int
+        Evaluations of the residuals at most (scipy's ``least_squares``).
+    ftol : float
+        Relative change of the cost (and of the parameters) at which the
+        adjustment stops (``least_squares``' ``ftol`` and ``xtol``).
+    """
+
+    prior_px_per_deg: float = 0.1
+    f_scale: float = 1.0
+    focal_sigma: float = 1.0
+    max_span_deg: float = 150.0
+    min_frames: int = 8
+    max_nfev: int = 200
+    ftol: float = 1e-5
+
+
+@dataclass
+class Outlines:
+    """One camera's silhouette outlines as convex hulls.
+
+    Attributes
+    ----------
+    vertices : ndarray of shape (T, V, 2)
+        Hull vertices in full-frame pixels, padded by repeating the first one.
+    valid : ndarray of shape (T,), bool
+        Frames with an outline (a silhouette clear of the image border).
+    """
+
+    vertices: np.ndarray
+    valid: np.ndarray
+
+
+@dataclass
+class FrontierResult:
+    """Cameras after :func:`refine_on_tangents`, in the reference camera's frame.
+
+    Attributes
+    ----------
+    rotations, centres, focal_px : ndarray of shape (C, 3, 3), (C, 3), (C,)
+    residual_px : (float, float)
+        Median absolute tangent residual at the start and at the end.
+    pairs : list of (int, int)
+        Camera pairs that had enough frames of tangents.
+    frames : int
+        Frames of tangents over those pairs.
+    rotation_std_deg : ndarray of shape (C,)
+        How well the tangents alone determine each camera's rotation: the
+        largest posterior standard deviation of its rotation vector's
+        components (Laplace approximation without the prior), degrees; 0 for
+        the reference. Two cameras on a straight walk are often poorly
+        determined (3-8 deg on the tuning walks) and then drift.
+    """
+
+    rotations: np.ndarray
+    centres: np.ndarray
+    focal_px: np.ndarray
+    residual_px: tuple[float, float]
+    pairs: list[tuple[int, int]]
+    frames: int
+    rotation_std_deg: np.ndarray
+
+
+def outlines(silhouettes: list[np.ndarray | None], boxes: np.ndarray, image_size: tuple[int, int]) -> Outlines:
+    """The convex hull of each frame's silhouette crop, in full-frame pixels (``boxes``: ``x, y, w, h``)."""
+    width, height = image_size
+    hulls: list[np.ndarray | None] = []
+    for s, box in zip(silhouettes, np.asarray(boxes, float)):
+        hull = None
+        if s is not None and np.all(np.isfinite(box)) and box[0] > 0 and box[1] > 0 \
+                and box[0] + box[2] < width and box[1] + box[3] < height:
+            contours, _ = cv2.findContours((s > 0).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+            if contours:
+                inner = cv2.convexHull(np.concatenate(contours)).reshape(-1, 2).astype(np.float32)
+                corners = (inner[:, None] + _CORNERS.astype(np.float32)).reshape(-1, 2)
+                hull = cv2.convexHull(corners).reshape(-1, 2).astype(float) + box[:2]
+        hulls.append(hull)
+    n = max([len(h) for h in hulls if h is not None] + [1])
+    vertices = np.zeros((len(hulls), n, 2))
+    for t, h in enumerate(hulls):
+        if h is not None:
+            vertices[t] = np.concatenate([h, np.repeat(h[:1], n - len(h), axis=0)])
+    return Outlines(vertices, np.array([h is not None for h in hulls]))
+
+
+def paired(shapes: list[Outlines], pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The outlines of camera pairs (P, 2) as :func:`tangent_residuals` takes them: the first and the
+    second camera's vertices (P, T, V, 2), padded to one V, and the frames where both exist (P, T)."""
+    n = max(s.vertices.shape[1] for s in shapes)
+    padded = [np.concatenate([s.vertices, np.repeat(s.vertices[:, :1], n - s.vertices.shape[1], axis=1)], axis=1)
+              for s in shapes]
+    return (np.stack([padded[a] for a in pairs[:, 0]]), np.stack([padded[b] for b in pairs[:, 1]]),
+            np.stack([shapes[a].valid & shapes[b].valid for a, b in pairs]))
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    """Cross-product matrices of vectors (..., 3)."""
+    z = np.zeros(t.shape[:-1])
+    return np.stack([np.stack([z, -t[..., 2], t[..., 1]], -1), np.stack([t[..., 2], z, -t[..., 0]], -1),
+                     np.stack([-t[..., 1], t[..., 0], z], -1)], -2)
+
+
+def _tangent_points(hull: np.ndarray, epipole: np.ndarray, max_span: float) -> tuple[np.ndarray, np.ndarray]:
+    """The two hull vertices of extreme angle about the epipole: (..., T, 2, 2), and whether they exist (..., T).
+
+    ``hull`` (P, T, V, 2), ``epipole`` (..., P, 2), finite (a far one is far, not at infinity).
+    """
+    v = hull - epipole[..., None, None, :]  # (..., P, T, V, 2)
+    r = hull.mean(axis=-2) - epipole[..., None, :]  # the centroid's direction (..., P, T, 2)
+    angle = np.arctan2(r[..., None, 0] * v[..., 1] - r[..., None, 1] * v[..., 0],
+                       r[..., None, 0] * v[..., 0] + r[..., None, 1] * v[..., 1])
+    lo, hi = angle.argmin(axis=-1), angle.argmax(axis=-1)
+    span = np.take_along_axis(angle, hi[..., None], -1)[..., 0] - np.take_along_axis(angle, lo[..., None], -1)[..., 0]
+    every = np.broadcast_to(hull, v.shape)
+    points = np.stack([np.take_along_axis(every, i[..., None, None], -2)[..., 0, :] for i in (lo, hi)], axis=-2)
+    return points, span < max_span
+
+
+def _carried(points: np.ndarray, fundamental: np.ndarray, hull: np.ndarray) -> np.ndarray:
+    """Signed gap (..., P, T, 2) between each point's epipolar line ``F p`` and the other hull's tangent."""
+    lines = np.einsum("...pij,...ptkj->...ptki", fundamental,
+                      np.concatenate([points, np.ones(points.shape[:-1] + (1,))], axis=-1))
+    lines = lines / np.linalg.norm(lines[..., :2], axis=-1, keepdims=True)
+    d = np.einsum("...ptkj,ptvj->...ptkv", lines[..., :2], hull) + lines[..., 2:3]
+    return np.minimum(d.max(axis=-1), -d.min(axis=-1))
+
+
+def tangent_residuals(matrices: np.ndarray, rotations: np.ndarray, centres: np.ndarray, hulls: tuple,
+                      pairs: np.ndarray, max_span_deg: float = 150.0) -> tuple[np.ndarray, np.ndarray]:
+    """Tangent residuals (..., P, T, 4) in pixels of batches of rigs, and where they exist (..., P, T).
+
+    ``matrices``, ``rotations`` (..., C, 3, 3) and ``centres`` (..., C, 3) are
+    pinhole cameras ``x = K R (X - C)``; ``hulls`` is ``(first, second, valid)``:
+    the two cameras' outline vertices of each pair (P, T, V, 2) and the frames
+    where both exist (P, T), as :func:`paired` gives them; ``pairs`` (P, 2) camera indices. Residuals are 0
+    where they do not exist.
+    """
+    first, second, valid = hulls
+    a, b = pairs[:, 0], pairs[:, 1]
+    ka, kb, ra, rb, ca, cb = (matrices[..., a, :, :], matrices[..., b, :, :], rotations[..., a, :, :],
+                              rotations[..., b, :, :], centres[..., a, :], centres[..., b, :])
+    e_a = np.einsum("...ij,...jk,...k->...i", ka, ra, cb - ca)  # b's centre seen by a (homogeneous)
+    e_b = np.einsum("...ij,...jk,...k->...i", kb, rb, ca - cb)
+
+    def finite(e):
+        w = e[..., 2:3]
+        return e[..., :2] / np.where(np.abs(w) < 1e-12, np.copysign(1e-12, w), w)
+
+    max_span = np.radians(max_span_deg)
+    pa, ok_a = _tangent_points(first, finite(e_a), max_span)
+    pb, ok_b = _tangent_points(second, finite(e_b), max_span)
+    # F with x_b^T F x_a = 0 (Hartley & Zisserman eq. 9.2, cameras K [R | -R C])
+    relative = rb @ np.swapaxes(ra, -1, -2)
+    f = np.swapaxes(np.linalg.inv(kb), -1, -2) @ _skew(np.einsum("...ij,...j->...i", rb, ca - cb)) \
+        @ relative @ np.linalg.inv(ka)
+    res = np.concatenate([_carried(pa, f, second), _carried(pb, np.swapaxes(f, -1, -2), first)], axis=-1)
+    ok = valid & ok_a & ok_b
+    return np.where(ok[..., None], res, 0.0), ok
+
+
+def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations: np.ndarray, centres: np.ndarray,
+                       shapes: list[Outlines], config: FrontierConfig = FrontierConfig()) -> FrontierResult | None:
+    """Pinhole cameras adjusted to their silhouettes' epipolar tangents (this stage's entry).
+
+    ``rotations`` (C, 3, 3) world-to-camera with ``rotations[0]`` the
+    identity, ``centres`` (C, 3) with ``centres[0]`` the origin (any unit:
+    the result keeps camera 1's distance), ``focal_px`` (C,), ``principal_px``
+    (C, 2), one :class:`Outlines` per camera over the same frames. None when
+    no camera pair has ``config.min_frames`` frames of tangents.
+    """
+    n_cam = len(rotations)
+    rotations, centres = np.asarray(rotations, float), np.asarray(centres, float)
+    k0 = np.zeros((n_cam, 3, 3))
+    k0[:, 0, 0] = k0[:, 1, 1] = focal_px
+    k0[:, :2, 2] = principal_px
+    k0[:, 2, 2] = 1.0
+    all_pairs = np.array([(a, b) for a in range(n_cam) for b in range(a + 1, n_cam)], int).reshape(-1, 2)
+    hulls = paired(shapes, all_pairs)
+    _, ok = tangent_residuals(k0, rotations, centres, hulls, all_pairs, config.max_span_deg)
+    keep = ok.sum(axis=1) >= config.min_frames
+    if not keep.any():
+        return None
+    pairs = all_pairs[keep]
+    hulls = tuple(h[keep] for h in hulls)
+    distance = float(np.linalg.norm(centres[1]))
+    n_rot = 3 * (n_cam - 1)
+
+    def cameras(x: np.ndarray):
+        """Batches of parameter vectors (B, n) -> K, R, C of shape (B, C, ...)."""
+        rv = x[:, :n_rot].reshape(len(x), n_cam - 1, 3)
+        turn = Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix().reshape(len(x), n_cam - 1, 3, 3)
+        r = np.concatenate([np.broadcast_to(rotations[:1], (len(x), 1, 3, 3)), turn @ rotations[1:]], axis=1)
+        c = np.concatenate([np.broadcast_to(centres[:1], (len(x), 1, 3)),
+                            centres[1:] + x[:, n_rot:2 * n_rot].reshape(len(x), n_cam - 1, 3)], axis=1)
+        k = np.repeat(k0[None], len(x), axis=0)
+        k[..., 0, 0] = k[..., 1, 1] = k0[:, 0, 0] * np.exp(x[:, 2 * n_rot:])
+        return k, r, c, rv
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        """(B, m) residuals of a batch of parameter vectors."""
+        k, r, c, rv = cameras(x)
+        res, _ = tangent_residuals(k, r, c, hulls, pairs, config.max_span_deg)
+        gauge = 100.0 * (np.linalg.norm(c[:, 1], axis=-1) - distance) / distance
+        return np.concatenate([res.reshape(len(x), -1), config.prior_px_per_deg * np.degrees(rv.reshape(len(x), -1)),
+                               gauge[:, None], x[:, 2 * n_rot:] / config.focal_sigma], axis=1)
+
+    step = 1e-6
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        batch = np.vstack([x, x + step * np.eye(len(x))])
+        r = residuals(batch)
+        return ((r[1:] - r[0]) / step).T
+
+    x0 = np.zeros(2 * n_rot + n_cam)
+    start, started = tangent_residuals(k0, rotations, centres, hulls, pairs, config.max_span_deg)
+    sol = least_squares(lambda x: residuals(x[None])[0], x0, jac=jacobian, loss="soft_l1", f_scale=config.f_scale,
+                        x_scale="jac", max_nfev=config.max_nfev, ftol=config.ftol, xtol=config.ftol)
+    k, r, c, _ = cameras(sol.x[None])
+    res, used = tangent_residuals(k[0], r[0], c[0], hulls, pairs, config.max_span_deg)
+    # Laplace approximation from the tangents alone (the rotation prior's rows left out), the noise
+    # read from the residuals' median (robust: 1.4826 x the median absolute value)
+    jac = jacobian(sol.x)
+    tangent_rows = np.r_[np.arange(res.size), np.arange(res.size + n_rot, jac.shape[0])]
+    sigma = 1.4826 * float(np.median(np.abs(res[used])))
+    info = jac[tangent_rows].T @ jac[tangent_rows]
+    with np.errstate(invalid="ignore"):
+        var = np.diag(np.linalg.pinv(info))[:n_rot] * sigma ** 2
+    spread = np.degrees(np.sqrt(np.clip(var, 0.0, None))).reshape(-1, 3).max(axis=1)
+    return FrontierResult(r[0], c[0], k[0, :, 0, 0],
+                          (float(np.median(np.abs(start[started]))), float(np.median(np.abs(res[used])))),
+                          [tuple(int(i) for i in p) for p in pairs], int(used.sum()), np.r_[0.0, spread])

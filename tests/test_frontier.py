@@ -1,0 +1,97 @@
+"""Pinhole cameras refined on the silhouettes' epipolar tangents (estimator.frontier), on real renders."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimator._selfcal_core import geodesic_deg
+from estimator.camera import world_to_camera_rotation
+from estimator.frontier import FrontierConfig, outlines, paired, refine_on_tangents, tangent_residuals
+from estimator.perspective import perspective_refine
+from estimator.selfcal import RIGID_LINKS, self_calibrate
+from estimator.pipeline import tracks_from_sequence
+from estimator.synth import SynthSpec, synthesize
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """Three cameras on a rendered walk, their outlines and the true cameras in camera 0's frame."""
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=5, azimuths=(30.0, 100.0, 215.0),
+                               elevations=(5.0, 20.0, 10.0)))
+    tracks = tracks_from_sequence(seq)
+    shapes = [outlines(tracks[c].silhouettes, tracks[c].boxes, tracks[c].image_size) for c in seq.cameras]
+    cams = [seq.truth["cameras"][c] for c in seq.cameras]
+    world = np.array([world_to_camera_rotation(c["azimuth_deg"], c["elevation_deg"]) for c in cams])
+    rotations = world @ world[0].T
+    centres = (np.array([c["position_m"] for c in cams]) - cams[0]["position_m"]) @ world[0].T
+    focal = np.array([c["focal_px"] for c in cams])
+    principal = np.tile((np.array(seq.image_size, float) - 1) / 2, (3, 1))
+    joints2d = np.stack([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras]).astype(float)
+    return shapes, rotations, centres, focal, principal, joints2d, seq.image_size
+
+
+def _matrices(focal, principal):
+    k = np.zeros((len(focal), 3, 3))
+    k[:, 0, 0] = k[:, 1, 1] = focal
+    k[:, :2, 2] = principal
+    k[:, 2, 2] = 1.0
+    return k
+
+
+def _residuals(shapes, rotations, centres, focal, principal):
+    pairs = np.array([(0, 1), (0, 2), (1, 2)])
+    return tangent_residuals(_matrices(focal, principal), rotations, centres, paired(shapes, pairs), pairs)
+
+
+def test_outlines_are_hulls_in_the_full_frame(rendered):
+    shapes = rendered[0]
+    assert all(s.valid.all() for s in shapes)  # the synthetic walker stays clear of the border
+    v = shapes[0].vertices
+    assert v.shape[0] == 30 and v.shape[2] == 2
+    assert (v[..., 0] > 0).all() and (v[..., 0] < 640).all() and (v[..., 1] > 0).all() and (v[..., 1] < 480).all()
+    # A silhouette touching the border has no outline (the border would make its tangents).
+    sil = np.ones((10, 6), np.uint8)
+    out = outlines([sil, sil, None], np.array([[0, 50, 6, 10], [100, 50, 6, 10], [np.nan] * 4]), (640, 480))
+    assert out.valid.tolist() == [False, True, False]
+    # The hull of the pixels' corners: a 6 x 10 block spans 6 x 10 pixels, not 5 x 9.
+    box = out.vertices[1]
+    assert np.ptp(box[:, 0]) == 6.0 and np.ptp(box[:, 1]) == 10.0
+
+
+def test_the_true_cameras_meet_the_tangents(rendered):
+    shapes, rotations, centres, focal, principal = rendered[:5]
+    res, ok = _residuals(shapes, rotations, centres, focal, principal)
+    assert ok.sum() >= 30
+    assert np.median(np.abs(res[ok])) < 0.5  # pixel quantisation
+    turned = rotations.copy()
+    turned[1] = Rotation.from_euler("y", 3.0, degrees=True).as_matrix() @ rotations[1]
+    bad, ok2 = _residuals(shapes, turned, centres, focal, principal)
+    assert np.median(np.abs(bad[ok2])) > 4 * np.median(np.abs(res[ok]))
+
+
+def test_refining_on_tangents_undoes_the_joints_systematic_errors(rendered):
+    """As in the rig from silhouettes: pinhole cameras adjusted to 2D joints with errors of their own per
+    camera and joint (a measured posture's systematic part) are degrees off; the tangents bring them back."""
+    shapes, rotations, centres, focal, principal, joints2d, image_size = rendered
+    rng = np.random.default_rng(0)
+    biased = joints2d + rng.normal(0.0, 4.0, (3, 1, joints2d.shape[2], 2)) + rng.normal(0.0, 1.0, joints2d.shape)
+    cal = self_calibrate(biased, refine=True, upright=True)
+    pin = perspective_refine(biased, np.tile(image_size, (3, 1)), cal.rotations, cal.scales, list(RIGID_LINKS))
+    found = refine_on_tangents(pin.focal_px, pin.principal_px, pin.rotations, pin.centres, shapes)
+    assert found is not None and found.pairs == [(0, 1), (0, 2), (1, 2)] and found.frames >= 30
+    before = [geodesic_deg(a, b) for a, b in zip(pin.rotations[1:], rotations[1:])]
+    after = [geodesic_deg(a, b) for a, b in zip(found.rotations[1:], rotations[1:])]
+    assert max(after) < 1.0 and max(after) < 0.5 * max(before), (before, after)
+    assert found.residual_px[1] < 0.5 < found.residual_px[0]
+    focal_error = np.abs(np.log(found.focal_px / focal))
+    assert focal_error.max() < 0.1 and focal_error.max() < np.abs(np.log(pin.focal_px / focal)).max()
+    assert np.allclose(found.rotations[0], np.eye(3)) and np.allclose(found.centres[0], 0.0)
+    assert np.isclose(np.linalg.norm(found.centres[1]), np.linalg.norm(pin.centres[1]), rtol=1e-3)  # the gauge
+
+
+def test_too_few_frames_with_tangents_give_none(rendered):
+    shapes, rotations, centres, focal, principal = rendered[:5]
+    few = [type(s)(s.vertices, s.valid & (np.arange(len(s.valid)) < 5)) for s in shapes]
+    assert refine_on_tangents(focal, principal, rotations, centres, few, FrontierConfig(min_frames=8)) is None
