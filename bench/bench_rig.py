@@ -8,7 +8,8 @@ On the walk of ``posecal synth --cameras 3 --frames 30 --seed 4 --motion
 ../shared/data/mocap/16_15.bvh`` (CMU motion, not the model's; pyrender
 silhouettes): the mNBP postures it rests on (:func:`estimator.mnbp.measure_postures`),
 then the rig (two scaled-orthographic bundle adjustments, the fusion with the
-viewpoints, the pinhole adjustment), with and without the pinhole step, and
+viewpoints, the pinhole adjustment, the epipolar tangents), without the
+tangents, without the pinhole step, and
 the second round of Wang–Leow's loop (``RigConfig(rounds=2)``). Median of
 ``--repeats`` runs.
 """
@@ -51,7 +52,8 @@ def main() -> None:
     measured = measure_postures(est)
     postures = time.perf_counter() - t0
     rows = {}
-    for name, config in (("rig (default)", RigConfig()), ("rig without the pinhole step", RigConfig(perspective=False)),
+    for name, config in (("rig (default)", RigConfig()), ("rig without the epipolar tangents", RigConfig(tangents=None)),
+                         ("rig without the pinhole step", RigConfig(perspective=False)),
                          ("rig, 2 rounds", RigConfig(rounds=2))):
         times = []
         for _ in range(args.repeats):

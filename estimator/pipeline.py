@@ -143,17 +143,33 @@ class CameraTrack:
     image_size : (int, int), optional
         ``(width, height)`` of the full frame, when known: a walker touching
         its border is cut by it (:mod:`estimator.cleanup`).
+    cut : ndarray of shape (T,), bool, optional
+        Frames the clean-up cut below the feet (a shadow or reflection
+        removed, :func:`estimator.cleanup.trim_below_feet`): the silhouette's
+        bottom there is the cut, not the body's outline
+        (:mod:`estimator.frontier` leaves them out). None: not cleaned.
     """
 
     silhouettes: list[np.ndarray | None]
     boxes: np.ndarray
     full_frame: bool = True
     image_size: tuple[int, int] | None = None
+    cut: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.boxes = np.asarray(self.boxes, dtype=float)
         if self.boxes.shape != (len(self.silhouettes), 4):
             raise ValueError(f"boxes must have shape ({len(self.silhouettes)}, 4), got {self.boxes.shape}")
+        if self.cut is not None:
+            self.cut = np.asarray(self.cut, bool)
+            if self.cut.shape != (len(self.silhouettes),):
+                raise ValueError(f"cut must have shape ({len(self.silhouettes)},), got {self.cut.shape}")
+
+    def take(self, frames) -> CameraTrack:
+        """The track on ``frames`` (indices, or a slice) only."""
+        idx = np.arange(len(self.silhouettes))[frames]
+        return CameraTrack([self.silhouettes[k] for k in idx], self.boxes[idx], self.full_frame, self.image_size,
+                           None if self.cut is None else self.cut[idx])
 
 
 def crop_to_box(silhouette: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -338,9 +354,7 @@ def take_frames(estimate: WalkEstimate, frames: np.ndarray) -> WalkEstimate:
 
     cams = {n: replace(c, labels=cut(c.labels), observations=cut(c.observations), joints2d=cut(c.joints2d),
                        model_joints2d=cut(c.model_joints2d)) for n, c in estimate.cameras.items()}
-    tracks = None if estimate.tracks is None else {
-        n: CameraTrack([t.silhouettes[k] for k in idx], t.boxes[idx], t.full_frame, t.image_size)
-        for n, t in estimate.tracks.items()}
+    tracks = None if estimate.tracks is None else {n: t.take(idx) for n, t in estimate.tracks.items()}
     return replace(estimate, phase=cut(estimate.phase), states=cut(estimate.states), joints3d=cut(estimate.joints3d),
                    cameras=cams, tracks=tracks, phase_posterior=cut(estimate.phase_posterior), rig=None)
 
@@ -378,13 +392,14 @@ def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
     if all(e.tracks is not None for e in estimates):
         tracks = {}
         for name in names:
-            sils, boxes, ref = [], [], None
+            sils, boxes, cuts, ref = [], [], [], None
             for e, n in zip(estimates, lengths):
                 t = e.tracks.get(name)
                 sils += [None] * n if t is None else list(t.silhouettes)
                 boxes.append(np.full((n, 4), np.nan) if t is None else t.boxes)
+                cuts.append(np.zeros(n, bool) if t is None or t.cut is None else t.cut)
                 ref = t or ref
-            tracks[name] = CameraTrack(sils, np.concatenate(boxes), ref.full_frame, ref.image_size)
+            tracks[name] = CameraTrack(sils, np.concatenate(boxes), ref.full_frame, ref.image_size, np.concatenate(cuts))
     posts = [e.phase_posterior for e in estimates]
     return WalkEstimate(
         phase=np.concatenate([e.phase for e in estimates]), states=np.concatenate([e.states for e in estimates]),
@@ -670,13 +685,14 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
     out, reports = {}, {}
     for name, t in tracks.items():
         sils, boxes, report = select_walker(t.silhouettes, t.boxes, config=config)
+        cut = np.zeros(len(sils), bool)
         if score is not None:
             sils, boxes, kept = trim_below_feet(sils, boxes, score, config=config)
             cut = kept < 1.0
             report.cut, report.cut_kept = int(cut.sum()), float(np.median(kept[cut])) if cut.any() else 1.0
         sils, boxes, reports[name] = check_plausible(sils, boxes, report,
                                                      image_size=t.image_size if t.full_frame else None, config=config)
-        out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size)
+        out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size, cut=cut)
     return out, reports
 
 

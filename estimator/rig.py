@@ -551,7 +551,8 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     """The pinhole rig adjusted to the silhouettes' epipolar tangents, the posture fitted again with
     those cameras held; or the rig as given when the tangents do not help. And what was done."""
     tr = estimate.tracks
-    shapes = [outlines([tr[n].silhouettes[t] for t in frames], tr[n].boxes[frames], tr[n].image_size)
+    shapes = [outlines([tr[n].silhouettes[t] for t in frames], tr[n].boxes[frames], tr[n].image_size,
+                       cut=None if tr[n].cut is None else tr[n].cut[frames], cut_band=config.tangents.cut_band)
               for n in names]
     try:
         found = refine_on_tangents(pinhole.focal_px, pinhole.principal_px, pinhole.rotations, pinhole.centres,

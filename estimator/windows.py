@@ -194,7 +194,7 @@ class SegmentedWalk:
 
 def window_tracks(tracks: dict[str, CameraTrack], a: int, b: int) -> dict[str, CameraTrack]:
     """Frames ``[a, b)`` of every camera's track."""
-    return {n: CameraTrack(t.silhouettes[a:b], t.boxes[a:b], full_frame=t.full_frame, image_size=t.image_size) for n, t in tracks.items()}
+    return {n: t.take(slice(a, b)) for n, t in tracks.items()}
 
 
 def _estimate(tracks, a, b, model, config, cache=None) -> tuple[WalkEstimate | None, str]:

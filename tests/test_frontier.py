@@ -55,6 +55,10 @@ def test_outlines_are_hulls_in_the_full_frame(rendered):
     sil = np.ones((10, 6), np.uint8)
     out = outlines([sil, sil, None], np.array([[0, 50, 6, 10], [100, 50, 6, 10], [np.nan] * 4]), (640, 480))
     assert out.valid.tolist() == [False, True, False]
+    # On a frame the clean-up cut below the feet, the vertices on the cut (the crop's bottom) are loose.
+    cut = outlines([sil, sil], np.array([[100, 50, 6, 10]] * 2), (640, 480), cut=[False, True])
+    assert cut.valid.all() and not cut.loose[0].any()
+    assert np.array_equal(cut.loose[1], cut.vertices[1, :, 1] > 59.5 - 1.0 - 0.1 * 10) and cut.loose[1].sum() >= 2
     # The hull of the pixels' corners: a 6 x 10 block spans 6 x 10 pixels, not 5 x 9.
     box = out.vertices[1]
     assert np.ptp(box[:, 0]) == 6.0 and np.ptp(box[:, 1]) == 10.0
@@ -93,5 +97,5 @@ def test_refining_on_tangents_undoes_the_joints_systematic_errors(rendered):
 
 def test_too_few_frames_with_tangents_give_none(rendered):
     shapes, rotations, centres, focal, principal = rendered[:5]
-    few = [type(s)(s.vertices, s.valid & (np.arange(len(s.valid)) < 5)) for s in shapes]
+    few = [type(s)(s.vertices, s.valid & (np.arange(len(s.valid)) < 5), s.loose) for s in shapes]
     assert refine_on_tangents(focal, principal, rotations, centres, few, FrontierConfig(min_frames=8)) is None

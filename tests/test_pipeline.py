@@ -207,6 +207,9 @@ def test_a_shadow_cut_off_the_feet_leaves_the_motion_cue_to_the_head(small_model
     for cam in seq.cameras:
         c = est.cameras[cam]
         assert c.cleanup.cut > 0  # the shadow was cut
+        # the cut frames are marked on the track (their bottom is the cut: no epipolar tangent there)
+        assert est.tracks[cam].cut.sum() == c.cleanup.cut
+        assert est.tracks[cam].take(np.arange(5, 12)).cut.tolist() == est.tracks[cam].cut[5:12].tolist()
         assert c.cue.source in ("head", "head+height")
         assert result["cameras"][cam]["motion_cue"]["growth_from"] == c.cue.source
         cos = np.cos(np.radians(seq.truth["cameras"][cam]["azimuth_deg"]))
