@@ -157,6 +157,12 @@ class RigConfig:
         within this (``FrontierResult.rotation_std_deg``): on the tuning
         walks the refinements that drifted had 2.4-7.8 deg, those that
         helped 0.06-1.3.
+    tangent_max_residual_px : float
+        ... and when the tangents' median residual at the end is at most
+        this: on clean and shadowed tuning walks the refinements ended at
+        0.11-0.33 px; an outline the body does not make (a limb cut off the
+        silhouette) leaves more (0.53 px on a walk of seed 23 that the
+        tangents took 3.7 deg further off).
     smooth_posture : bool
         With pinhole cameras and ``consecutive`` frames, the adjusted 3D posture is filtered
         ``[1, 2, 1] / 4`` over each frame and its two neighbours (where both are frames of the
@@ -191,6 +197,7 @@ class RigConfig:
     tangent_hold: float = 1.0
     tangent_max_turn_deg: float = 20.0
     tangent_max_std_deg: float = 1.5
+    tangent_max_residual_px: float = 0.4
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
@@ -564,7 +571,8 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     before, after = found.residual_px
     turn = max(float(geodesic_deg(a, b)) for a, b in zip(found.rotations, pinhole.rotations))
     spread = float(found.rotation_std_deg.max())
-    if not (after < before and turn <= config.tangent_max_turn_deg and spread <= config.tangent_max_std_deg):
+    if not (after < before and after <= config.tangent_max_residual_px and turn <= config.tangent_max_turn_deg
+            and spread <= config.tangent_max_std_deg):
         return pinhole, (f"epipolar tangents not used (residual {before:.2f} -> {after:.2f} px, largest turn "
                          f"{turn:.1f} deg, rotations determined within {spread:.1f} deg)")
     sizes = np.array([tr[n].image_size for n in names], float)
