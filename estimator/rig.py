@@ -250,6 +250,11 @@ class Rig:
         camera (pixels of the full frame), on the frames the adjustment used;
         NaN elsewhere. Every view's postures shaped it, so it is nearer the
         truth than one view's mNBP alone (:func:`attach_rig` reports it).
+    tangents : dict or None
+        With pinhole cameras and ``RigConfig.tangents``: what the refinement on
+        the epipolar tangents found (:func:`estimator.frontier.refine_on_tangents`):
+        ``used``, ``frame_pairs``, ``residual_px`` (median before and after),
+        ``largest_turn_deg``, ``rotation_std_deg`` (None where it did not run).
     """
 
     cameras: tuple[str, ...]
@@ -269,6 +274,7 @@ class Rig:
     rotvec_cov: np.ndarray | None = None
     image_sizes: np.ndarray | None = None
     joints2d: np.ndarray | None = None
+    tangents: dict | None = None
 
     def __post_init__(self) -> None:
         self.reference = self.reference or self.cameras[0]
@@ -299,7 +305,10 @@ class Rig:
             if self.image_sizes is not None and np.all(np.isfinite(self.image_sizes[k])):
                 d["image_size"] = [int(v) for v in self.image_sizes[k]]
             cams[name] = d
-        return {"reference": self.reference, "source": self.source, "cameras": cams}
+        out = {"reference": self.reference, "source": self.source, "cameras": cams}
+        if self.tangents is not None:
+            out["epipolar_tangents"] = self.tangents
+        return out
 
     def body_dict(self) -> dict | None:
         """The result's ``body``: segment lengths in metres and relative to stature; None without them."""
@@ -465,9 +474,9 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     changes = None
     if pinhole is not None and config.rounds > 1:
         pinhole, changes = iterate_rounds(estimate, [names[c] for c in use], frames, pinhole, config, views)
-    tangent_note = ""
+    tangent_note, tangents = "", None
     if pinhole is not None and config.tangents is not None:
-        pinhole, tangent_note = _on_tangents(estimate, [names[c] for c in use], frames, tracks[use][:, frames],
+        pinhole, tangent_note, tangents = _on_tangents(estimate, [names[c] for c in use], frames, tracks[use][:, frames],
                                              pinhole, config)
     final = fused if pinhole is None else pinhole.rotations
     if pinhole is None:
@@ -512,7 +521,7 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
                   focal_px=full(pinhole.focal_px), centres_m=full(pinhole.centres * k),
                   walker_m=np.nanmean(pinhole.joints3d.reshape(-1, 3), axis=0) * k,
                   image_sizes=full(np.array([estimate.tracks[names[c]].image_size for c in use], float)),
-                  joints2d=_projected(pinhole, use, frames, (len(names), tracks.shape[1])))
+                  joints2d=_projected(pinhole, use, frames, (len(names), tracks.shape[1])), tangents=tangents)
         how = (f"scaled orthographic bundle adjustment from the {start_used}"
                + (f" on the middle {len(start)} frames" if len(start) < len(frames) else "")
                + f", then pinhole cameras (reprojection {pinhole.rmse_px:.1f} px rms)"
@@ -554,9 +563,12 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
 
 
 def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, tracks: np.ndarray,
-                 pinhole: PerspectiveRig, config: RigConfig) -> tuple[PerspectiveRig, str]:
+                 pinhole: PerspectiveRig, config: RigConfig) -> tuple[PerspectiveRig, str, dict]:
     """The pinhole rig adjusted to the silhouettes' epipolar tangents, the posture fitted again with
-    those cameras held; or the rig as given when the tangents do not help. And what was done."""
+    those cameras held; or the rig as given when the tangents do not help. And what was done (a note
+    and :attr:`Rig.tangents`)."""
+    summary = {"used": False, "frame_pairs": 0, "residual_px": None, "largest_turn_deg": None,
+               "rotation_std_deg": None}
     tr = estimate.tracks
     shapes = [outlines([tr[n].silhouettes[t] for t in frames], tr[n].boxes[frames], tr[n].image_size,
                        cut=None if tr[n].cut is None else tr[n].cut[frames], cut_band=config.tangents.cut_band)
@@ -565,16 +577,18 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
         found = refine_on_tangents(pinhole.focal_px, pinhole.principal_px, pinhole.rotations, pinhole.centres,
                                    shapes, config.tangents)
     except (ValueError, np.linalg.LinAlgError) as exc:
-        return pinhole, f"the epipolar tangents failed ({exc})"
+        return pinhole, f"the epipolar tangents failed ({exc})", summary
     if found is None:
-        return pinhole, "too few frames with epipolar tangents to refine on"
+        return pinhole, "too few frames with epipolar tangents to refine on", summary
     before, after = found.residual_px
     turn = max(float(geodesic_deg(a, b)) for a, b in zip(found.rotations, pinhole.rotations))
     spread = float(found.rotation_std_deg.max())
+    summary.update(frame_pairs=found.frames, residual_px=[round(before, 3), round(after, 3)],
+                   largest_turn_deg=round(turn, 2), rotation_std_deg=round(spread, 2))
     if not (after < before and after <= config.tangent_max_residual_px and turn <= config.tangent_max_turn_deg
             and spread <= config.tangent_max_std_deg):
         return pinhole, (f"epipolar tangents not used (residual {before:.2f} -> {after:.2f} px, largest turn "
-                         f"{turn:.1f} deg, rotations determined within {spread:.1f} deg)")
+                         f"{turn:.1f} deg, rotations determined within {spread:.1f} deg)"), summary
     sizes = np.array([tr[n].image_size for n in names], float)
     height = float(np.nanmedian(np.concatenate([tr[n].boxes[:, 3] for n in names])))
     held = replace(config.pinhole, focal_px=tuple(float(f) for f in found.focal_px),
@@ -597,13 +611,14 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
                                  initial=replace(moved, joints3d=start),
                                  rotation_prior=(found.rotations, config.tangent_hold * height * 180.0 / np.pi))
     except (ValueError, np.linalg.LinAlgError) as exc:
-        return pinhole, f"epipolar tangents not used (the posture's fit failed: {exc})"
+        return pinhole, f"epipolar tangents not used (the posture's fit failed: {exc})", summary
     why_not = _insane(new, estimate, names, config)
     if why_not:
-        return pinhole, f"epipolar tangents not used ({why_not})"
+        return pinhole, f"epipolar tangents not used ({why_not})", summary
+    summary["used"] = True
     return new, (f"cameras refined on the silhouettes' epipolar tangents ({found.frames} frame pairs; residual "
                  f"{before:.2f} -> {after:.2f} px median; largest turn {turn:.1f} deg; rotations determined "
-                 f"within {spread:.1f} deg)")
+                 f"within {spread:.1f} deg)"), summary
 
 
 def _viewpoint_prior(estimate: WalkEstimate, names: list[str], views: np.ndarray, config: RigConfig):

@@ -220,12 +220,24 @@ class RigCamera(_Open):
     scale_std: float | None = None
 
 
+class EpipolarTangents(_Open):
+    """The refinement of pinhole cameras on the silhouettes' epipolar tangents (docs/POSTURE.md, step 5)."""
+
+    used: bool = Field(description="the rig's cameras are the refined ones")
+    frame_pairs: int = Field(description="frames of tangents over the camera pairs")
+    residual_px: list[float] | None = Field(description="median tangent residual before and after, pixels")
+    largest_turn_deg: float | None
+    rotation_std_deg: float | None = Field(description="how well the tangents alone determine the rotations "
+                                           "(degrees; over 1.5 the refinement is not used)")
+
+
 class RigResult(_Open):
     """The calibrated rig (docs/FORMATS.md, rig)."""
 
     reference: str
     source: Literal["self-calibration", "viewpoints"]
     cameras: dict[str, RigCamera]
+    epipolar_tangents: EpipolarTangents | None = None
 
 
 class BodySegment(_Open):

@@ -341,6 +341,9 @@ def test_the_rig_is_refined_on_the_silhouettes_tangents(walk):
     rig = calibrate_rig(measured)
     assert any("epipolar tangents (" in n for n in rig.notes), rig.notes
     assert not any("epipolar" in n for n in plain.notes)
+    said = rig.to_dict()["epipolar_tangents"]
+    assert said["used"] is True and said["frame_pairs"] >= 30 and said["rotation_std_deg"] <= 1.5
+    assert said["residual_px"][1] < said["residual_px"][0] and "epipolar_tangents" not in plain.to_dict()
     before = [geodesic_deg(a, b) for a, b in zip(plain.rotations[1:], truth[1:])]
     after = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], truth[1:])]
     assert max(after) < 0.5 * max(before) and max(after) < 2.0, (before, after)  # 11.6 / 6.3 -> 1.1 / 1.1 deg
@@ -349,3 +352,17 @@ def test_the_rig_is_refined_on_the_silhouettes_tangents(walk):
     assert np.median(aligned_error(rig.joints3d, true3d)) < 1.1 * np.median(aligned_error(plain.joints3d, true3d))
     focal = seq.truth["cameras"]["c0"]["focal_px"]
     assert np.abs(np.log(rig.focal_px / focal)).max() <= np.abs(np.log(plain.focal_px / focal)).max()
+
+
+@pytest.mark.parametrize("gate", [{"tangent_max_residual_px": 0.0}, {"tangent_max_std_deg": 0.0},
+                                  {"tangent_max_turn_deg": 0.0}])
+def test_tangents_that_fail_a_gate_leave_the_pinhole_rig(walk, gate):
+    """A tangent refinement whose residual stays high, whose rotations the tangents do not determine or
+    that turns a camera too far is set aside with a note: the rig is the one without the tangents."""
+    _, _, measured = walk
+    plain = calibrate_rig(measured, RigConfig(tangents=None))
+    rig = calibrate_rig(measured, RigConfig(**gate))
+    assert any("epipolar tangents not used (residual" in n for n in rig.notes), rig.notes
+    assert rig.to_dict()["epipolar_tangents"]["used"] is False
+    np.testing.assert_allclose(rig.rotations, plain.rotations, atol=1e-9)
+    np.testing.assert_allclose(rig.joints3d, plain.joints3d, atol=1e-9)
