@@ -47,9 +47,9 @@ Choices (none of the cited papers fixes them for this case):
   prior (``focal_sigma``) about its start: the pinhole adjustment on mNBP
   postures leaves focal lengths off by factors of 2 and more, and with them
   fixed the tangents pull the rotations the wrong way.
-- **Robust**: Cauchy-like ``soft_l1`` loss with scale ``f_scale`` pixels
-  (scipy's trust-region least squares), for frames whose outline a shadow,
-  a cut limb or a blob still changes after clean-up.
+- **Robust**: the ``soft_l1`` loss (a smooth L1, quadratic below
+  ``f_scale`` pixels; scipy's trust-region least squares), for frames whose
+  outline a shadow, a cut limb or a blob still changes after clean-up.
 - **Numerical Jacobian, batched**: the tangent points are vertices chosen by
   ``argmax``, so the residuals are piecewise smooth; their derivatives are
   taken by forward differences of all parameters in one array evaluation.
