@@ -11,7 +11,9 @@ relative rotation ``R_c R_0^T`` of every camera to camera 0 comes from
   (``estimator.mnbp.measure_postures``): the first round of Wang–Leow's loop;
 - ``rig (default)``: :func:`estimator.rig.calibrate_rig` on the mNBP postures
   (what ``posecal estimate`` reports): the scaled-orthographic bundle
-  adjustment from two starts, fused with the viewpoints, then pinhole cameras;
+  adjustment from two starts, fused with the viewpoints, then pinhole cameras,
+  then the cameras refined on the silhouettes' epipolar tangents
+  (:mod:`estimator.frontier`; ``rig.epipolar_tangents`` in the result);
 - ``rig, 2 rounds``: the same with a second round of Wang–Leow's loop (§5:
   3D mNBP over all views with the pinhole cameras, a short 2D correction
   per view, the pinhole adjustment again; ``RigConfig(rounds=2)``);
