@@ -64,7 +64,11 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-__all__ = ["FrontierConfig", "FrontierResult", "Outlines", "outlines", "paired", "refine_on_tangents", "tangent_residuals"]
+from .perspective import _hat
+from .pinhole import PinholeCameras
+
+__all__ = ["FrontierConfig", "FrontierResult", "Outlines", "outlines", "paired", "refine_on_tangents",
+           "tangent_residuals"]
 
 _CORNERS = np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])
 
@@ -207,13 +211,6 @@ def paired(shapes: list[Outlines], pairs: np.ndarray) -> tuple[np.ndarray, ...]:
             np.stack([loose[i] for i in a]), np.stack([loose[i] for i in b]))
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    """Cross-product matrices of vectors (..., 3)."""
-    z = np.zeros(t.shape[:-1])
-    return np.stack([np.stack([z, -t[..., 2], t[..., 1]], -1), np.stack([t[..., 2], z, -t[..., 0]], -1),
-                     np.stack([-t[..., 1], t[..., 0], z], -1)], -2)
-
-
 def _pick(a: np.ndarray, index: np.ndarray) -> np.ndarray:
     """``a`` (P, T, V, ...) at vertex ``index`` (..., P, T, K): (..., P, T, K, ...)."""
     extra = a.shape[3:]
@@ -275,7 +272,7 @@ def tangent_residuals(matrices: np.ndarray, rotations: np.ndarray, centres: np.n
     pb, ib, ok_b = _tangent_points(second, finite(e_b), max_span)
     # F with x_b^T F x_a = 0 (Hartley & Zisserman eq. 9.2, cameras K [R | -R C])
     relative = rb @ np.swapaxes(ra, -1, -2)
-    f = np.swapaxes(np.linalg.inv(kb), -1, -2) @ _skew(np.einsum("...ij,...j->...i", rb, ca - cb)) \
+    f = np.swapaxes(np.linalg.inv(kb), -1, -2) @ _hat(np.einsum("...ij,...j->...i", rb, ca - cb)) \
         @ relative @ np.linalg.inv(ka)
     gap_ab, touch_b = _carried(pa, f, second)
     gap_ba, touch_a = _carried(pb, np.swapaxes(f, -1, -2), first)
@@ -298,17 +295,15 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
     """
     n_cam = len(rotations)
     rotations, centres = np.asarray(rotations, float), np.asarray(centres, float)
-    k0 = np.zeros((n_cam, 3, 3))
-    k0[:, 0, 0] = k0[:, 1, 1] = focal_px
-    k0[:, :2, 2] = principal_px
-    k0[:, 2, 2] = 1.0
+    k0 = PinholeCameras.from_centres(np.asarray(focal_px, float), np.asarray(principal_px, float), rotations,
+                                     centres).matrices
     all_pairs = np.array([(a, b) for a in range(n_cam) for b in range(a + 1, n_cam)], int).reshape(-1, 2)
     hulls = paired(shapes, all_pairs)
-    _, ok = tangent_residuals(k0, rotations, centres, hulls, all_pairs, config.max_span_deg)
-    keep = ok.any(axis=-1).sum(axis=1) >= config.min_frames
+    start, started = tangent_residuals(k0, rotations, centres, hulls, all_pairs, config.max_span_deg)
+    keep = started.any(axis=-1).sum(axis=1) >= config.min_frames
     if not keep.any():
         return None
-    pairs = all_pairs[keep]
+    pairs, start, started = all_pairs[keep], start[keep], started[keep]
     hulls = tuple(h[keep] for h in hulls)
     distance = float(np.linalg.norm(centres[1]))
     n_rot = 3 * (n_cam - 1)
@@ -340,7 +335,6 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
         return ((r[1:] - r[0]) / step).T
 
     x0 = np.zeros(2 * n_rot + n_cam)
-    start, started = tangent_residuals(k0, rotations, centres, hulls, pairs, config.max_span_deg)
     sol = least_squares(lambda x: residuals(x[None])[0], x0, jac=jacobian, loss="soft_l1", f_scale=config.f_scale,
                         x_scale="jac", max_nfev=config.max_nfev, ftol=config.ftol, xtol=config.ftol)
     k, r, c, _ = cameras(sol.x[None])

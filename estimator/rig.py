@@ -147,8 +147,9 @@ class RigConfig:
         rotations under a prior of ``tangent_hold`` walker heights per
         degree). Kept when the tangent residual falls and no camera turns
         more than ``tangent_max_turn_deg``. Measured on the tuning walks
-        (seed 11): camera-pair rotations 2.16 / 6.08 deg -> 0.95 / 2.56
-        (median / p90); held-out seed 23: 3.89 / 7.97 -> 0.46 / 4.64
+        (seed 11): camera-pair rotations 2.16 / 6.08 deg -> 0.49 / 2.72
+        (median / p90); held-out seed 23: 3.89 / 7.97 -> 0.69 / 6.64 (CMU
+        walks), 5.62 / 8.63 -> 0.69 / 3.15 (stylised gait)
         (docs/POSTURE.md). None: off.
     tangent_hold : float
     tangent_max_turn_deg : float
@@ -476,8 +477,8 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
         pinhole, changes = iterate_rounds(estimate, [names[c] for c in use], frames, pinhole, config, views)
     tangent_note, tangents = "", None
     if pinhole is not None and config.tangents is not None:
-        pinhole, tangent_note, tangents = _on_tangents(estimate, [names[c] for c in use], frames, tracks[use][:, frames],
-                                             pinhole, config)
+        pinhole, tangent_note, tangents = _on_tangents(estimate, [names[c] for c in use], frames,
+                                                       tracks[use][:, frames], pinhole, config)
     final = fused if pinhole is None else pinhole.rotations
     if pinhole is None:
         frames = start  # the posture is the scaled-orthographic adjustment's
@@ -570,9 +571,8 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     summary = {"used": False, "frame_pairs": 0, "residual_px": None, "largest_turn_deg": None,
                "rotation_std_deg": None}
     tr = estimate.tracks
-    shapes = [outlines([tr[n].silhouettes[t] for t in frames], tr[n].boxes[frames], tr[n].image_size,
-                       cut=None if tr[n].cut is None else tr[n].cut[frames], cut_band=config.tangents.cut_band)
-              for n in names]
+    shapes = [outlines(t.silhouettes, t.boxes, t.image_size, cut=t.cut, cut_band=config.tangents.cut_band)
+              for t in (tr[n].take(frames) for n in names)]
     try:
         found = refine_on_tangents(pinhole.focal_px, pinhole.principal_px, pinhole.rotations, pinhole.centres,
                                    shapes, config.tangents)
@@ -590,7 +590,7 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
         return pinhole, (f"epipolar tangents not used (residual {before:.2f} -> {after:.2f} px, largest turn "
                          f"{turn:.1f} deg, rotations determined within {spread:.1f} deg)"), summary
     sizes = np.array([tr[n].image_size for n in names], float)
-    height = float(np.nanmedian(np.concatenate([tr[n].boxes[:, 3] for n in names])))
+    height = _walker_height(estimate, names)
     held = replace(config.pinhole, focal_px=tuple(float(f) for f in found.focal_px),
                    principal_px=tuple(tuple(float(v) for v in p) for p in pinhole.principal_px))
     moved = replace(pinhole, rotations=found.rotations, centres=found.centres, focal_px=found.focal_px)
@@ -621,18 +621,22 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
                  f"within {spread:.1f} deg)"), summary
 
 
+def _walker_height(estimate: WalkEstimate, names: list[str]) -> float:
+    """The walker's median image height in pixels over the cameras ``names`` (their silhouettes' boxes)."""
+    return float(np.nanmedian(np.concatenate([estimate.tracks[n].boxes[:, 3] for n in names])))
+
+
 def _viewpoint_prior(estimate: WalkEstimate, names: list[str], views: np.ndarray, config: RigConfig):
     """The viewpoints' rotations as a prior of the pinhole adjustment, or None."""
     if config.pinhole_viewpoint_weight <= 0 or not np.all(np.isfinite(views)):
         return None
-    height = float(np.nanmedian(np.concatenate([estimate.tracks[n].boxes[:, 3] for n in names])))
-    return views, config.pinhole_viewpoint_weight * height * 180.0 / np.pi
+    return views, config.pinhole_viewpoint_weight * _walker_height(estimate, names) * 180.0 / np.pi
 
 
 def _insane(pin: PerspectiveRig, estimate: WalkEstimate, names: list[str], config: RigConfig) -> str:
     """Why a pinhole result is refused (a diverged fit), or "" when it is sane."""
     tr = estimate.tracks
-    height = float(np.nanmedian(np.concatenate([tr[n].boxes[:, 3] for n in names])))
+    height = _walker_height(estimate, names)
     widths = pin.focal_px / np.array([tr[n].image_size[0] for n in names], float)
     lo, hi = config.pinhole_focal_widths
     if not (np.all(np.isfinite(pin.rotations)) and np.all((widths > lo) & (widths < hi))

@@ -10,6 +10,7 @@ from estimator._selfcal_core import geodesic_deg
 from estimator.camera import world_to_camera_rotation
 from estimator.frontier import FrontierConfig, outlines, paired, refine_on_tangents, tangent_residuals
 from estimator.perspective import perspective_refine
+from estimator.pinhole import PinholeCameras
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 from estimator.pipeline import tracks_from_sequence
 from estimator.synth import SynthSpec, synthesize
@@ -32,17 +33,10 @@ def rendered():
     return shapes, rotations, centres, focal, principal, joints2d, seq.image_size
 
 
-def _matrices(focal, principal):
-    k = np.zeros((len(focal), 3, 3))
-    k[:, 0, 0] = k[:, 1, 1] = focal
-    k[:, :2, 2] = principal
-    k[:, 2, 2] = 1.0
-    return k
-
-
 def _residuals(shapes, rotations, centres, focal, principal):
     pairs = np.array([(0, 1), (0, 2), (1, 2)])
-    return tangent_residuals(_matrices(focal, principal), rotations, centres, paired(shapes, pairs), pairs)
+    k = PinholeCameras.from_centres(focal, principal, rotations, centres).matrices
+    return tangent_residuals(k, rotations, centres, paired(shapes, pairs), pairs)
 
 
 def test_outlines_are_hulls_in_the_full_frame(rendered):
