@@ -82,6 +82,7 @@ def main() -> None:
     parser.add_argument("--gait", choices=("cmu", "stylised"), default="cmu",
                         help="the CMU walks (default) or the model's gait stylised (arm swing x1.8, "
                              "short steps, high knees), on random bodies either way")
+    parser.add_argument("--frames", type=int, default=30, help="frames per walk (15 Hz)")
     parser.add_argument("--damage", help="damage every silhouette first (estimator.damage kinds, e.g. all)")
     parser.add_argument("--plot", type=Path, help="write a PNG: the rotation and 2D error distributions, and the "
                                                   "first walk's person posture over the truth")
@@ -103,7 +104,7 @@ def main() -> None:
     lost = 0
     overlay = None  # the first walk's middle frame: (person posture aligned to the truth, the truth)
     for i in tqdm(range(args.sequences), desc="sequences"):
-        spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=30, seed=1000 * args.seed + i, shape=body(rng),
+        spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=args.frames, seed=1000 * args.seed + i, shape=body(rng),
                          style=STYLISED if args.gait == "stylised" else None)
         seq = synthesize(spec, motion=motions[i % 2] if args.gait == "cmu" else None)
         if args.damage:
@@ -165,7 +166,7 @@ def main() -> None:
                 for key, j in pairs:
                     e2d[key].append((np.linalg.norm(j - true2d, axis=-1) / height[:, None]).ravel())
     damaged = f", silhouettes damaged by {args.damage}" if args.damage else ""
-    print(f"\n{args.sequences} walks{damaged}, {len(errors['viewpoints'])} camera pairs"
+    print(f"\n{args.sequences} walks of {args.frames} frames{damaged}, {len(errors['viewpoints'])} camera pairs"
           f"{f'; {lost} walks not estimated at all' if lost else ''}\n")
     print("| rotations from | median | p90 | max | failed walks |\n|---|---|---|---|---|")
     for name, e in errors.items():
