@@ -366,3 +366,23 @@ def test_tangents_that_fail_a_gate_leave_the_pinhole_rig(walk, gate):
     assert rig.to_dict()["epipolar_tangents"]["used"] is False
     np.testing.assert_allclose(rig.rotations, plain.rotations, atol=1e-9)
     np.testing.assert_allclose(rig.joints3d, plain.joints3d, atol=1e-9)
+
+
+def test_a_refit_with_held_cameras_may_reproject_a_little_worse(walk):
+    """A pinhole result over the reprojection limit (4 % of the walker's height) is refused as diverged,
+    but the posture's refit with the tangents' cameras held may reach the limit given to it (a quarter
+    over the pinhole adjustment's own): held cameras cannot follow the postures' own faults."""
+    from estimator.perspective import PerspectiveRig
+    from estimator.rig import _insane, _walker_height
+
+    _, _, measured = walk
+    names = list(measured.tracks)
+    n, width = len(names), measured.tracks[names[0]].image_size[0]
+    limit = RigConfig().pinhole_max_rms * _walker_height(measured, names)
+    rig = PerspectiveRig(np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.full(n, 1.2 * width),
+                         np.zeros((4, N_JOINTS, 3)), 1.1 * limit, np.ones(n), None, None, 1.0)
+    assert "reprojection" in _insane(rig, measured, names, RigConfig())
+    assert _insane(rig, measured, names, RigConfig(), max_rms_px=1.25 * limit) == ""
+    assert _insane(rig, measured, names, RigConfig(), max_rms_px=1.05 * limit) != ""
+    diverged = replace(rig, focal_px=np.full(n, 60.0 * width))  # focal lengths out of bounds: refused anyway
+    assert "focal lengths" in _insane(diverged, measured, names, RigConfig(), max_rms_px=10 * limit)
