@@ -111,6 +111,12 @@ class FrontierConfig:
     cut_band : float
         On frames cut below the feet, the outline this share of the walker's
         height above the cut is not used (:func:`outlines`).
+    hold_std_deg, hold_px_per_deg : float
+        When the tangents alone leave a camera's rotation less well determined
+        than ``hold_std_deg`` (``FrontierResult.rotation_std_deg``; two cameras
+        on a straight walk, 1.6-22 deg), the adjustment is run again with each
+        direction of the rotations' posterior wider than that held where it
+        started, at ``hold_px_per_deg`` pixels of residual per degree.
     max_nfev : int
         Evaluations of the residuals at most (scipy's ``least_squares``).
     ftol : float
@@ -127,6 +133,8 @@ class FrontierConfig:
     cut_band: float = 0.1
     max_nfev: int = 200
     ftol: float = 1e-5
+    hold_std_deg: float = 1.5
+    hold_px_per_deg: float = 10.0
 
 
 @dataclass
@@ -167,7 +175,9 @@ class FrontierResult:
         largest posterior standard deviation of its rotation vector's
         components (Laplace approximation without the prior), degrees; 0 for
         the reference. Two cameras on a straight walk are often poorly
-        determined (3-8 deg on the tuning walks) and then drift.
+        determined (3-8 deg on the tuning walks): see ``held``.
+    held : int
+        Directions of the rotations held at the start (``hold_std_deg``).
     """
 
     rotations: np.ndarray
@@ -177,6 +187,7 @@ class FrontierResult:
     pairs: list[tuple[int, int]]
     frames: int
     rotation_std_deg: np.ndarray
+    held: int = 0
 
 
 def outlines(silhouettes: list[np.ndarray | None], boxes: np.ndarray, image_size: tuple[int, int],
@@ -346,7 +357,8 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
         moved = centres[1] + x[:, n_rot:n_rot + 3]
         gauge = 100.0 * (np.linalg.norm(moved, axis=-1) - distance) / distance
         return np.concatenate([config.prior_px_per_deg * np.degrees(x[:, :n_rot]), gauge[:, None],
-                               x[:, 2 * n_rot:] / config.focal_sigma], axis=1)
+                               x[:, 2 * n_rot:] / config.focal_sigma,
+                               config.hold_px_per_deg * np.degrees(x[:, :n_rot] @ hold.T)], axis=1)
 
     def residuals(x: np.ndarray) -> np.ndarray:
         """(B, m) residuals of a batch of parameter vectors."""
@@ -360,7 +372,7 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
     def jacobian(x: np.ndarray) -> np.ndarray:
         """Forward differences, each camera's parameters evaluated on its own pairs only."""
         moved = x + step * np.eye(len(x))
-        jac = np.zeros((n_tan + n_rot + 1 + n_cam, len(x)))
+        jac = np.zeros((n_tan + n_rot + 1 + n_cam + len(hold), len(x)))
         base = tangents(x[None])[0]
         for cam in range(n_cam):
             cols, sel = np.flatnonzero(owner == cam), (pairs == cam).any(axis=1)
@@ -370,21 +382,35 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
         jac[n_tan:] = ((priors(moved) - priors(x[None])) / step).T
         return jac
 
-    x = np.zeros(2 * n_rot + n_cam)
-    for loss in config.losses:
-        x = least_squares(lambda x: residuals(x[None])[0], x, jac=jacobian, loss=loss, f_scale=config.f_scale,
-                          x_scale="jac", max_nfev=config.max_nfev, ftol=config.ftol, xtol=config.ftol).x
+    def solve() -> np.ndarray:
+        x = np.zeros(2 * n_rot + n_cam)
+        for loss in config.losses:
+            x = least_squares(lambda x: residuals(x[None])[0], x, jac=jacobian, loss=loss, f_scale=config.f_scale,
+                              x_scale="jac", max_nfev=config.max_nfev, ftol=config.ftol, xtol=config.ftol).x
+        return x
+
+    hold = np.zeros((0, n_rot))
+    x = solve()
     k, r, c, _ = cameras(x[None])
     res, used = tangent_residuals(k[0], r[0], c[0], hulls, pairs, config.max_span_deg)
     # Laplace approximation from the tangents alone (the rotation prior's rows left out), the noise
     # read from the residuals' median (robust: 1.4826 x the median absolute value)
     jac = jacobian(x)
-    tangent_rows = np.r_[np.arange(res.size), np.arange(res.size + n_rot, jac.shape[0])]
+    tangent_rows = np.r_[np.arange(res.size), np.arange(res.size + n_rot, n_tan + n_rot + 1 + n_cam)]
     sigma = 1.4826 * float(np.median(np.abs(res[used])))
     info = jac[tangent_rows].T @ jac[tangent_rows]
     with np.errstate(invalid="ignore"):
-        var = np.diag(np.linalg.pinv(info))[:n_rot] * sigma ** 2
-    spread = np.degrees(np.sqrt(np.clip(var, 0.0, None))).reshape(-1, 3).max(axis=1)
+        cov = np.linalg.pinv(info)[:n_rot, :n_rot] * sigma ** 2
+    spread = np.degrees(np.sqrt(np.clip(np.diag(cov), 0.0, None))).reshape(-1, 3).max(axis=1)
+    if spread.max() > config.hold_std_deg and np.all(np.isfinite(cov)):
+        # the directions the tangents hardly see follow the outlines' faults: held where they started
+        value, vector = np.linalg.eigh(cov)
+        hold = vector[:, value > np.radians(config.hold_std_deg) ** 2].T
+        if len(hold):
+            x = solve()
+            k, r, c, _ = cameras(x[None])
+            res, used = tangent_residuals(k[0], r[0], c[0], hulls, pairs, config.max_span_deg)
     return FrontierResult(r[0], c[0], k[0, :, 0, 0],
                           (float(np.median(np.abs(start[started]))), float(np.median(np.abs(res[used])))),
-                          [tuple(int(i) for i in p) for p in pairs], int(used.any(axis=-1).sum()), np.r_[0.0, spread])
+                          [tuple(int(i) for i in p) for p in pairs], int(used.any(axis=-1).sum()), np.r_[0.0, spread],
+                          len(hold))

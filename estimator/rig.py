@@ -146,19 +146,16 @@ class RigConfig:
         to the 2D postures with those cameras held (focal lengths fixed,
         rotations under a prior of ``tangent_hold`` walker heights per
         degree). Kept when the tangent residual falls and no camera turns
-        more than ``tangent_max_turn_deg``. Measured on the tuning walks
-        (seed 11): camera-pair rotations 2.16 / 6.08 deg -> 0.40 / 2.72
-        (median / p90); held-out seed 23: 3.89 / 7.97 -> 0.71 / 6.64 (CMU
-        walks), 5.62 / 8.63 -> 0.70 / 3.17 (stylised gait); seed 31: 0.44 /
-        6.22 and 0.52 / 3.47; with holes and cut limbs (seed 23): 6.64 /
-        15.72 -> 2.15 / 13.62 (docs/POSTURE.md). None: off.
+        more than ``tangent_max_turn_deg``; rotation directions the tangents
+        hardly see are held where the pinhole rig put them
+        (``FrontierConfig.hold_std_deg``). Measured on the tuning walks
+        (seed 11): camera-pair rotations 2.16 / 6.08 deg -> 0.40 / 2.62
+        (median / p90); held-out seed 23: 3.89 / 7.97 -> 0.63 / 4.75 (CMU
+        walks), 5.62 / 8.63 -> 0.69 / 2.61 (stylised gait); seed 31: 0.44 /
+        2.27 and 0.52 / 3.42; with holes and cut limbs (seed 23): 6.64 /
+        15.72 -> 2.15 / 13.57 (docs/POSTURE.md). None: off.
     tangent_hold : float
     tangent_max_turn_deg : float
-    tangent_max_std_deg : float
-        ... and when the tangents alone determine every camera's rotation
-        within this (``FrontierResult.rotation_std_deg``): on the tuning
-        walks the refinements that drifted had 2.4-7.8 deg, those that
-        helped 0.06-1.3.
     tangent_max_residual_px : float
         ... and when the tangents' median residual at the end is at most
         this: on clean and shadowed tuning walks the refinements ended at
@@ -198,7 +195,6 @@ class RigConfig:
     tangents: FrontierConfig | None = FrontierConfig()
     tangent_hold: float = 1.0
     tangent_max_turn_deg: float = 20.0
-    tangent_max_std_deg: float = 1.5
     tangent_max_residual_px: float = 0.4
 
     def __post_init__(self) -> None:
@@ -570,7 +566,7 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     those cameras held; or the rig as given when the tangents do not help. And what was done (a note
     and :attr:`Rig.tangents`)."""
     summary = {"used": False, "frame_pairs": 0, "residual_px": None, "largest_turn_deg": None,
-               "rotation_std_deg": None}
+               "rotation_std_deg": None, "held_directions": 0}
     tr = estimate.tracks
     shapes = [outlines(t.silhouettes, t.boxes, t.image_size, cut=t.cut, cut_band=config.tangents.cut_band)
               for t in (tr[n].take(frames) for n in names)]
@@ -585,11 +581,11 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     turn = max(float(geodesic_deg(a, b)) for a, b in zip(found.rotations, pinhole.rotations))
     spread = float(found.rotation_std_deg.max())
     summary.update(frame_pairs=found.frames, residual_px=[round(before, 3), round(after, 3)],
-                   largest_turn_deg=round(turn, 2), rotation_std_deg=round(spread, 2))
-    if not (after < before and after <= config.tangent_max_residual_px and turn <= config.tangent_max_turn_deg
-            and spread <= config.tangent_max_std_deg):
+                   largest_turn_deg=round(turn, 2), rotation_std_deg=round(spread, 2), held_directions=found.held)
+    holding = f", {found.held} direction{'s' * (found.held > 1)} of it held" if found.held else ""
+    if not (after < before and after <= config.tangent_max_residual_px and turn <= config.tangent_max_turn_deg):
         return pinhole, (f"epipolar tangents not used (residual {before:.2f} -> {after:.2f} px, largest turn "
-                         f"{turn:.1f} deg, rotations determined within {spread:.1f} deg)"), summary
+                         f"{turn:.1f} deg, rotations determined within {spread:.1f} deg{holding})"), summary
     sizes = np.array([tr[n].image_size for n in names], float)
     height = _walker_height(estimate, names)
     held = replace(config.pinhole, focal_px=tuple(float(f) for f in found.focal_px),
@@ -622,7 +618,7 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     summary["used"] = True
     return new, (f"cameras refined on the silhouettes' epipolar tangents ({found.frames} frame pairs; residual "
                  f"{before:.2f} -> {after:.2f} px median; largest turn {turn:.1f} deg; rotations determined "
-                 f"within {spread:.1f} deg)"), summary
+                 f"within {spread:.1f} deg{holding})"), summary
 
 
 def _walker_height(estimate: WalkEstimate, names: list[str]) -> float:

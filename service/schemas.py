@@ -228,7 +228,8 @@ class EpipolarTangents(_Open):
     residual_px: list[float] | None = Field(description="median tangent residual before and after, pixels")
     largest_turn_deg: float | None
     rotation_std_deg: float | None = Field(description="how well the tangents alone determine the rotations "
-                                           "(degrees; over 1.5 the refinement is not used)")
+                                           "(degrees; over 1.5 the directions they hardly see are held)")
+    held_directions: int = Field(0, description="rotation directions held where the pinhole rig put them")
 
 
 class RigResult(_Open):

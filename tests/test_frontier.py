@@ -124,6 +124,22 @@ def test_outlines_with_a_limb_cut_off_are_set_aside(pinhole):
     assert soft > start and default < start and default < 0.5 * soft, (start, soft, default)  # 2.6: 6.7, 2.1
 
 
+def test_directions_the_tangents_hardly_see_are_held(rendered, pinhole):
+    """Rotation directions whose posterior is wider than ``hold_std_deg`` stay where they started: with
+    every direction counted as weak (0 deg) and held stiffly the cameras keep the pinhole rig's rotations (to a
+    small fraction of the 2-3 deg the free adjustment moves them), while the focal lengths still move."""
+    shapes = rendered[0]
+    free = refine_on_tangents(pinhole.focal_px, pinhole.principal_px, pinhole.rotations, pinhole.centres, shapes)
+    held = refine_on_tangents(pinhole.focal_px, pinhole.principal_px, pinhole.rotations, pinhole.centres, shapes,
+                              FrontierConfig(hold_std_deg=0.0, hold_px_per_deg=1000.0))
+    assert free.held == 0 and held.held == 6  # 3 rotation directions per camera beside the reference
+    np.testing.assert_allclose(held.rotation_std_deg, free.rotation_std_deg)  # the tangents' posterior, unheld
+    moved_free = max(geodesic_deg(a, b) for a, b in zip(free.rotations, pinhole.rotations))
+    moved_held = max(geodesic_deg(a, b) for a, b in zip(held.rotations, pinhole.rotations))
+    assert moved_free > 1.0 and moved_held < 0.1 * moved_free, (moved_free, moved_held)
+    assert not np.allclose(held.focal_px, pinhole.focal_px)
+
+
 def test_too_few_frames_with_tangents_give_none(rendered):
     shapes, rotations, centres, focal, principal = rendered[:5]
     few = [type(s)(s.vertices, s.valid & (np.arange(len(s.valid)) < 5), s.loose) for s in shapes]

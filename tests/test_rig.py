@@ -343,6 +343,7 @@ def test_the_rig_is_refined_on_the_silhouettes_tangents(walk):
     assert not any("epipolar" in n for n in plain.notes)
     said = rig.to_dict()["epipolar_tangents"]
     assert said["used"] is True and said["frame_pairs"] >= 30 and said["rotation_std_deg"] <= 1.5
+    assert said["held_directions"] == 0  # determined within 1.5 deg: nothing held
     assert said["residual_px"][1] < said["residual_px"][0] and "epipolar_tangents" not in plain.to_dict()
     before = [geodesic_deg(a, b) for a, b in zip(plain.rotations[1:], truth[1:])]
     after = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], truth[1:])]
@@ -354,11 +355,10 @@ def test_the_rig_is_refined_on_the_silhouettes_tangents(walk):
     assert np.abs(np.log(rig.focal_px / focal)).max() <= np.abs(np.log(plain.focal_px / focal)).max()
 
 
-@pytest.mark.parametrize("gate", [{"tangent_max_residual_px": 0.0}, {"tangent_max_std_deg": 0.0},
-                                  {"tangent_max_turn_deg": 0.0}])
+@pytest.mark.parametrize("gate", [{"tangent_max_residual_px": 0.0}, {"tangent_max_turn_deg": 0.0}])
 def test_tangents_that_fail_a_gate_leave_the_pinhole_rig(walk, gate):
-    """A tangent refinement whose residual stays high, whose rotations the tangents do not determine or
-    that turns a camera too far is set aside with a note: the rig is the one without the tangents."""
+    """A tangent refinement whose residual stays high or that turns a camera too far is set aside with a
+    note: the rig is the one without the tangents."""
     _, _, measured = walk
     plain = calibrate_rig(measured, RigConfig(tangents=None))
     rig = calibrate_rig(measured, RigConfig(**gate))
@@ -386,3 +386,16 @@ def test_a_refit_with_held_cameras_may_reproject_a_little_worse(walk):
     assert _insane(rig, measured, names, RigConfig(), max_rms_px=1.05 * limit) != ""
     diverged = replace(rig, focal_px=np.full(n, 60.0 * width))  # focal lengths out of bounds: refused anyway
     assert "focal lengths" in _insane(diverged, measured, names, RigConfig(), max_rms_px=10 * limit)
+
+
+def test_weakly_determined_rotations_are_held_and_said(walk):
+    """Where the tangents determine a rotation direction worse than ``hold_std_deg`` it is held where the
+    pinhole rig put it; the result says how many directions were (here all 6, with the threshold at 0)."""
+    from estimator.frontier import FrontierConfig
+
+    _, _, measured = walk
+    rig = calibrate_rig(measured, RigConfig(tangents=FrontierConfig(hold_std_deg=0.0)))
+    said = rig.to_dict()["epipolar_tangents"]
+    assert said["held_directions"] == 6, said
+    note = next(n for n in rig.notes if "epipolar tangents" in n)
+    assert "6 directions of it held" in note, note
