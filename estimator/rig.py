@@ -602,17 +602,23 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
         good = np.isfinite(tri).all(axis=-1) & (off < 0.1 * height)
         scaled = pinhole.joints3d * (found.focal_px[0] / pinhole.focal_px[0])
         shift = np.nanmedian(np.where(good[..., None], tri - scaled, np.nan), axis=1, keepdims=True)
-    start = np.where(good[..., None], tri, scaled + np.nan_to_num(shift))
-    try:
-        new = perspective_refine(tracks, sizes, None, None, list(RIGID_LINKS), config=held,
-                                 initial=replace(moved, joints3d=start),
-                                 rotation_prior=(found.rotations, config.tangent_hold * height * 180.0 / np.pi))
-    except (ValueError, np.linalg.LinAlgError) as exc:
-        return pinhole, f"epipolar tangents not used (the posture's fit failed: {exc})", summary
-    # cameras held cannot follow the postures' own faults as free ones did: a refit up to a quarter
-    # worse than the pinhole adjustment's is not a diverged one (cut limbs: 10.6 -> 11.2 px rms, while
-    # the tangents took the cameras from 5.4 / 4.0 / 18.1 deg off to 0.2 / 0.2 / 1.4)
-    why_not = _insane(new, estimate, names, config, 1.25 * pinhole.rmse_px)
+    # from the triangulated joints, and should that fit diverge (a joint triangulated behind a camera),
+    # from the old posture moved as a whole
+    why_not = ""
+    for start in (np.where(good[..., None], tri, scaled + np.nan_to_num(shift)), scaled + np.nan_to_num(shift)):
+        try:
+            new = perspective_refine(tracks, sizes, None, None, list(RIGID_LINKS), config=held,
+                                     initial=replace(moved, joints3d=start),
+                                     rotation_prior=(found.rotations, config.tangent_hold * height * 180.0 / np.pi))
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            why_not = f"the posture's fit failed: {exc}"
+            continue
+        # cameras held cannot follow the postures' own faults as free ones did: a refit up to a quarter
+        # worse than the pinhole adjustment's is not a diverged one (cut limbs: 10.6 -> 11.2 px rms, while
+        # the tangents took the cameras from 5.4 / 4.0 / 18.1 deg off to 0.2 / 0.2 / 1.4)
+        why_not = _insane(new, estimate, names, config, 1.25 * pinhole.rmse_px)
+        if not why_not:
+            break
     if why_not:
         return pinhole, f"epipolar tangents not used ({why_not})", summary
     summary["used"] = True
