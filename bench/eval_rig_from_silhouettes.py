@@ -104,8 +104,8 @@ def main() -> None:
     lost = 0
     overlay = None  # the first walk's middle frame: (person posture aligned to the truth, the truth)
     for i in tqdm(range(args.sequences), desc="sequences"):
-        spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=args.frames, seed=1000 * args.seed + i, shape=body(rng),
-                         style=STYLISED if args.gait == "stylised" else None)
+        spec = SynthSpec(n_cameras=int(rng.integers(2, 5)), n_frames=args.frames, seed=1000 * args.seed + i,
+                         shape=body(rng), style=STYLISED if args.gait == "stylised" else None)
         seq = synthesize(spec, motion=motions[i % 2] if args.gait == "cmu" else None)
         if args.damage:
             seq = Sequence(seq.fps, seq.cameras, seq.image_size,

@@ -352,8 +352,11 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
         k, r, c, _ = cameras(x)
         return tangent_residuals(k, r, c, tuple(h[sel] for h in hulls), pairs[sel], config.max_span_deg)[0]
 
+    hold = np.zeros((0, n_rot))  # rotation directions held at the start (rows), set after a first solve
+
     def priors(x: np.ndarray) -> np.ndarray:
-        """(B, n_rot + 1 + C) rows of the rotation prior, the gauge and the focal lengths' prior."""
+        """(B, n_rot + 1 + C + H) rows of the rotation prior, the gauge, the focal lengths' prior and the
+        held directions."""
         moved = centres[1] + x[:, n_rot:n_rot + 3]
         gauge = 100.0 * (np.linalg.norm(moved, axis=-1) - distance) / distance
         return np.concatenate([config.prior_px_per_deg * np.degrees(x[:, :n_rot]), gauge[:, None],
@@ -372,14 +375,15 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
     def jacobian(x: np.ndarray) -> np.ndarray:
         """Forward differences, each camera's parameters evaluated on its own pairs only."""
         moved = x + step * np.eye(len(x))
-        jac = np.zeros((n_tan + n_rot + 1 + n_cam + len(hold), len(x)))
+        prior = priors(x[None])
+        jac = np.zeros((n_tan + prior.shape[1], len(x)))
         base = tangents(x[None])[0]
         for cam in range(n_cam):
             cols, sel = np.flatnonzero(owner == cam), (pairs == cam).any(axis=1)
             diff = (tangents(moved[cols], sel) - base[sel]) / step  # (k, P', T, 4)
             jac[:n_tan].reshape(len(pairs), -1, len(x))[np.ix_(sel, np.arange(base[0].size), cols)] = \
                 diff.reshape(len(cols), sel.sum(), -1).transpose(1, 2, 0)
-        jac[n_tan:] = ((priors(moved) - priors(x[None])) / step).T
+        jac[n_tan:] = ((priors(moved) - prior) / step).T
         return jac
 
     def solve() -> np.ndarray:
@@ -389,7 +393,6 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
                               x_scale="jac", max_nfev=config.max_nfev, ftol=config.ftol, xtol=config.ftol).x
         return x
 
-    hold = np.zeros((0, n_rot))
     x = solve()
     k, r, c, _ = cameras(x[None])
     res, used = tangent_residuals(k[0], r[0], c[0], hulls, pairs, config.max_span_deg)

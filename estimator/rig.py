@@ -252,7 +252,7 @@ class Rig:
         With pinhole cameras and ``RigConfig.tangents``: what the refinement on
         the epipolar tangents found (:func:`estimator.frontier.refine_on_tangents`):
         ``used``, ``frame_pairs``, ``residual_px`` (median before and after),
-        ``largest_turn_deg``, ``rotation_std_deg`` (None where it did not run).
+        ``largest_turn_deg``, ``rotation_std_deg`` (None where it did not run), ``held_directions``.
     """
 
     cameras: tuple[str, ...]
@@ -604,8 +604,8 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
         shift = np.nanmedian(np.where(good[..., None], tri - scaled, np.nan), axis=1, keepdims=True)
     # from the triangulated joints, and should that fit diverge (a joint triangulated behind a camera),
     # from the old posture moved as a whole
-    why_not = ""
-    for start in (np.where(good[..., None], tri, scaled + np.nan_to_num(shift)), scaled + np.nan_to_num(shift)):
+    why_not, whole = "", scaled + np.nan_to_num(shift)
+    for start in (np.where(good[..., None], tri, whole), whole):
         try:
             new = perspective_refine(tracks, sizes, None, None, list(RIGID_LINKS), config=held,
                                      initial=replace(moved, joints3d=start),
