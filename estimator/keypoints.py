@@ -132,7 +132,10 @@ def detect_skeleton(keypoints: np.ndarray, scores: np.ndarray | None = None, *,
     signed 2D vector in units of the person's size (the larger side of the box of
     their confident keypoints); its median over the detections cancels the
     detector's noise, and the sum of the two medians' lengths decides: below
-    ``BODY25_OFFSET`` (0.06), BODY_25. Two earlier rules failed on a 4-camera
+    ``BODY25_OFFSET`` (0.06), BODY_25. Where no detection shows one of the two
+    triples (BODY_25B's eyes are not seen from behind), the other's length is
+    doubled: the Pose2Sim demo's two rear cameras show no eye and give 0.36
+    and 0.47 from the elbows alone. Two earlier rules failed on a 4-camera
     rig: offsets over the shoulders' and hips' widths (a side view has none),
     then the median of the offsets' lengths (noise of 3 % of the height alone
     makes that 0.07).
@@ -149,19 +152,20 @@ def detect_skeleton(keypoints: np.ndarray, scores: np.ndarray | None = None, *,
     ok = np.isfinite(kp).all(axis=-1)
     if scores is not None:
         ok &= np.asarray(scores, float) >= min_confidence
-    need = [1, 2, 5, 8, 9, 12]
-    use = ok[:, need].all(axis=1) & (ok.sum(axis=1) >= 8)
-    if not use.any():
-        raise ValueError("25 keypoints, but no detection shows keypoints 1, 2, 5, 8, 9 and 12 "
+    enough = ok.sum(axis=1) >= 8
+    lo = np.where(ok[..., None], kp, np.inf).min(axis=1)
+    hi = np.where(ok[..., None], kp, -np.inf).max(axis=1)
+    unit = 1.0 / np.maximum((hi - lo).max(axis=-1), 1e-9)[:, None]  # over the person's size
+    offsets = []
+    for mid, a, b in ((1, 2, 5), (8, 9, 12)):  # neck or eye; mid hip or elbow
+        use = ok[:, [mid, a, b]].all(axis=1) & enough
+        if use.any():
+            offsets.append(np.linalg.norm(np.median((kp[use, mid] - (kp[use, a] + kp[use, b]) / 2) * unit[use],
+                                                    axis=0)))
+    if not offsets:
+        raise ValueError("25 keypoints, but no detection shows keypoints 1, 2 and 5 or 8, 9 and 12 "
                          "to tell BODY_25 from BODY_25B (give the skeleton: --skeleton)")
-    p, seen = kp[use], ok[use]
-    lo = np.where(seen[..., None], p, np.inf).min(axis=1)
-    hi = np.where(seen[..., None], p, -np.inf).max(axis=1)
-    size = (hi - lo).max(axis=-1)
-    unit = 1.0 / np.maximum(size, 1e-9)[:, None]
-    neck = np.median((p[:, 1] - (p[:, 2] + p[:, 5]) / 2) * unit, axis=0)
-    mid_hip = np.median((p[:, 8] - (p[:, 9] + p[:, 12]) / 2) * unit, axis=0)
-    offset = float(np.linalg.norm(neck) + np.linalg.norm(mid_hip))
+    offset = float(np.sum(offsets)) * 2 / len(offsets)
     return SKELETONS["BODY_25" if offset < BODY25_OFFSET else "BODY_25B"]
 
 

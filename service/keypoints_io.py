@@ -123,12 +123,17 @@ def read_keypoints(paths: Sequence[Path], *, min_confidence: float = 0.3,
 
 
 def _detections(cam: _Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Every detection's keypoints and scores of a camera whose frames agree on the keypoint count."""
+    """Every detection's keypoints and scores of a camera whose frames agree on the keypoint count (a
+    frame's trailing keypoints that no one shows are trimmed from ``cam.frames`` first: padding)."""
     numbers = sorted(cam.frames)
     if not numbers or not any(len(cam.frames[f][0]) for f in numbers):
         raise KeypointError(f"{cam.path}: no person detected in any frame")
     counts = {f: cam.frames[f][0].shape[1] for f in numbers if len(cam.frames[f][0])}
     usual = max(set(counts.values()), key=list(counts.values()).count)
+    for f, k in counts.items():  # trailing keypoints never seen (score 0) are padding, as in _stack
+        kp, sc = cam.frames[f]
+        if k > usual and not sc[:, usual:].any():
+            cam.frames[f], counts[f] = (kp[:, :usual], sc[:, :usual]), usual
     odd = next((f for f, k in counts.items() if k != usual), None)
     if odd is not None:
         raise KeypointError(f"{(cam.files or {}).get(odd, cam.path)}: frame {odd} has {counts[odd]} keypoints "
@@ -265,10 +270,11 @@ def _stack(people: list[np.ndarray], path: Path) -> tuple[np.ndarray, np.ndarray
     """People as (P, K, 3) [x, y, c] -> keypoints (P, K, 2), scores (P, K)."""
     if not people:
         return np.zeros((0, 0, 2)), np.zeros((0, 0))
-    if len({p.shape for p in people}) > 1:
+    k = min(p.shape[0] for p in people)
+    if any((p[k:, 2] != 0).any() for p in people):
         raise KeypointError(f"{path}: people with different keypoint counts "
                             f"{sorted({p.shape[0] for p in people})}")
-    arr = np.stack(people)
+    arr = np.stack([p[:k] for p in people])  # trailing keypoints never seen (c = 0) are padding
     return arr[..., :2], arr[..., 2]
 
 

@@ -256,6 +256,8 @@ def run(args: argparse.Namespace) -> int:
         out, pin, k = _with_pinhole(out, result, tracks[:, used], cameras, sizes, rig, pinhole_config)
         if exports:
             _export(args, pin, k, tracks, keypoints, cameras, sizes, rig)
+    if size is None and keypoints is not None:
+        out["notes"].append(NO_IMAGE_SIZE)
     for note in out["notes"]:
         print(f"posecal selfcal: warning: {note}", file=sys.stderr)
     for frame, index in zip(out["frames"], used):  # indices into the input's frames
@@ -377,6 +379,34 @@ def _read_intrinsics(path: Path) -> dict[str, tuple[np.ndarray, tuple[int, int]]
     return out
 
 
+NO_IMAGE_SIZE = ("no --image-size: the cameras are scaled orthographic, which people 2-5 m away are not; give the "
+                 "videos' frame size (--image-size W,H) for pinhole cameras (on the Pose2Sim demo's keypoints: camera "
+                 "pairs 13.1 deg off without it, 1.6 with it)")
+"""The note of a keypoint calibration without the image size (docs/SELFCAL.md, "Real keypoints")."""
+
+
+def _name_key(name: str) -> str:
+    """A camera name without case, separators or leading zeros: Pose2Sim calls the camera of the keypoint
+    folder ``cam01_json`` ``cam_01`` in its calibration file; both give ``cam1``."""
+    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[\W_]+", "", name.lower()))
+
+
+def _by_camera(tables: dict[str, Any], cameras: list[str]) -> dict[str, Any]:
+    """``tables`` keyed by the input's camera names: exact names first, else names equal up to
+    :func:`_name_key` when that pairs them one to one; unmatched tables keep their own names."""
+    if all(c in tables for c in cameras):
+        return tables
+    keys: dict[str, list[str]] = {}
+    for name in tables:
+        keys.setdefault(_name_key(name), []).append(name)
+    out = dict(tables)
+    for c in cameras:
+        found = keys.get(_name_key(c), [])
+        if c not in tables and len(found) == 1 and sum(_name_key(o) == _name_key(c) for o in cameras) == 1:
+            out[c] = tables[found[0]]
+    return out
+
+
 REWEIGHT = 2
 """Rounds of Cauchy reweighting in the pinhole adjustment (:attr:`PerspectiveConfig.reweight`): a
 detector's keypoints have sparse gross errors (a joint on the wrong limb); on the issue's noise (1-3 % of
@@ -392,6 +422,7 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
     if intrinsics is None:
         sizes = None if size is None else np.tile(np.array(size, float), (len(cameras), 1))
         return sizes, PerspectiveConfig(focal_px=focal, reweight=REWEIGHT)
+    intrinsics = _by_camera(intrinsics, cameras)
     missing = [c for c in cameras if c not in intrinsics]
     if missing:
         raise CliError(f"--intrinsics has no camera {', '.join(map(repr, missing))} (it has "
