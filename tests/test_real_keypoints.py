@@ -115,3 +115,37 @@ def test_without_the_image_size_the_note_says_what_it_costs(tmp_path, capsys):
     assert code == 0
     assert any("--image-size" in n and "scaled orthographic" in n for n in doc["notes"])
     assert "--image-size" in capsys.readouterr().err
+
+
+def test_a_pose2sim_user_gets_a_calibration_and_trc_of_the_real_rig(tmp_path):
+    """The issue's user story on real keypoints: the calibration TOML read as aniposelib reads it holds
+    the Qualisys rig's relative rotations and baselines, and the TRC's joints reproject through it
+    onto the keypoints."""
+    from test_exports import _anipose_load, _anipose_project
+    from test_keypoints import _read_trc
+
+    calib, trc = tmp_path / "Calib.toml", tmp_path / "trial.trc"
+    code, _ = _selfcal(tmp_path, "--image-size", "1088,1920", "--export-calibration", str(calib),
+                       "--export-trc", str(trc), "--fps", "60")
+    assert code == 0
+    cams = _anipose_load(calib.read_text())
+    assert [c["name"] for c in cams] == list(CAMERAS) and all(c["size"] == (1088, 1920) for c in cams)
+    rots = np.stack([Rotation.from_rotvec(c["rvec"]).as_matrix() for c in cams])
+    centres = np.stack([-r.T @ c["tvec"] for r, c in zip(rots, cams)])
+    truth, _ = _truth()
+    tables = [t for t in tomllib.loads(CALIBRATION.read_text()).values() if isinstance(t, dict) and "rotation" in t]
+    true_centres = np.stack([-r.T @ np.ravel(t["translation"]) for r, t in zip(truth, tables)])
+    pairs = [(i, k) for i in range(4) for k in range(i + 1, 4)]
+    rot_err = [geodesic_deg(truth[i] @ truth[k].T, rots[i] @ rots[k].T) for i, k in pairs]
+    assert np.median(rot_err) <= 5.0, rot_err
+    base = np.array([np.linalg.norm(centres[i] - centres[k]) / np.linalg.norm(true_centres[i] - true_centres[k])
+                     for i, k in pairs])
+    assert np.all(np.abs(base - 1) < 0.25), base  # metres at the demo's stature; measured within 16 %
+    _, times, joints_yup = _read_trc(trc)
+    kp = read_keypoints([FIXTURE])
+    frames = {int(f): t for t, f in enumerate(times[:, 0])}
+    world = joints_yup[[frames[f] for f in kp.frames]][..., [2, 0, 1]]  # Pose2Sim's Y up undone
+    for c, cam in enumerate(cams):
+        seen = np.isfinite(kp.tracks[c]).all(-1) & np.isfinite(world).all(-1)
+        err = np.linalg.norm(_anipose_project(cam, world[seen]) - kp.tracks[c][seen], axis=-1)
+        assert np.median(err) < 15.0, (cam["name"], np.median(err))  # pixels of 1920; measured 3.6-8.0
