@@ -240,27 +240,38 @@ def track_person(people: Sequence[np.ndarray], *, gate: float = 0.5) -> np.ndarr
 
     Notes
     -----
-    The person with the largest box (of their seen joints) in the first frame
-    with anyone; then, frame by frame, the person whose box centre is nearest
-    the last chosen box's, if within ``gate`` diagonals (else none in that
-    frame, and the last box is kept). Each camera is tracked on its own, so in
-    a crowd the same person must be the largest in every camera's first frame.
+    Every person of the first frame with anyone starts a track; frame by
+    frame, a track takes the person whose box centre is nearest its last
+    box's, if within ``gate`` diagonals (else none in that frame, and the last
+    box is kept). The track with the largest sum of box diagonals over its
+    frames is kept: the person seen longest and largest, so a passer-by who
+    is nearer the camera on the first frame and then leaves is not followed
+    (the largest box on the first frame was the rule until session 19). Each
+    camera is tracked on its own, so in a crowd the subject must be the most
+    present person in every camera.
     """
-    out = np.full(len(people), -1, dtype=int)
-    last = None
-    for t, persons in enumerate(people):
-        boxes = [_box(p) for p in persons]
-        cand = [(i, b) for i, b in enumerate(boxes) if b is not None]
+    boxes = [[_box(p) for p in persons] for persons in people]
+    first = next((t for t, bs in enumerate(boxes) if any(b is not None for b in bs)), None)
+    if first is None:
+        return np.full(len(people), -1, dtype=int)
+    tracks = [_follow(boxes, first, i, gate) for i, b in enumerate(boxes[first]) if b is not None]
+    support = [sum(float(np.linalg.norm(boxes[t][i][2:] - boxes[t][i][:2])) for t, i in enumerate(tr) if i >= 0)
+               for tr in tracks]
+    return tracks[int(np.argmax(support))]
+
+
+def _follow(boxes: list[list[np.ndarray | None]], first: int, start: int, gate: float) -> np.ndarray:
+    """The track of :func:`track_person` started at person ``start`` of frame ``first``."""
+    out = np.full(len(boxes), -1, dtype=int)
+    out[first], last = start, boxes[first][start]
+    for t in range(first + 1, len(boxes)):
+        cand = [(i, b) for i, b in enumerate(boxes[t]) if b is not None]
         if not cand:
             continue
-        if last is None:
-            i, b = max(cand, key=lambda ib: float(np.prod(ib[1][2:] - ib[1][:2])))
-        else:
-            centre, diag = (last[:2] + last[2:]) / 2, float(np.linalg.norm(last[2:] - last[:2]))
-            dist = [float(np.linalg.norm((b[:2] + b[2:]) / 2 - centre)) for _, b in cand]
-            k = int(np.argmin(dist))
-            if dist[k] > gate * max(diag, 1e-9):
-                continue
-            i, b = cand[k]
-        out[t], last = i, b
+        centre, diag = (last[:2] + last[2:]) / 2, float(np.linalg.norm(last[2:] - last[:2]))
+        dist = [float(np.linalg.norm((b[:2] + b[2:]) / 2 - centre)) for _, b in cand]
+        k = int(np.argmin(dist))
+        if dist[k] > gate * max(diag, 1e-9):
+            continue
+        out[t], last = cand[k]
     return out

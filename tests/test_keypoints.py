@@ -192,6 +192,17 @@ def test_track_person_follows_one_person():
             assert np.allclose(frames[t][chosen[t]], big[t])
 
 
+def test_track_person_keeps_the_subject_when_a_passer_by_is_larger_at_first():
+    """A passer-by nearer the camera is the largest person on the first frames and then leaves; the
+    subject, smaller but there throughout, is the one followed."""
+    rng = np.random.default_rng(3)
+    subject = _person(rng, 20) * 0.6 + [100, 60]
+    passer = (_person(rng, 20) - [320, 240]) * 1.4 + [480, 240] + np.arange(20)[:, None, None] * [30.0, 0.0]
+    frames = [np.stack([passer[t], subject[t]]) if t < 4 else subject[t][None] for t in range(20)]
+    chosen = track_person(frames)
+    assert all(np.allclose(frames[t][chosen[t]], subject[t]) for t in range(20))
+
+
 # ------------------------------------------------------------------ file formats
 
 
