@@ -25,6 +25,13 @@ centres' errors in the reference camera's frame (metres at the demo's
 stature, 1.72 m) and the translation directions' errors; the seconds per run
 (with the interpreter's start). ``--plot`` draws the rig from above, true
 and estimated.
+
+``--damage N`` adds, on top of the detector's own errors, more of the same
+kind to N damaged copies of the keypoints (seeded): each keypoint missed
+with probability ``--drop``, displaced by 6-17 % of the person's image height
+with probability ``--outliers`` (its confidence then 0.3-0.7), each left/right
+pair of a person swapped with probability ``--swaps``; and reports the
+default's errors over the copies.
 """
 
 from __future__ import annotations
@@ -36,6 +43,8 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import itertools  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import tomllib  # noqa: E402
@@ -68,14 +77,44 @@ def true_rig(names: list[str]) -> dict:
     return {"cameras": cams, "size": SIZE}
 
 
-def run(cameras: list[str], *extra: str) -> dict:
-    """``posecal selfcal`` on the fixture's ``cameras`` (a temporary folder of links to their keypoint
+# BODY_25B's left/right pairs (eyes, ears, shoulders, elbows, wrists, hips, knees, ankles; big toes,
+# small toes, heels), as OpenPose's body_25b model numbers them.
+PAIRS_25B = ((1, 2), (3, 4), (5, 6), (7, 8), (9, 10), (11, 12), (13, 14), (15, 16), (19, 22), (20, 23), (21, 24))
+
+
+def damage(src: Path, dst: Path, rng: np.random.Generator, drop: float, outliers: float, swaps: float) -> None:
+    """A copy of the OpenPose folders ``src`` with more detector errors (``--damage`` in the module's
+    docstring): every person of every file, keypoints as OpenPose writes them (``0, 0, 0`` missed)."""
+    shutil.copytree(src, dst)
+    for path in sorted(dst.glob("*_json/*.json")):
+        doc = json.loads(path.read_text())
+        for person in doc["people"]:
+            kp = np.array(person["pose_keypoints_2d"], float).reshape(-1, 3)
+            seen = kp[:, 2] > 0
+            if seen.sum() < 2:
+                continue
+            height = np.ptp(kp[seen, 1])
+            for a, b in PAIRS_25B:
+                if rng.random() < swaps:
+                    kp[[a, b]] = kp[[b, a]]
+            moved = seen & (rng.random(len(kp)) < outliers)
+            ang = rng.uniform(0, 2 * np.pi, len(kp))
+            shift = rng.uniform(0.06, 0.17, len(kp)) * height
+            kp[moved, :2] += (shift[:, None] * np.stack([np.cos(ang), np.sin(ang)], -1))[moved]
+            kp[moved, 2] = rng.uniform(0.3, 0.7, moved.sum())
+            kp[rng.random(len(kp)) < drop] = 0.0
+            person["pose_keypoints_2d"] = [round(float(v), 3) for v in kp.ravel()]
+        path.write_text(json.dumps(doc))
+
+
+def run(cameras: list[str], *extra: str, source: Path = FIXTURE / "pose") -> dict:
+    """``posecal selfcal`` on the ``cameras`` of ``source`` (a temporary folder of links to their keypoint
     folders) with ``extra`` arguments; its errors against the Qualisys rig."""
     with tempfile.TemporaryDirectory() as tmp:
         pose = Path(tmp) / "pose"
         pose.mkdir()
         for cam in cameras:
-            (pose / f"{cam}_json").symlink_to(FIXTURE / "pose" / f"{cam}_json")
+            (pose / f"{cam}_json").symlink_to(source / f"{cam}_json")
         doc, seconds, failure = ev.run_cli(Path(tmp), "--height", str(STATURE_M), *extra)
     row = {"cameras": cameras, "args": " ".join(extra), "seconds": seconds, "failure": failure, "doc": doc}
     if doc is None:
@@ -144,8 +183,17 @@ def plot(rows: list[dict], path: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plot", type=Path, help="PNG of the rig from above, true and estimated")
+    ap.add_argument("--damage", type=int, default=0, metavar="N",
+                    help="instead: the default on N damaged copies of the keypoints")
+    ap.add_argument("--drop", type=float, default=0.1)
+    ap.add_argument("--outliers", type=float, default=0.05)
+    ap.add_argument("--swaps", type=float, default=0.02)
+    ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     size = f"{SIZE[0]},{SIZE[1]}"
+    if args.damage:
+        damaged(args, size)
+        return
     runs = [("default (--image-size)", ALL, ("--image-size", size)),
             ("--intrinsics (the Qualisys file)", ALL, ("--intrinsics", str(CALIBRATION))),
             ("no --image-size (scaled orthographic)", ALL, ()),
@@ -173,6 +221,28 @@ def main() -> None:
                   f"p90 {np.percentile(errs, 90):.2f}, max {max(errs):.2f} deg ({len(errs)} pairs)")
     if args.plot:
         plot([r for r in rows[:2] if r["doc"] is not None], args.plot)
+
+
+def damaged(args: argparse.Namespace, size: str) -> None:
+    """The default on ``args.damage`` damaged copies of the 4 cameras' keypoints."""
+    rng = np.random.default_rng(args.seed)
+    rot, foc, fails = [], [], 0
+    for k in range(args.damage):
+        with tempfile.TemporaryDirectory() as tmp:
+            damage(FIXTURE / "pose", Path(tmp) / "pose", rng, args.drop, args.outliers, args.swaps)
+            row = run(ALL, "--image-size", size, source=Path(tmp) / "pose")
+        if row["doc"] is None or row["failure"]:
+            fails += 1
+            print(f"copy {k}: {row['failure'] or 'failed'}")
+            continue
+        rot += row["rotation"]
+        foc += row["focal"]
+        print(f"copy {k}: pairs {np.round(row['rotation'], 2).tolist()} focal {np.round(100 * np.array(row['focal']), 1).tolist()} %",
+              flush=True)
+    print(f"\n{args.damage} copies, keypoints missed {args.drop:.0%} more, outliers {args.outliers:.0%}, "
+          f"left/right swaps {args.swaps:.0%} (seed {args.seed}): camera pairs median {np.median(rot):.2f}, "
+          f"p90 {np.percentile(rot, 90):.2f}, max {max(rot):.2f} deg; focal median {100 * np.median(foc):.1f} %, "
+          f"p90 {100 * np.percentile(foc, 90):.1f} %; failed or flagged {fails}")
 
 
 if __name__ == "__main__":

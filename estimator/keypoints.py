@@ -243,7 +243,9 @@ def track_person(people: Sequence[np.ndarray], *, gate: float = 0.5) -> np.ndarr
     Every person of the first frame with anyone starts a track; frame by
     frame, a track takes the person whose box centre is nearest its last
     box's, if within ``gate`` diagonals (else none in that frame, and the last
-    box is kept). The track with the largest sum of box diagonals over its
+    box is kept; the diagonal is the larger of the last box's and the median
+    of the track's, so one box of a few joints does not narrow the gate for
+    good). The track with the largest sum of box diagonals over its
     frames is kept: the person seen longest and largest, so a passer-by who
     is nearer the camera on the first frame and then leaves is not followed
     (the largest box on the first frame was the rule until session 19). Each
@@ -264,14 +266,16 @@ def _follow(boxes: list[list[np.ndarray | None]], first: int, start: int, gate: 
     """The track of :func:`track_person` started at person ``start`` of frame ``first``."""
     out = np.full(len(boxes), -1, dtype=int)
     out[first], last = start, boxes[first][start]
+    diags = [float(np.linalg.norm(last[2:] - last[:2]))]
     for t in range(first + 1, len(boxes)):
         cand = [(i, b) for i, b in enumerate(boxes[t]) if b is not None]
         if not cand:
             continue
-        centre, diag = (last[:2] + last[2:]) / 2, float(np.linalg.norm(last[2:] - last[:2]))
+        centre = (last[:2] + last[2:]) / 2
         dist = [float(np.linalg.norm((b[:2] + b[2:]) / 2 - centre)) for _, b in cand]
         k = int(np.argmin(dist))
-        if dist[k] > gate * max(diag, 1e-9):
+        if dist[k] > gate * max(diags[-1], float(np.median(diags)), 1e-9):
             continue
         out[t], last = cand[k]
+        diags.append(float(np.linalg.norm(last[2:] - last[:2])))
     return out
