@@ -151,3 +151,14 @@ def test_a_pose2sim_user_gets_a_calibration_and_trc_of_the_real_rig(tmp_path):
         seen = np.isfinite(kp.tracks[c]).all(-1) & np.isfinite(world).all(-1)
         err = np.linalg.norm(_anipose_project(cam, world[seen]) - kp.tracks[c][seen], axis=-1)
         assert np.median(err) < 15.0, (cam["name"], np.median(err))  # pixels of 1920; measured 3.6-8.0
+
+
+def test_camera_names_match_without_case_separators_or_leading_zeros_only_one_to_one():
+    from service.cli.selfcal import _by_camera
+
+    assert _by_camera({"cam_01": 1, "Cam-02": 2}, ["cam01", "cam02"]) == {
+        "cam_01": 1, "Cam-02": 2, "cam01": 1, "cam02": 2}
+    exact = {"cam01": 1, "cam_01": 2}
+    assert _by_camera(exact, ["cam01"]) is exact  # exact names first
+    assert "cam1" not in _by_camera({"cam_01": 1}, ["cam1", "CAM01"])  # two inputs would take one table
+    assert "cam01" not in _by_camera({"cam_1": 1, "cam-01": 2}, ["cam01"])  # two tables for one input
