@@ -33,7 +33,7 @@ import numpy as np
 from estimator.joints import N_JOINTS
 from estimator.keypoints import SKELETONS, detect_skeleton, keypoints_to_joints, track_person
 
-__all__ = ["KeypointError", "Keypoints", "is_tracks_document", "read_keypoints"]
+__all__ = ["KeypointError", "Keypoints", "camera_key", "is_tracks_document", "read_keypoints", "video_sizes"]
 
 
 class KeypointError(ValueError):
@@ -195,6 +195,46 @@ def _assemble(fmt: str, cams: list[_Camera], min_confidence: float, skeleton: st
                             f"({', '.join(str(c.path) for c in cams)})")
     return Keypoints([c.name for c in cams], tracks[:, keep], conf[:, keep], [frames[t] for t in keep],
                      layouts, fmt)
+
+
+def camera_key(name: str) -> str:
+    """A camera name without case, separators or leading zeros: Pose2Sim calls the camera of the keypoint
+    folder ``cam01_json`` ``cam_01`` in its calibration file; both give ``cam1``."""
+    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[\W_]+", "", name.lower()))
+
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
+
+
+def video_sizes(root: Path, cameras: Sequence[str]) -> dict[str, tuple[tuple[int, int], Path]] | None:
+    """Each camera's image size (width, height) and video, read from the videos next to its keypoints, or
+    None unless every camera has exactly one.
+
+    A Pose2Sim trial keeps its videos beside the keypoints (``videos/cam01.mp4`` next to
+    ``pose/cam01_json``): the videos in ``root``, ``root/videos`` and, for a ``pose`` folder, its
+    parent's ``videos``; a video is a camera's when its name, without case, separators or leading
+    zeros, is the camera's or ends with it (``trial_cam01.mp4`` for ``cam01``). The size is the
+    frame's as OpenCV decodes it.
+    """
+    import cv2
+
+    root = Path(root)
+    folders = [root, root / "videos"] + ([root.parent / "videos"] if root.name == "pose" else [])
+    videos = [p for d in folders if d.is_dir() for p in sorted(d.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES]
+    out = {}
+    for cam in cameras:
+        mine = [p for p in videos if camera_key(p.stem).endswith(camera_key(cam))]
+        if len(mine) != 1:
+            return None
+        cap = cv2.VideoCapture(str(mine[0]))
+        try:
+            size = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        finally:
+            cap.release()
+        if min(size) <= 0:
+            return None
+        out[cam] = size, mine[0]
+    return out
 
 
 # ------------------------------------------------------------------ folders and files

@@ -162,3 +162,34 @@ def test_camera_names_match_without_case_separators_or_leading_zeros_only_one_to
     assert _by_camera(exact, ["cam01"]) is exact  # exact names first
     assert "cam1" not in _by_camera({"cam_01": 1}, ["cam1", "CAM01"])  # two inputs would take one table
     assert "cam01" not in _by_camera({"cam_1": 1, "cam-01": 2}, ["cam01"])  # two tables for one input
+
+
+def _video(path: Path, size: tuple[int, int]) -> None:
+    import cv2
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 60.0, size)
+    assert writer.isOpened()
+    for _ in range(2):
+        writer.write(np.zeros((size[1], size[0], 3), np.uint8))
+    writer.release()
+
+
+def test_a_pose2sim_trial_with_its_videos_needs_no_flag(tmp_path, capsys):
+    """A Pose2Sim trial keeps ``videos/cam01.mp4`` beside ``pose/cam01_json``: their frame size stands in for
+    ``--image-size``, so ``posecal selfcal TRIAL`` with no flag gets pinhole cameras."""
+    trial = tmp_path / "trial"
+    shutil.copytree(FIXTURE / "pose", trial / "pose")
+    (trial / "videos").mkdir()
+    for k, cam in enumerate(CAMERAS):
+        _video(trial / "videos" / (f"{cam}.avi" if k else f"S00_{cam}.avi"), (1088, 1920))
+    out = tmp_path / "rig.json"
+    assert main(["selfcal", str(trial), "--height", "1.72", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["method"].endswith("+pinhole")
+    assert any("from the videos" in n and "cam01 1088x1920 (S00_cam01.avi)" in n for n in doc["notes"])
+    assert np.median(_pair_errors(doc)) <= 5.0
+    # One camera without a video: no sizes are guessed, and the note says what to give.
+    (trial / "videos" / "cam04.avi").unlink()
+    assert main(["selfcal", str(trial), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert "+pinhole" not in doc["method"] and any("--image-size" in n for n in doc["notes"])

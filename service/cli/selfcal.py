@@ -34,7 +34,7 @@ from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 
 from ..exports import bvh_text, csv_text, write_calibration, write_text, write_trc
-from ..keypoints_io import KeypointError, Keypoints, read_keypoints
+from ..keypoints_io import KeypointError, Keypoints, camera_key, read_keypoints, video_sizes
 from . import CliError, CliFailure, export_formats, positive_int
 
 __all__ = ["load_tracks", "register", "result_to_json"]
@@ -65,7 +65,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--image-size", metavar="W,H",
                    help="the cameras' image size in pixels (principal point at its centre): adds "
                         "pinhole cameras (rotation, focal length, centre per camera), exact where the "
-                        "scaled orthographic model is not")
+                        "scaled orthographic model is not; default for a keypoint folder: each camera's "
+                        "video beside it (videos/<cam>.mp4 in a Pose2Sim trial), if every camera has one")
     p.add_argument("--intrinsics", type=Path, metavar="CALIB.toml",
                    help="known intrinsics: each camera's 'matrix' (focal length, principal point) and 'size' "
                         "from a Pose2Sim / anipose calibration TOML (as --export-calibration writes it), matched "
@@ -222,15 +223,18 @@ def run(args: argparse.Namespace) -> int:
     if size is None and intrinsics is not None:
         size = next(iter(intrinsics.values()))[1]  # for reading normalised keypoints; per camera below
     cameras, tracks, keypoints = _read_input(args.tracks, args, size)
-    sizes, pinhole_config = _pinhole_setup(cameras, size, args.focal, intrinsics)
     if args.upright and not args.refine:
         raise CliError("--upright needs --refine (the default --method refined has it)")
     closed = args.method == "closed-form" and not args.refine
     if size is not None and (closed or args.varying_scale):
         raise CliError("--image-size, --intrinsics and --focal need the refined path with fixed scales (not "
                        "--method closed-form, not --varying-scale)")
+    found = None  # without --image-size: the image sizes of the videos beside the keypoints, if any
+    if size is None and keypoints is not None and len(args.tracks) == 1 and not (closed or args.varying_scale):
+        found = video_sizes(args.tracks[0], cameras)
+    sizes, pinhole_config = _pinhole_setup(cameras, size, args.focal, intrinsics, found)
     exports = export_formats(args)
-    if exports and size is None:
+    if exports and sizes is None:
         raise CliError("--export-calibration, --export-trc, --export-bvh and --export-csv need pinhole cameras: "
                        "give --image-size W,H (and the refined path, the default)")
     if args.fps <= 0:
@@ -239,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         rig = RigConfig(height_m=args.height)
         result = None
-        if size is not None and not args.refine:
+        if sizes is not None and not args.refine:
             # Pinhole cameras by default: the closed form is their start (with the epipolar one); the
             # scaled-orthographic bundle adjustment, 1-30 s, is only needed where the closed form fails.
             result = self_calibrate(tracks[:, used], refine=False, temporal_prior=True) or None
@@ -252,11 +256,14 @@ def run(args: argparse.Namespace) -> int:
     if not result:
         raise CliFailure(f"self-calibration failed: {result.reason}")
     out = result_to_json(result, cameras)
-    if size is not None:
+    if found is not None:
+        out["notes"].append("image sizes (no --image-size) from the videos beside the keypoints: " + ", ".join(
+            f"{c} {w}x{h} ({path.name})" for c, ((w, h), path) in found.items()))
+    if sizes is not None:
         out, pin, k = _with_pinhole(out, result, tracks[:, used], cameras, sizes, rig, pinhole_config)
         if exports:
             _export(args, pin, k, tracks, keypoints, cameras, sizes, rig)
-    if size is None and keypoints is not None:
+    if sizes is None and keypoints is not None:
         out["notes"].append(NO_IMAGE_SIZE)
     for note in out["notes"]:
         print(f"posecal selfcal: warning: {note}", file=sys.stderr)
@@ -385,24 +392,18 @@ NO_IMAGE_SIZE = ("no --image-size: the cameras are scaled orthographic, which pe
 """The note of a keypoint calibration without the image size (docs/SELFCAL.md, "Real keypoints")."""
 
 
-def _name_key(name: str) -> str:
-    """A camera name without case, separators or leading zeros: Pose2Sim calls the camera of the keypoint
-    folder ``cam01_json`` ``cam_01`` in its calibration file; both give ``cam1``."""
-    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[\W_]+", "", name.lower()))
-
-
 def _by_camera(tables: dict[str, Any], cameras: list[str]) -> dict[str, Any]:
     """``tables`` keyed by the input's camera names: exact names first, else names equal up to
-    :func:`_name_key` when that pairs them one to one; unmatched tables keep their own names."""
+    :func:`service.keypoints_io.camera_key` when that pairs them one to one; unmatched tables keep their own names."""
     if all(c in tables for c in cameras):
         return tables
     keys: dict[str, list[str]] = {}
     for name in tables:
-        keys.setdefault(_name_key(name), []).append(name)
+        keys.setdefault(camera_key(name), []).append(name)
     out = dict(tables)
     for c in cameras:
-        found = keys.get(_name_key(c), [])
-        if c not in tables and len(found) == 1 and sum(_name_key(o) == _name_key(c) for o in cameras) == 1:
+        found = keys.get(camera_key(c), [])
+        if c not in tables and len(found) == 1 and sum(camera_key(o) == camera_key(c) for o in cameras) == 1:
             out[c] = tables[found[0]]
     return out
 
@@ -415,12 +416,17 @@ the walker's height, 5 % outliers, 2 % swaps; 10 rigs 2.5-4 m away) two rounds t
 
 
 def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: float | None,
-                   intrinsics: dict[str, tuple[np.ndarray, tuple[int, int]]] | None
+                   intrinsics: dict[str, tuple[np.ndarray, tuple[int, int]]] | None,
+                   found: dict[str, tuple[tuple[int, int], Path]] | None = None
                    ) -> tuple[np.ndarray | None, PerspectiveConfig]:
     """Image sizes (C, 2) and the pinhole adjustment's settings: focal lengths and principal points
-    fixed when known (``--focal``, ``--intrinsics``), free otherwise."""
+    fixed when known (``--focal``, ``--intrinsics``), free otherwise; the sizes from ``--image-size``,
+    else from the videos ``found`` beside the keypoints, else None (scaled-orthographic cameras)."""
     if intrinsics is None:
-        sizes = None if size is None else np.tile(np.array(size, float), (len(cameras), 1))
+        if size is not None:
+            sizes = np.tile(np.array(size, float), (len(cameras), 1))
+        else:
+            sizes = None if found is None else np.array([found[c][0] for c in cameras], float)
         return sizes, PerspectiveConfig(focal_px=focal, reweight=REWEIGHT)
     intrinsics = _by_camera(intrinsics, cameras)
     missing = [c for c in cameras if c not in intrinsics]
