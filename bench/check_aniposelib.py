@@ -26,10 +26,10 @@ import glob
 import json
 import re
 import tempfile
+import tomllib
 from pathlib import Path
 
 import numpy as np
-import toml
 from aniposelib.cameras import CameraGroup
 from scipy.spatial.transform import Rotation
 
@@ -59,7 +59,7 @@ def check(path: Path, label: str) -> None:
     group = CameraGroup.load(str(path))
     names = group.get_names()
     print(f"{label}: cameras {names}, sizes {[c.get_size() for c in group.cameras]}")
-    truth = [t for t in toml.load(QUALISYS).values() if isinstance(t, dict) and "rotation" in t]
+    truth = [t for t in tomllib.loads(QUALISYS.read_text()).values() if isinstance(t, dict) and "rotation" in t]
     rt = [Rotation.from_rotvec(np.ravel(t["rotation"])).as_matrix() for t in truth]
     re_ = [Rotation.from_rotvec(np.ravel(c.get_rotation())).as_matrix() for c in group.cameras]
     errs = [np.degrees((Rotation.from_matrix(rt[i] @ rt[k].T) * Rotation.from_matrix(re_[i] @ re_[k].T).inv()).magnitude())
@@ -79,15 +79,12 @@ def main() -> None:
     args = ap.parse_args()
     check(args.calibration, "posecal's calibration")
     if args.reference:
-        doc = toml.load(QUALISYS)
-        cams = [k for k, v in doc.items() if isinstance(v, dict) and "rotation" in v]
-        for k, key in enumerate(cams):
-            doc[key]["name"] = f"cam{k + 1:02d}"
+        names = iter(f"cam{k:02d}" for k in range(1, 100))
+        text = re.sub(r'^name = ".*"$', lambda m: f'name = "{next(names)}"', QUALISYS.read_text(), flags=re.M)
         with tempfile.TemporaryDirectory() as tmp:
             renamed = Path(tmp) / "qualisys.toml"
-            renamed.write_text(toml.dumps(doc))
-            check(renamed, "Qualisys calibration")
-
+            renamed.write_text(text)
+            check(renamed, "Qualisys calibration (cameras named as the keypoint folders)")
 
 if __name__ == "__main__":
     main()
