@@ -20,6 +20,8 @@ not make (docs/ROBUSTNESS.md):
 Each function takes one silhouette (uint8 0/255, full frame) and a
 ``numpy.random.Generator`` and returns a new array; :func:`damage_sequence`
 applies a kind to every frame of every camera with one seed.
+:func:`detector_keypoints` does the same for 2D joints: a pose detector's
+kinds of error on exact joints.
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ import numpy as np
 
 from .joints import JOINT_NAMES
 
-__all__ = ["DAMAGE_KINDS", "damage", "damage_sequence", "parse_damage", "salt", "blobs", "holes", "cut_limb", "shadow",
-           "second_person"]
+__all__ = ["DAMAGE_KINDS", "damage", "damage_sequence", "detector_keypoints", "parse_damage", "salt", "blobs", "holes",
+           "cut_limb", "shadow", "second_person"]
 
 _J = {name: i for i, name in enumerate(JOINT_NAMES)}
 # (upper joint, end joint) of the limbs a cut can remove: forearms and shins.
@@ -246,4 +248,20 @@ def damage_sequence(silhouettes: dict[str, list[np.ndarray | None]], kind: str, 
             damaged.append(damage(sil, kind, np.random.default_rng([seed, c, t]), j2d,
                                   steady_rng=np.random.default_rng([seed, c, steady])))
         out[cam] = damaged
+    return out
+
+
+def detector_keypoints(joints2d: np.ndarray, rng: np.random.Generator, *, noise_share: float = 0.01,
+                       gross: float = 0.02, gross_share: tuple[float, float] = (0.1, 0.2),
+                       missed: float = 0.05) -> np.ndarray:
+    """Exact 2D joints (C, T, 13, 2) as a pose detector would give them: Gaussian noise of ``noise_share``
+    of the walker's image height (per camera and frame), ``gross`` of the joints displaced by
+    ``gross_share`` of it in a random direction (a joint put on another limb), ``missed`` of them NaN."""
+    j = np.asarray(joints2d, float)
+    height = np.ptp(j[..., 1], axis=-1)[..., None, None]  # (C, T, 1, 1)
+    out = j + rng.normal(0.0, 1.0, j.shape) * noise_share * height
+    far = (rng.random(j.shape[:-1]) < gross) * rng.uniform(*gross_share, j.shape[:-1])
+    ang = rng.uniform(0.0, 2 * np.pi, j.shape[:-1])
+    out += far[..., None] * height * np.stack([np.cos(ang), np.sin(ang)], axis=-1)
+    out[rng.random(j.shape[:-1]) < missed] = np.nan
     return out

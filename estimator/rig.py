@@ -203,6 +203,16 @@ class RigConfig:
         if not 1 <= self.rounds <= 5:
             raise ValueError(f"rounds must be 1 to 5, got {self.rounds!r}")
 
+    @classmethod
+    def for_keypoints(cls, **kwargs) -> RigConfig:
+        """The settings for a detector's 2D keypoints in place of the mNBP postures
+        (:func:`calibrate_rig`'s ``keypoints``): rounds of Cauchy reweighting in the pinhole adjustment
+        (a detector's gross errors are sparse: ``posecal selfcal``'s 2), no pull towards the viewpoints'
+        rig (its prior is for the mNBP postures' systematic errors, which keypoints do not share), no
+        3D mNBP rounds and no epipolar tangents (both correct the mNBP postures)."""
+        return cls(**{"pinhole": PerspectiveConfig(reweight=2), "pinhole_viewpoint_weight": 0.0, "rounds": 1,
+                      "tangents": None, **kwargs})
+
 
 @dataclass
 class Rig:
@@ -417,16 +427,20 @@ def person_frame(joints3d: np.ndarray) -> np.ndarray:
     return out - np.nanmean(out, axis=1, keepdims=True)
 
 
-def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Rig:
+def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
+                  keypoints: np.ndarray | None = None) -> Rig:
     """The rig, the person's posture and body from an estimate's ``joints2d`` (this stage's entry).
 
     Needs ``joints2d`` measured on the silhouettes (:func:`estimator.mnbp.measure_postures`,
     which keeps the placement as ``model_joints2d``): self-calibrating the
     model's placement would calibrate the model's walk, so without them the
-    viewpoints' rig is returned. Cameras with postures on fewer than
-    ``min_frames`` frames are left out (rotation ``None`` in the result).
-    Never raises for the data: every fallback is the viewpoints' rig, or the
-    scaled-orthographic one, with a note.
+    viewpoints' rig is returned. Or ``keypoints``, (C, T, 13, 2) full-frame
+    pixels of a detector's joints in the estimate's cameras and frames (NaN
+    where missed; :meth:`RigConfig.for_keypoints`), calibrate it in their place:
+    a frame counts for a camera where it sees 4 joints or more. Cameras with
+    postures on fewer than ``min_frames`` frames are left out (rotation
+    ``None`` in the result). Never raises for the data: every fallback is the
+    viewpoints' rig, or the scaled-orthographic one, with a note.
     """
     names = tuple(estimate.cameras)
     from_views = viewpoint_rotations(estimate)
@@ -434,11 +448,18 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
     if len(names) < 2:
         fallback.notes.append("one camera: no rig to calibrate")
         return fallback
-    if all(c.model_joints2d is None for c in estimate.cameras.values()):
+    if keypoints is None and all(c.model_joints2d is None for c in estimate.cameras.values()):
         fallback.notes.append("rig from the viewpoints: the 2D postures were not measured (posture 'model')")
         return fallback
-    tracks = np.stack([estimate.cameras[n].joints2d for n in names])  # (C, T, 13, 2)
-    posed = np.isfinite(tracks).all(axis=(2, 3))  # (C, T)
+    if keypoints is None:
+        tracks = np.stack([estimate.cameras[n].joints2d for n in names])  # (C, T, 13, 2)
+        posed = np.isfinite(tracks).all(axis=(2, 3))  # (C, T)
+    else:
+        tracks = np.asarray(keypoints, float)
+        if tracks.shape != (len(names), len(estimate.phase), N_JOINTS, 2):
+            raise ValueError(f"keypoints must have shape {(len(names), len(estimate.phase), N_JOINTS, 2)} "
+                             f"(cameras, frames, joints, 2), got {tracks.shape}")
+        posed = np.isfinite(tracks).all(axis=3).sum(axis=2) >= 4
     use = np.flatnonzero(posed.sum(axis=1) >= config.min_frames)
     seen = posed[use].sum(axis=0) >= 2
     if len(use) < 2 or seen.sum() < config.min_frames:
@@ -526,6 +547,7 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig()) -> Ri
                + (f"; {tangent_note}" if tangent_note else "")
                + ("; the posture filtered [1, 2, 1] / 4 over neighbouring frames" if smooth else ""))
     rig.notes.append(f"rig and posture by self-calibration (Wang-Leow §4; {how}) on {len(frames)} frames"
+                     + (" of the detector's keypoints" if keypoints is not None else "")
                      + (f" (every {frames[1] - frames[0]}th)" if len(frames) > 1 and frames[1] - frames[0] > 1 else "")
                      + f"; metres at a stature of {config.height_m} m")
     if changes is not None:

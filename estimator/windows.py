@@ -24,6 +24,7 @@ import numpy as np
 
 from .appearance import AppearanceModel
 from .matchcache import MatchCache
+from .joints import N_JOINTS
 from .mnbp import MNBPConfig, measure_postures
 from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, track_length
 from .rig import RigConfig, attach_rig, calibrate_rig
@@ -215,6 +216,7 @@ def segment_walk(
     config: EstimateConfig | None = None,
     posture: MNBPConfig | None = None,
     rig: RigConfig | None = None,
+    keypoints: dict[str, np.ndarray] | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> SegmentedWalk:
     """Estimate a recording window by window, one segment per heading (module docstring).
@@ -237,6 +239,12 @@ def segment_walk(
         Calibrate each segment's rig and the person's posture from them
         (:func:`estimator.rig.calibrate_rig`; the viewpoints' rig without
         ``posture``); None: no rig.
+    keypoints : dict of str to ndarray of shape (n_frames, 13, 2), optional
+        A detector's joints per camera over the whole recording (full-frame
+        pixels, NaN where missed): each segment's rig is calibrated on them
+        instead of on the postures (:func:`estimator.rig.calibrate_rig`'s
+        ``keypoints``; with ``RigConfig.for_keypoints()``); a camera without
+        them has none.
     progress : callable, optional
         Called with the fraction done (windows, then segments).
 
@@ -286,7 +294,9 @@ def segment_walk(
         if est is not None and posture is not None:
             est = measure_postures(est, posture)
         if est is not None and rig is not None:
-            est = attach_rig(est, calibrate_rig(est, rig))
+            kp = None if keypoints is None else np.stack([
+                keypoints[c][a:b] if c in keypoints else np.full((b - a, N_JOINTS, 2), np.nan) for c in est.cameras])
+            est = attach_rig(est, calibrate_rig(est, rig, keypoints=kp))
         segments.append(Segment(a, b, first, last, est, j - i, err))
         for w in windows[i:j]:
             w["segment"] = s

@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimator._selfcal_core import geodesic_deg
+from estimator.damage import detector_keypoints
 from estimator.gait import load_gait
 from estimator.joints import JOINT_INDEX as J
 from estimator.joints import N_JOINTS
@@ -399,3 +400,63 @@ def test_weakly_determined_rotations_are_held_and_said(walk):
     assert said["held_directions"] == 6, said
     note = next(n for n in rig.notes if "epipolar tangents" in n)
     assert "6 directions of it held" in note, note
+
+
+def _detector_keypoints(seq, rng):
+    """The renders' joints with a detector's errors (1 % noise, 2 % gross, 5 % missed)."""
+    return detector_keypoints(np.array([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras]), rng)
+
+
+def test_a_detectors_keypoints_calibrate_the_rig_in_place_of_the_postures(walk):
+    """Keypoints from a detector (here the renders' joints with its kinds of error) in place of the mNBP
+    postures: the rig within a degree of the truth, where the viewpoints are several degrees off."""
+    seq, est, _ = walk
+    kp = _detector_keypoints(seq, np.random.default_rng(0))
+    rig = calibrate_rig(est, RigConfig.for_keypoints(height_m=1.8), keypoints=kp)
+    assert rig.source == "self-calibration" and rig.focal_px is not None
+    errors = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], _true_rig(seq)[1:])]
+    views = [geodesic_deg(a, b) for a, b in zip(viewpoint_rotations(est)[1:], _true_rig(seq)[1:])]
+    assert max(errors) < 1.5 and max(errors) < max(views) - 2.0, (errors, views)
+    assert any("detector's keypoints" in n for n in rig.notes)
+    true3d = np.array([f["joints3d"] for f in seq.truth["frames"]])
+    assert np.median(aligned_error(rig.joints3d, true3d)) < 0.02 * seq.truth["body"]["height"]
+    # The estimate's own postures were not measured (posture 'model'): the keypoints alone suffice.
+    assert all(c.model_joints2d is None for c in est.cameras.values())
+    with pytest.raises(ValueError, match="keypoints must have shape"):
+        calibrate_rig(est, RigConfig.for_keypoints(), keypoints=kp[:, :5])
+
+
+def test_posecal_estimate_takes_a_detectors_keypoints(walk, small_model_path, tmp_path, capsys):
+    """``posecal estimate SEQ --keypoints DIR``: the keypoints as OpenPose writes them (BODY_25, one file per
+    frame, frames numbered as the recording's) give the result's rig; bad keypoints exit 2."""
+    from estimator.sequence import write_sequence
+    from service.cli import main
+    from test_keypoints import _layout
+
+    seq, _, _ = walk
+    write_sequence(tmp_path / "walk", seq)
+    kp = _detector_keypoints(seq, np.random.default_rng(1))
+    for c, name in enumerate(seq.cameras):
+        folder = tmp_path / "pose" / f"{name}_json"
+        folder.mkdir(parents=True)
+        body = _layout("BODY_25", np.nan_to_num(kp[c], nan=-1.0))  # a missed joint at (-1, -1)
+        for t in range(seq.n_frames):
+            people = body[t].copy()
+            people[(people[:, :2] < 0).any(-1)] = 0.0  # missed joints: 0, 0, 0 as OpenPose writes them
+            (folder / f"{name}_{t:012d}_keypoints.json").write_text(
+                json.dumps({"people": [{"pose_keypoints_2d": people.ravel().round(2).tolist()}]}))
+    out = tmp_path / "r.json"
+    assert main(["estimate", str(tmp_path / "walk"), "--model", small_model_path, "--keypoints", str(tmp_path / "pose"),
+                 "--height", "1.8", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    rig = result["rig"]
+    assert rig["source"] == "self-calibration"
+    est = [np.eye(3)] + [np.array(rig["cameras"][c]["rotation"]) for c in seq.cameras[1:]]
+    errors = [geodesic_deg(a, b) for a, b in zip(est[1:], _true_rig(seq)[1:])]
+    assert max(errors) < 2.0, errors
+    assert any("detector's keypoints" in n for n in result["notes"])
+    assert main(["estimate", str(tmp_path / "walk"), "--model", small_model_path, "--keypoints",
+                 str(tmp_path / "nowhere")]) == 2
+    assert "--keypoints" in capsys.readouterr().err
+    assert main(["estimate", str(tmp_path / "walk"), "--model", small_model_path, "--keypoints", str(tmp_path / "pose"),
+                 "--rounds", "2"]) == 2

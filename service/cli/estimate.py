@@ -9,6 +9,7 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from . import CliError, CliFailure, export_formats, positive_int
@@ -49,6 +50,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the walker's stature in metres (default 1.75): the scale of the person's posture "
                         "(frames[].person_joints3d) and body segment lengths (body); silhouettes carry no "
                         "absolute scale")
+    p.add_argument("--keypoints", metavar="PATH",
+                   help="a detector's 2D keypoints of the same recording (OpenPose / Pose2Sim folders, MMPose or "
+                        "MediaPipe files, as posecal selfcal reads them; frame numbers = the recording's frame "
+                        "indices, cameras matched by name): the rig and the person's posture come from them "
+                        "instead of from the postures measured on the silhouettes, which are then not measured "
+                        "(videos: with --sync off)")
     p.add_argument("--rounds", type=int, default=1, metavar="N",
                    help="rounds of posture and calibration (Wang-Leow §5; default 1): each further round "
                         "measures the 3D posture on all views at once with the calibrated cameras and "
@@ -81,6 +88,15 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc).replace("height_m", "--height").replace("rounds", "--rounds", 1)) from None
     exports = export_formats(args)
     videos = _videos(args.sequence)
+    keypoints = None
+    if args.keypoints is not None:
+        if args.rounds != 1:
+            raise CliError("--rounds refines the postures measured on the silhouettes; not with --keypoints")
+        if videos and args.sync != "off":
+            raise CliError("--keypoints with videos needs --sync off: the keypoints' frame numbers are each "
+                           "video's own, which --sync auto re-times")
+        keypoints = _read_keypoints(args.keypoints)
+        rig = RigConfig.for_keypoints(height_m=args.height)
     sequence = None
     if not videos:
         try:
@@ -98,8 +114,10 @@ def run(args: argparse.Namespace) -> int:
                 tracks, info, decoding = _video_tracks(args, videos, model, lambda f: progress(0.5 * f))
             else:
                 tracks = tracks_from_sequence(sequence)
+            per_camera = None if keypoints is None else _keypoints_on(keypoints, tracks)
             walk = segment_walk(tracks, model, length=args.window, hop=args.hop,
-                                posture=MNBPConfig() if args.posture == "mnbp" else None, rig=rig,
+                                posture=MNBPConfig() if args.posture == "mnbp" and keypoints is None else None,
+                                rig=rig, keypoints=per_camera,
                                 progress=(lambda f: progress(0.5 + 0.5 * f)) if videos else progress)
         except ValueError as exc:  # input that reads but cannot be estimated (e.g. no walker)
             raise CliFailure(f"{args.sequence}: {exc}") from None
@@ -128,6 +146,42 @@ def run(args: argparse.Namespace) -> int:
         _summary(result, shape, args.out)
     _export(result, exports)
     return 0
+
+
+def _read_keypoints(path: str):
+    """The keypoints of ``--keypoints`` (:func:`service.keypoints_io.read_keypoints`); CliError if unreadable."""
+    from service.keypoints_io import KeypointError, read_keypoints
+
+    try:
+        return read_keypoints([Path(path)])
+    except KeypointError as exc:
+        raise CliError(f"--keypoints: {exc}") from None
+
+
+def _keypoints_on(kp, tracks: dict) -> dict[str, np.ndarray]:
+    """Per recording camera, its keypoints' 13 joints on the recording's frames (n_frames, 13, 2), NaN where
+    missed: cameras matched by name (:func:`service.keypoints_io.camera_key` where not exact), a keypoint
+    frame number being the recording's frame index. CliError when no camera or no frame matches."""
+    from service.keypoints_io import camera_key
+
+    n = max(len(t.silhouettes) for t in tracks.values())
+    index = {name: c for c, name in enumerate(kp.cameras)}
+    keys = {camera_key(name): c for c, name in enumerate(kp.cameras)}
+    frames = np.array(kp.frames)
+    inside = (frames >= 0) & (frames < n)
+    if not inside.any():
+        raise CliError(f"--keypoints: frames {frames.min()}-{frames.max()}, the recording has 0-{n - 1}")
+    out = {}
+    for name in tracks:
+        c = index.get(name, keys.get(camera_key(name)))
+        if c is not None:
+            joints = np.full((n, *kp.tracks.shape[2:]), np.nan)
+            joints[frames[inside]] = kp.tracks[c][inside]
+            out[name] = joints
+    if len(out) < 2:
+        raise CliError(f"--keypoints: cameras {kp.cameras} match fewer than two of the recording's "
+                       f"({', '.join(tracks)})")
+    return out
 
 
 def _export(result: dict, exports: dict[str, tuple[Path, str]]) -> None:
