@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from .appearance import AppearanceModel
-from .matchcache import MatchCache
 from .joints import N_JOINTS
+from .matchcache import MatchCache
 from .mnbp import MNBPConfig, measure_postures
 from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, track_length
 from .rig import RigConfig, attach_rig, calibrate_rig

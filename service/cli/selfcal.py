@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 from estimator.keypoints import SKELETONS
 from estimator.epipolar import refine_from_starts
-from estimator.perspective import PerspectiveConfig
+from estimator.perspective import KEYPOINT_REWEIGHT, PerspectiveConfig
 from estimator.pinhole import floor_frame, image_height, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
@@ -408,11 +408,8 @@ def _by_camera(tables: dict[str, Any], cameras: list[str]) -> dict[str, Any]:
     return out
 
 
-REWEIGHT = 2
-"""Rounds of Cauchy reweighting in the pinhole adjustment (:attr:`PerspectiveConfig.reweight`): a
-detector's keypoints have sparse gross errors (a joint on the wrong limb); on the issue's noise (1-3 % of
-the walker's height, 5 % outliers, 2 % swaps; 10 rigs 2.5-4 m away) two rounds took the camera pairs from
-0.99 / 3.30 deg (median / p90) to 0.59 / 2.61, at 15 m from 3.4 / 12.8 to 1.5 / 8.1 (docs/SELFCAL.md)."""
+REWEIGHT = KEYPOINT_REWEIGHT
+"""Rounds of Cauchy reweighting in the pinhole adjustment for keypoints (:data:`estimator.perspective.KEYPOINT_REWEIGHT`)."""
 
 
 def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: float | None,
