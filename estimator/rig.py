@@ -450,10 +450,10 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
     if len(names) < 2:
         fallback.notes.append("one camera: no rig to calibrate")
         return fallback
-    if keypoints is None and all(c.model_joints2d is None for c in estimate.cameras.values()):
-        fallback.notes.append("rig from the viewpoints: the 2D postures were not measured (posture 'model')")
-        return fallback
     if keypoints is None:
+        if all(c.model_joints2d is None for c in estimate.cameras.values()):
+            fallback.notes.append("rig from the viewpoints: the 2D postures were not measured (posture 'model')")
+            return fallback
         tracks = np.stack([estimate.cameras[n].joints2d for n in names])  # (C, T, 13, 2)
         posed = np.isfinite(tracks).all(axis=(2, 3))  # (C, T)
     else:

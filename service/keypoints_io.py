@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,7 +33,8 @@ import numpy as np
 from estimator.joints import N_JOINTS
 from estimator.keypoints import SKELETONS, detect_skeleton, keypoints_to_joints, track_person
 
-__all__ = ["KeypointError", "Keypoints", "camera_key", "is_tracks_document", "read_keypoints", "video_sizes"]
+__all__ = ["KeypointError", "Keypoints", "camera_key", "is_tracks_document", "match_cameras", "read_keypoints",
+           "video_sizes"]
 
 
 class KeypointError(ValueError):
@@ -203,7 +204,21 @@ def camera_key(name: str) -> str:
     return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[\W_]+", "", name.lower()))
 
 
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
+def match_cameras(available: Iterable[str], wanted: Sequence[str]) -> dict[str, str]:
+    """For each name of ``wanted``, the name of ``available`` that is the same camera: the same name, else
+    the one equal up to :func:`camera_key` when that pairs them one to one; names without one are left out."""
+    available = list(available)
+    by_key: dict[str, list[str]] = {}
+    for name in available:
+        by_key.setdefault(camera_key(name), []).append(name)
+    keys = [camera_key(w) for w in wanted]
+    out = {}
+    for name, key in zip(wanted, keys):
+        if name in available:
+            out[name] = name
+        elif len(by_key.get(key, [])) == 1 and keys.count(key) == 1:
+            out[name] = by_key[key][0]
+    return out
 
 
 def video_sizes(root: Path, cameras: Sequence[str]) -> dict[str, tuple[tuple[int, int], Path]] | None:
@@ -216,22 +231,24 @@ def video_sizes(root: Path, cameras: Sequence[str]) -> dict[str, tuple[tuple[int
     zeros, is the camera's or ends with it (``trial_cam01.mp4`` for ``cam01``). The size is the
     frame's as OpenCV decodes it.
     """
-    import cv2
+    from capture.sources import SourceError, VideoFileSource
+
+    from .intake import list_videos
 
     root = Path(root)
     folders = [root, root / "videos"] + ([root.parent / "videos"] if root.name == "pose" else [])
-    videos = [p for d in folders if d.is_dir() for p in sorted(d.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES]
+    videos = [p for d in folders if d.is_dir() for p in list_videos(d).values()]
     out = {}
     for cam in cameras:
         mine = [p for p in videos if camera_key(p.stem).endswith(camera_key(cam))]
         if len(mine) != 1:
             return None
-        cap = cv2.VideoCapture(str(mine[0]))
         try:
-            size = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        finally:
-            cap.release()
-        if min(size) <= 0:
+            with VideoFileSource(mine[0]) as source:
+                size = source.size
+        except SourceError:
+            return None
+        if size is None:
             return None
         out[cam] = size, mine[0]
     return out

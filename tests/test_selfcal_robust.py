@@ -194,14 +194,14 @@ def test_epipolar_start_rescues_a_rig_the_orthographic_start_leaves_off(bench, s
     """Rig 14 of the evaluation's seed 0: from the scaled-orthographic rig the pinhole adjustment stops
     about 4.6 deg off in the median pair; from the epipolar start it ends within 1 deg, and fits better,
     so it is the one kept (the command's settings: its outliers reweighted away)."""
-    from service.cli.selfcal import REWEIGHT
+    from estimator.perspective import KEYPOINT_REWEIGHT
 
     rig, tracks = _rig_tracks(bench, stretch, 0, 14)
     cal = self_calibrate(tracks, refine=True, upright=True)
     sizes = np.tile(np.array(rig["size"], float), (4, 1))
     ortho = perspective_refine(tracks, sizes, cal.rotations, cal.scales, list(RIGID_LINKS))
     best, start = refine_from_starts(tracks, sizes, cal.rotations, cal.scales, list(RIGID_LINKS),
-                                     config=PerspectiveConfig(reweight=REWEIGHT))
+                                     config=PerspectiveConfig(reweight=KEYPOINT_REWEIGHT))
     assert np.median(_pair_errors(rig, ortho.rotations)) > 3.0
     assert start == "epipolar"  # the race (plain least squares, 15 evaluations each) chose it by its fit
     assert np.median(_pair_errors(rig, best.rotations)) < 1.0

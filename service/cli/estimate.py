@@ -160,24 +160,20 @@ def _read_keypoints(path: str):
 
 def _keypoints_on(kp, tracks: dict) -> dict[str, np.ndarray]:
     """Per recording camera, its keypoints' 13 joints on the recording's frames (n_frames, 13, 2), NaN where
-    missed: cameras matched by name (:func:`service.keypoints_io.camera_key` where not exact), a keypoint
-    frame number being the recording's frame index. CliError when no camera or no frame matches."""
-    from service.keypoints_io import camera_key
+    missed: cameras matched by name (:func:`service.keypoints_io.match_cameras`), a keypoint frame number
+    being the recording's frame index. CliError when no camera or no frame matches."""
+    from service.keypoints_io import match_cameras
 
     n = max(len(t.silhouettes) for t in tracks.values())
-    index = {name: c for c, name in enumerate(kp.cameras)}
-    keys = {camera_key(name): c for c, name in enumerate(kp.cameras)}
     frames = np.array(kp.frames)
     inside = (frames >= 0) & (frames < n)
     if not inside.any():
         raise CliError(f"--keypoints: frames {frames.min()}-{frames.max()}, the recording has 0-{n - 1}")
     out = {}
-    for name in tracks:
-        c = index.get(name, keys.get(camera_key(name)))
-        if c is not None:
-            joints = np.full((n, *kp.tracks.shape[2:]), np.nan)
-            joints[frames[inside]] = kp.tracks[c][inside]
-            out[name] = joints
+    for name, source in match_cameras(kp.cameras, list(tracks)).items():
+        joints = np.full((n, *kp.tracks.shape[2:]), np.nan)
+        joints[frames[inside]] = kp.tracks[kp.cameras.index(source)][inside]
+        out[name] = joints
     if len(out) < 2:
         raise CliError(f"--keypoints: cameras {kp.cameras} match fewer than two of the recording's "
                        f"({', '.join(tracks)})")

@@ -34,7 +34,7 @@ from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 
 from ..exports import bvh_text, csv_text, write_calibration, write_text, write_trc
-from ..keypoints_io import KeypointError, Keypoints, camera_key, read_keypoints, video_sizes
+from ..keypoints_io import KeypointError, Keypoints, match_cameras, read_keypoints, video_sizes
 from . import CliError, CliFailure, export_formats, positive_int
 
 __all__ = ["load_tracks", "register", "result_to_json"]
@@ -393,23 +393,10 @@ NO_IMAGE_SIZE = ("no --image-size: the cameras are scaled orthographic, which pe
 
 
 def _by_camera(tables: dict[str, Any], cameras: list[str]) -> dict[str, Any]:
-    """``tables`` keyed by the input's camera names: exact names first, else names equal up to
-    :func:`service.keypoints_io.camera_key` when that pairs them one to one; unmatched tables keep their own names."""
+    """``tables`` keyed also by the input's camera names (:func:`service.keypoints_io.match_cameras`)."""
     if all(c in tables for c in cameras):
         return tables
-    keys: dict[str, list[str]] = {}
-    for name in tables:
-        keys.setdefault(camera_key(name), []).append(name)
-    out = dict(tables)
-    for c in cameras:
-        found = keys.get(camera_key(c), [])
-        if c not in tables and len(found) == 1 and sum(camera_key(o) == camera_key(c) for o in cameras) == 1:
-            out[c] = tables[found[0]]
-    return out
-
-
-REWEIGHT = KEYPOINT_REWEIGHT
-"""Rounds of Cauchy reweighting in the pinhole adjustment for keypoints (:data:`estimator.perspective.KEYPOINT_REWEIGHT`)."""
+    return {**tables, **{c: tables[name] for c, name in match_cameras(tables, cameras).items()}}
 
 
 def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: float | None,
@@ -424,7 +411,7 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
             sizes = np.tile(np.array(size, float), (len(cameras), 1))
         else:
             sizes = None if found is None else np.array([found[c][0] for c in cameras], float)
-        return sizes, PerspectiveConfig(focal_px=focal, reweight=REWEIGHT)
+        return sizes, PerspectiveConfig(focal_px=focal, reweight=KEYPOINT_REWEIGHT)
     intrinsics = _by_camera(intrinsics, cameras)
     missing = [c for c in cameras if c not in intrinsics]
     if missing:
@@ -434,7 +421,7 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
     sizes = np.array([intrinsics[c][1] for c in cameras], float)
     return sizes, PerspectiveConfig(focal_px=tuple(float(f) for f in (mats[:, 0, 0] + mats[:, 1, 1]) / 2),
                                     principal_px=tuple((float(u), float(v)) for u, v in mats[:, :2, 2]),
-                                    reweight=REWEIGHT)
+                                    reweight=KEYPOINT_REWEIGHT)
 
 
 def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], sizes: np.ndarray,
