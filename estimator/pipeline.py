@@ -45,8 +45,9 @@ from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, head_points, motion_cue
 
-__all__ = ["CameraTrack", "EstimateConfig", "WalkEstimate", "clean_tracks", "concat_estimates", "estimate_walk",
-           "take_frames", "track_length", "tracks_from_sequence"]
+__all__ = ["CameraObservation", "CameraTrack", "EstimateConfig", "PhaseRefinement", "WalkEstimate", "clean_tracks",
+           "concat_estimates", "decode_walk", "estimate_walk", "observe_cameras", "refine_cameras", "take_frames",
+           "track_length", "tracks_from_sequence"]
 
 _J = {name: i for i, name in enumerate(FULL_JOINT_NAMES)}
 
@@ -706,53 +707,68 @@ def track_length(tracks: dict[str, CameraTrack]) -> int:
     return next(iter(lengths.values()))
 
 
-def estimate_walk(
+@dataclass
+class CameraObservation:
+    """One camera's evidence over a window, before the cameras are joined (:func:`observe_cameras`).
+
+    ``registered`` and ``bits`` are what the phase-given refine
+    (:func:`refine_cameras`) compares with the examples; they can stay where
+    they were computed (:meth:`light` drops them), the rest is what the joint
+    decoding (:func:`decode_walk`) needs.
+    """
+
+    estimate: CameraEstimate
+    track: CameraTrack  # after the clean-up
+    distances: np.ndarray  # (T, n_clusters) eq. 8 to the cluster means, inf where none
+    present: np.ndarray  # frames with a matched silhouette
+    evidence: np.ndarray | None = None  # (len(present), n_phases) phase costs at the viewpoint; exemplars only
+    mirror: tuple[Viewpoint, np.ndarray, np.ndarray] | None = None  # the other side's (viewpoint, evidence, obs)
+    registered: np.ndarray | None = None
+    bits: np.ndarray | None = None
+
+    def light(self) -> CameraObservation:
+        """The observation without the registered silhouettes (to send to the joint decoding)."""
+        return replace(self, registered=None, bits=None)
+
+
+@dataclass
+class PhaseRefinement:
+    """One camera's viewpoint voted again at the decoded phases (:func:`refine_cameras`)."""
+
+    viewpoint: Viewpoint
+    observations: np.ndarray  # (T,)
+    evidence: np.ndarray  # (len(present), n_phases)
+    outliers: int  # frames that count less
+
+
+def _settles(config: EstimateConfig, camera: CameraEstimate) -> bool:
+    """Whether a camera's ahead/behind is open to the other cameras' phase (:func:`_settle_ahead_behind`)."""
+    return (config.settle_ahead_behind and np.isfinite(camera.viewpoint.azimuth_deg) and _contested(camera)
+            and abs(np.cos(np.deg2rad(camera.viewpoint.azimuth_deg))) >= config.settle_min_cos)
+
+
+def observe_cameras(
     tracks: dict[str, CameraTrack],
     model: AppearanceModel,
     *,
     config: EstimateConfig | None = None,
-    gait: GaitModel | None = None,
     cache: MatchCache | None = None,
-) -> WalkEstimate:
-    """Estimate phase per frame, 3D/2D joints and camera viewpoints for one window.
+) -> dict[str, CameraObservation]:
+    """Steps 1-3 for each camera on its own: clean-up, registration, match, viewpoint, phase evidence.
 
-    Parameters
-    ----------
-    tracks : dict of str to CameraTrack
-        Synchronized cameras; every track has the same number of frames T.
-    model : AppearanceModel
-    config : EstimateConfig, optional
-    gait : GaitModel, optional
-        Defaults to the shipped CMU fit.
-    cache : MatchCache, optional
-        Registrations and matches of silhouettes seen before (overlapping live
-        windows); the estimate is the same with or without (up to float32
-        rounding, :mod:`estimator.matchcache`).
-
-    Raises
-    ------
-    ValueError
-        No cameras, tracks of different lengths, or no silhouette at all.
+    Cameras are independent until the HMM joins them (§6), so any subset of
+    a window's cameras can be observed apart (in other processes) and the
+    observations joined by :func:`decode_walk`; :func:`estimate_walk` is the
+    two in one process. Tracks must have one length (not checked here).
     """
     config = config or EstimateConfig()
-    gait = gait or load_gait()
-    T = track_length(tracks)
-    if T == 0 or all(s is None for t in tracks.values() for s in t.silhouettes):
-        raise ValueError("no silhouettes in the window")
-    n_phases = config.hmm.n_states
     exemplars = model.exemplars() if config.method == "exemplars" else None
-    if exemplars is not None and exemplars.n_phases != n_phases:
-        raise ValueError(f"exemplars have {exemplars.n_phases} phases, the HMM {n_phases}")
-
     reports: dict[str, CleanupReport] = {}
     if config.cleanup is not None:
         tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
-    cams: dict[str, CameraEstimate] = {}
-    distances: dict[str, np.ndarray] = {}
-    log_emission = np.zeros((T, n_phases))
-    inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # per camera: frames, registered, packed
-    evidence: dict[str, np.ndarray] = {}  # per camera: its frames' phase costs (frames, n_phases)
+    out: dict[str, CameraObservation] = {}
     for name, track in tracks.items():
+        T = len(track.silhouettes)
         present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
         labels = np.full(T, -1, np.int64)
         dist = np.full((T, model.n_clusters), np.inf, np.float32)
@@ -773,13 +789,12 @@ def estimate_walk(
         if present.size == 0:
             cam_notes.append("no silhouette in this window")
             vp = Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)
-            cams[name] = CameraEstimate(vp, cue, labels, np.full(T, np.nan), np.full((T, N_JOINTS, 2), np.nan), cam_notes,
-                                        reports.get(name))
-            distances[name] = dist
+            cam = CameraEstimate(vp, cue, labels, np.full(T, np.nan), np.full((T, N_JOINTS, 2), np.nan), cam_notes,
+                                 reports.get(name))
+            out[name] = CameraObservation(cam, track, dist, present)
             continue
         dist[present] = d
         labels[present] = np.argmin(d, axis=1)
-        distances[name] = dist
         obs = np.full(T, np.nan)
         if exemplars is None:
             vp = estimate_viewpoint(*_cloud_paper(model, labels[present]), cue=cue)
@@ -789,43 +804,169 @@ def estimate_walk(
                     np.abs(model.member_elevation_deg[sl] - vp.elevation_deg) <= config.phase_view_window_deg
                 )
                 obs[k] = _circular_mean(model.member_phase[sl][near] if near.any() else model.member_phase[sl])
-        else:
-            bits = pack(registered)
-            vp, _ = _vote(_cloud_exemplars(model, exemplars, bits, d, config), len(bits), cue, config)
-            evidence[name] = _phase_evidence(exemplars, bits, vp, obs, present, config)
-            inputs[name] = (present, registered, bits)
-        cams[name] = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes,
-                                    reports.get(name))
+            cam = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes, reports.get(name))
+            out[name] = CameraObservation(cam, track, dist, present)
+            continue
+        bits = pack(registered)
+        vp, _ = _vote(_cloud_exemplars(model, exemplars, bits, d, config), len(bits), cue, config)
+        evidence = _phase_evidence(exemplars, bits, vp, obs, present, config)
+        cam = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes, reports.get(name))
+        mirror = None
+        if _settles(config, cam):  # its other side, for the other cameras' phase to weigh
+            mirror_vp, mirror_obs = _mirrored(vp), np.full(T, np.nan)
+            mirror = (mirror_vp, _phase_evidence(exemplars, bits, mirror_vp, mirror_obs, present, config), mirror_obs)
+        out[name] = CameraObservation(cam, track, dist, present, evidence, mirror, registered, bits)
+    return out
 
+
+def refine_cameras(
+    observations: dict[str, CameraObservation],
+    states: np.ndarray,
+    model: AppearanceModel,
+    *,
+    config: EstimateConfig | None = None,
+    sides: dict[str, bool] | None = None,
+) -> dict[str, PhaseRefinement]:
+    """Each observed camera's viewpoint voted again from the examples at the decoded phases.
+
+    The phase is one for all cameras (they are synchronized) and the HMM
+    decodes it from all of them over the window (§6); given it, a frame's
+    silhouette is compared only with the examples of its phase, from every
+    viewpoint, so a frame that looks like another phase seen from elsewhere
+    (a cut limb, a hole) no longer votes for elsewhere. ``sides`` holds the
+    cameras whose ahead/behind the other cameras settled. Per camera, like
+    :func:`observe_cameras`; observations without ``registered`` are skipped.
+    """
+    config = config or EstimateConfig()
+    index = model.exemplars()
+    by_phase = _rows_by_phase(index)
+    out = {}
+    for name, o in observations.items():
+        if o.registered is None or o.present.size == 0:
+            continue
+        c = o.estimate
+        vp, weight = _vote(_cloud_at_phases(index, by_phase, o.registered, states[o.present], config),
+                           len(o.present), c.cue, config, ahead=(sides or {}).get(name))
+        obs = np.full(len(states), np.nan)
+        ev = _phase_evidence(index, o.bits, vp, obs, o.present, config)
+        out[name] = PhaseRefinement(vp, obs, ev, int(np.sum(weight < 0.5)))
+    return out
+
+
+def estimate_walk(
+    tracks: dict[str, CameraTrack],
+    model: AppearanceModel,
+    *,
+    config: EstimateConfig | None = None,
+    gait: GaitModel | None = None,
+    cache: MatchCache | None = None,
+) -> WalkEstimate:
+    """Estimate phase per frame, 3D/2D joints and camera viewpoints for one window.
+
+    :func:`observe_cameras`, then :func:`decode_walk` with
+    :func:`refine_cameras`, all in this process.
+
+    Parameters
+    ----------
+    tracks : dict of str to CameraTrack
+        Synchronized cameras; every track has the same number of frames T.
+    model : AppearanceModel
+    config : EstimateConfig, optional
+    gait : GaitModel, optional
+        Defaults to the shipped CMU fit.
+    cache : MatchCache, optional
+        Registrations and matches of silhouettes seen before (overlapping live
+        windows); the estimate is the same with or without (up to float32
+        rounding, :mod:`estimator.matchcache`).
+
+    Raises
+    ------
+    ValueError
+        No cameras, tracks of different lengths, or no silhouette at all.
+    """
+    config = config or EstimateConfig()
+    T = track_length(tracks)
+    if T == 0 or all(s is None for t in tracks.values() for s in t.silhouettes):
+        raise ValueError("no silhouettes in the window")
+    observations = observe_cameras(tracks, model, config=config, cache=cache)
+    return decode_walk(observations, config=config, gait=gait, model=model,
+                       refine=lambda states, sides: refine_cameras(observations, states, model, config=config,
+                                                                   sides=sides))
+
+
+def decode_walk(
+    observations: dict[str, CameraObservation],
+    *,
+    config: EstimateConfig | None = None,
+    gait: GaitModel | None = None,
+    model: AppearanceModel | None = None,
+    refine: Callable[[np.ndarray, dict[str, bool]], dict[str, PhaseRefinement]] | None = None,
+) -> WalkEstimate:
+    """Steps 4-6: the cameras joined: one phase path (§6), viewpoints again given it, joints.
+
+    ``observations`` are every camera's (:func:`observe_cameras`, in any
+    process; :meth:`CameraObservation.light` ones will do); ``refine`` maps the
+    decoded states and settled sides to :func:`refine_cameras`'s result for
+    every camera, wherever their registered silhouettes are (needed with
+    ``config.phase_refine``). ``model`` is needed on the paper's path only.
+    The observations' estimates are updated in place.
+    """
+    config = config or EstimateConfig()
+    gait = gait or load_gait()
+    if not observations:
+        raise ValueError("no cameras")
+    T = len(next(iter(observations.values())).track.silhouettes)
+    n_phases = config.hmm.n_states
+    exemplars = config.method == "exemplars"
+    if not exemplars and model is None:
+        raise ValueError("the paper's path needs the model to decode")
+    cams = {name: o.estimate for name, o in observations.items()}
     if all(c.viewpoint.n_samples == 0 for c in cams.values()):
         raise ValueError("no non-empty silhouette in the window")
     hmm = config.hmm
     with np.errstate(divide="ignore"):
         log_start, log_trans = np.log(hmm.startprob_), np.log(hmm.transmat_)
     sides: dict[str, bool] = {}
-    if exemplars is None:
+    if not exemplars:
         log_emission = hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
     else:
+        voted = {name: o for name, o in observations.items() if o.evidence is not None}
         if config.settle_ahead_behind:
-            sides = _settle_ahead_behind(exemplars, inputs, evidence, cams, log_start, log_trans, T, config)
-        for name, ev in evidence.items():
-            log_emission[inputs[name][0]] -= ev
+            sides = _settle_ahead_behind(voted, log_start, log_trans, T, config)
+        log_emission = np.zeros((T, n_phases))
+        for o in voted.values():
+            log_emission[o.present] -= o.evidence
     log_prob, states = viterbi(log_start, log_trans, log_emission)
-    if exemplars is not None and config.phase_refine and inputs:
-        log_emission = _refine_at_phases(exemplars, inputs, states, cams, T, config, sides)
+    if exemplars and config.phase_refine and any(o.evidence is not None for o in observations.values()):
+        if refine is None:
+            raise ValueError("phase_refine needs refine")
+        refined = refine(states, sides)
+        log_emission = np.zeros((T, n_phases))
+        for name, o in observations.items():
+            r = refined.get(name)
+            if r is None:
+                continue
+            c = o.estimate
+            c.viewpoint, c.observations = r.viewpoint, r.observations
+            log_emission[o.present] -= r.evidence
+            if r.outliers:
+                c.notes.append(f"viewpoint: {r.outliers} of {len(o.present)} frames count less (their match to "
+                               "the model, or the viewpoint they point to, is an outlier of the window)")
         log_prob, states = viterbi(log_start, log_trans, log_emission)
     phase_posterior = posterior(log_start, log_trans, log_emission)
 
     margin = 0.0
-    if exemplars is None and config.resolve_half_cycle:
+    if not exemplars and config.resolve_half_cycle:
         decoded = states
-        states, margin = _resolve_half_cycle(model, states, cams, distances, n_phases)
+        states, margin = _resolve_half_cycle(model, states, cams, {n: o.distances for n, o in observations.items()},
+                                             n_phases)
         if not np.array_equal(states, decoded):  # the path moved by half a cycle, its posterior with it
             phase_posterior = np.roll(phase_posterior, n_phases // 2, axis=1)
 
     phase = states / n_phases
     skeleton = forward_kinematics(gait.angles(phase), config.body)
     person = skeleton - skeleton[:, :N_JOINTS].mean(axis=1, keepdims=True)
+    tracks = {name: o.track for name, o in observations.items()}
     for name, c in cams.items():
         if np.isfinite(c.viewpoint.azimuth_deg):
             placed = _place_joints(person, config.body, c.viewpoint, tracks[name].boxes)
@@ -837,7 +978,7 @@ def estimate_walk(
         cameras=cams,
         log_prob=log_prob,
         half_cycle_margin=margin,
-        notes=[] if exemplars is not None else ["paper's path: cluster means only"],
+        notes=[] if exemplars else ["paper's path: cluster means only"],
         tracks=tracks,
         phase_posterior=phase_posterior,
         log_emission=log_emission,
@@ -872,9 +1013,8 @@ def _contested(camera: CameraEstimate) -> bool:
     return cue is None or (cue.conflict and cue.source == "head")
 
 
-def _settle_ahead_behind(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
-                         evidence: dict[str, np.ndarray], cams: dict[str, CameraEstimate], log_start: np.ndarray,
-                         log_trans: np.ndarray, T: int, config: EstimateConfig) -> dict[str, bool]:
+def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: np.ndarray, log_trans: np.ndarray,
+                         T: int, config: EstimateConfig) -> dict[str, bool]:
     """Ahead/behind of the cameras whose motion cue is contested or absent, from the other cameras' phase.
 
     Seen from azimuth ``a`` or ``180 - a`` (in front of the walker or behind),
@@ -885,28 +1025,25 @@ def _settle_ahead_behind(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarra
     head disagree on whether the walker approaches; cropped input has no
     cue), the one whose summed phase evidence the HMM decodes most probably is
     kept, if it beats the cues' own choice by ``config.settle_margin`` per
-    frame. Each camera's ``evidence`` and viewpoint are updated in place;
+    frame (each camera's other side was observed as its ``mirror``). Each
+    camera's ``evidence`` and viewpoint are updated in place;
     returns the side (True: ahead) of every camera whose side was settled so,
     for the later re-votes.
     """
-    names = [n for n in inputs if np.isfinite(cams[n].viewpoint.azimuth_deg)]
-    contested = [n for n in names if _contested(cams[n]) and abs(np.cos(np.deg2rad(cams[n].viewpoint.azimuth_deg)))
-                 >= config.settle_min_cos][:8]  # 2^8 decodes at most
+    names = [n for n, o in observations.items() if np.isfinite(o.estimate.viewpoint.azimuth_deg)]
+    contested = [n for n in names if observations[n].mirror is not None][:8]  # 2^8 decodes at most
     if len(names) < 2 or not contested:
         return {}
     other = np.zeros((T, len(log_start)))
     for n in names:
         if n not in contested:
-            other[inputs[n][0]] -= evidence[n]
-    mirror = {n: _mirrored(cams[n].viewpoint) for n in contested}
-    flipped_obs = {n: np.full(T, np.nan) for n in contested}  # each frame's phase, seen from the mirror
-    flipped_ev = {n: _phase_evidence(index, inputs[n][2], mirror[n], flipped_obs[n], inputs[n][0], config)
-                  for n in contested}
+            other[observations[n].present] -= observations[n].evidence
     best, best_lp, kept_lp = None, -np.inf, -np.inf
     for choice in np.ndindex(*(2,) * len(contested)):
         total = other.copy()
         for n, flip in zip(contested, choice):
-            total[inputs[n][0]] -= flipped_ev[n] if flip else evidence[n]
+            o = observations[n]
+            total[o.present] -= o.mirror[1] if flip else o.evidence
         lp = viterbi(log_start, log_trans, total)[0]
         if not any(choice):
             kept_lp = lp
@@ -917,41 +1054,14 @@ def _settle_ahead_behind(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarra
     sides = {}
     for n, flip in zip(contested, best):
         if flip:
-            c = cams[n]
-            c.viewpoint, evidence[n], c.observations = mirror[n], flipped_ev[n], flipped_obs[n]
+            o = observations[n]
+            c = o.estimate
+            c.viewpoint, o.evidence, c.observations = o.mirror
             sides[n] = bool(np.cos(np.deg2rad(c.viewpoint.azimuth_deg)) >= 0)
             c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was "
                            f"{'contested' if c.cue is not None else 'absent'}; log-probability "
                            f"{best_lp - kept_lp:.1f} better over {T} frames)")
     return sides
-
-
-def _refine_at_phases(index: ExemplarIndex, inputs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
-                      states: np.ndarray, cams: dict[str, CameraEstimate], T: int,
-                      config: EstimateConfig, sides: dict[str, bool] | None = None) -> np.ndarray:
-    """Each camera's viewpoint again from the examples at the decoded phases; the phases' new
-    log-emission (T, n_phases), to decode again.
-
-    The phase is one for all cameras (they are synchronized) and the HMM
-    decodes it from all of them over the window (§6); given it, a frame's
-    silhouette is compared only with the examples of its phase, from every
-    viewpoint, so a frame that looks like another phase seen from elsewhere
-    (a cut limb, a hole) no longer votes for elsewhere. One round of this
-    alternation (viewpoints given phases, phases given viewpoints).
-    """
-    by_phase = _rows_by_phase(index)
-    log_emission = np.zeros((T, index.n_phases))
-    for name, (present, registered, bits) in inputs.items():
-        c = cams[name]
-        c.viewpoint, weight = _vote(_cloud_at_phases(index, by_phase, registered, states[present], config),
-                                    len(present), c.cue, config, ahead=(sides or {}).get(name))
-        c.observations = np.full(T, np.nan)
-        log_emission[present] -= _phase_evidence(index, bits, c.viewpoint, c.observations, present, config)
-        outliers = int(np.sum(weight < 0.5))
-        if outliers:
-            c.notes.append(f"viewpoint: {outliers} of {len(present)} frames count less (their match to the model, "
-                           "or the viewpoint they point to, is an outlier of the window)")
-    return log_emission
 
 
 def _resolve_half_cycle(
