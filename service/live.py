@@ -18,7 +18,8 @@ Per rig:
 2. :class:`WindowBuffer` cuts windows of ``window_length`` frame sets every
    ``window_hop``; a jump in frame index larger than half a window starts over.
 3. Windows wait in a bounded queue (oldest dropped on overflow); consumer
-   threads send each to the process pool (:func:`service.worker.estimate_window`),
+   threads estimate each (:func:`service.worker.estimate_window`: the window's cameras
+   split over the live worker processes, each camera always in the same one),
    smooth the viewpoints (:class:`estimator.windows.ViewpointTrack`), publish the result on
    ``posecal/<rig>/estimate``, keep it for the REST API and log it to Rerun.
 4. Feedback (§7.1, ``feedback``): the window's estimate predicts the next
@@ -68,7 +69,7 @@ from estimator.windows import ViewpointTrack
 from .metrics import Metrics
 from .replicas import Replicas
 from .settings import Settings
-from .worker import StageBundle, estimate_window, predict_feedback, register_stage
+from .worker import PinnedPools, StageBundle, estimate_window, predict_feedback, register_stage
 
 __all__ = ["FrameAssembler", "FrameSet", "LiveService", "WindowBuffer"]
 
@@ -433,7 +434,7 @@ class RigState:
 class LiveService:
     """Subscribe, assemble, window, estimate, publish; thread-safe queries for the API."""
 
-    def __init__(self, session: zenoh.Session, pool: concurrent.futures.Executor, settings: Settings,
+    def __init__(self, session: zenoh.Session, pool: PinnedPools, settings: Settings,
                  metrics: Metrics, rerun=None,
                  feedback_pool: concurrent.futures.Executor | None = None,
                  rig_pool: concurrent.futures.Executor | None = None,
@@ -726,10 +727,9 @@ class LiveService:
                 last = -1 if rig is None else rig.last_logged_index
             bundle_from = sum(1 for i in w.indices if i <= last)
         feedback = self.feedback_pool is not None
-        future = self.pool.submit(estimate_window, tracks, w.indices, sizes, bundle_from=bundle_from,
-                                  keep_estimate=feedback or self.rig_pool is not None)
         try:
-            result, bundle, seconds, est = future.result(timeout=60)
+            result, bundle, seconds, est = estimate_window(self.pool, f"{w.rig}/{w.seq}", tracks, w.indices, sizes,
+                                                           bundle_from=bundle_from)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
             self._count(w.rig, "skipped")
@@ -779,13 +779,13 @@ class LiveService:
                 self._rerun_queue.put_nowait((w.rig, bundle, w.indices[-1], smoothed))
             except queue.Full:  # drawing fell behind: skip this window's drawing, not its estimate
                 self.metrics.rerun_skipped.labels(w.rig).inc()
-        if feedback and est is not None:
+        if feedback:
             with self._lock:
                 if w.rig in self._feedback_todo:
                     self.metrics.feedback_superseded.labels(w.rig).inc()
                 self._feedback_todo[w.rig] = (w, est, tracks, sizes)
                 self._todo_ready.notify_all()  # both loops wait on it
-        if self.rig_pool is not None and est is not None:
+        if self.rig_pool is not None:
             moves = sum(len(sm.get("changes", [])) for sm in smoothed.values())
             with self._lock:
                 if moves > rig.moves_seen:  # a camera moved: the rig is another one

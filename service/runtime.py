@@ -21,7 +21,7 @@ from .jobs import JobStore
 from .metrics import Metrics
 from .runner import JobRunner
 from .settings import Settings
-from .worker import WorkerPool, make_pool
+from .worker import PinnedPools, WorkerPool, make_pinned_pools, make_pool
 
 __all__ = ["Runtime", "make_storage", "resolve_model_path", "shutdown_pool"]
 
@@ -62,7 +62,7 @@ def make_storage(settings: Settings) -> None:
         Path(settings.db).expanduser().parent.mkdir(parents=True, exist_ok=True)
 
 
-def shutdown_pool(pool: WorkerPool | None) -> None:
+def shutdown_pool(pool: WorkerPool | PinnedPools | None) -> None:
     """Stop a pool now: queued calls are cancelled, running workers terminated."""
     if pool is not None:
         pool.terminate()
@@ -75,7 +75,7 @@ class Runtime:
     store: JobStore
     metrics: Metrics
     job_pool: WorkerPool | None
-    live_pool: WorkerPool | None
+    live_pool: PinnedPools | None
     runner: JobRunner
     feedback_pool: WorkerPool | None = None
     rig_pool: WorkerPool | None = None
@@ -102,7 +102,7 @@ class Runtime:
             # The live rig's postures run lower still (nice 10): they may lag, the viewpoints may not.
             pools = await asyncio.gather(
                 asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
-                asyncio.to_thread(make_pool, settings.live_workers, model_path) if settings.live else _none(),
+                asyncio.to_thread(make_pinned_pools, settings.live_workers, model_path) if settings.live else _none(),
                 asyncio.to_thread(make_pool, 1, None, renderer=True, nice=5)  # rendering needs no model
                 if settings.live and settings.feedback else _none(),
                 asyncio.to_thread(make_pool, 1, None, nice=10) if settings.live and settings.live_rig else _none())

@@ -112,9 +112,9 @@ class Settings(BaseSettings):
     # live
     live: bool = Field(True, description="subscribe to silhouettes and estimate windows")
     live_workers: int = Field(default_factory=lambda: min(2, os.cpu_count() or 1), ge=1,
-                              description="processes that estimate live windows, each its own window "
-                              "(default: 2, or 1 on one core; ~175 MB each): with two, 16 cameras x 30 fps "
-                              "keep every window on two cores (docs/SCALING.md)")
+                              description="processes that estimate live windows, a window's cameras split over "
+                              "them, each camera always in the same one (default: 2, or 1 on one core; "
+                              "~175 MB each; docs/SCALING.md)")
     window_length: int = Field(20, ge=4, description="frames per window (about one gait cycle; "
                                "live windows and the windows of batch jobs)")
     window_hop: int = Field(10, ge=1, description="frames between window starts")

@@ -8,7 +8,8 @@ futures. Two entry points run in the pool:
   camera tracks, estimate them window by window with one segment per heading
   (:func:`~estimator.windows.segment_walk`), write the result to the job store,
   writing progress as it goes;
-- :func:`estimate_window`: one live window;
+- :func:`estimate_window`: one live window, its cameras split over :class:`PinnedPools`
+  (:func:`observe_part`, :func:`refine_part` in the workers);
 - :func:`predict_feedback`: priors for the frames after a live window (§7.1).
 
 Both can return a :class:`StageBundle`: the plain arrays of every stage that
@@ -22,6 +23,7 @@ one is answered with a 4xx at once.
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import concurrent.futures.process
 import itertools
@@ -31,6 +33,7 @@ import os
 import shutil
 import threading
 import time
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +44,8 @@ import numpy as np
 from estimator.appearance import AppearanceModel, load_model
 from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
-from estimator.pipeline import (CameraTrack, WalkEstimate, crop_to_box, estimate_walk, pad_tracks,
+from estimator.pipeline import (CameraObservation, CameraTrack, PhaseRefinement, WalkEstimate, crop_to_box,
+                                decode_walk, observe_cameras, pad_tracks, refine_cameras,
                                 tracks_from_sequence)
 from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
@@ -51,10 +55,12 @@ from .intake import UploadError, list_videos, stage_upload
 from .jobs import JobGone, JobStore
 
 __all__ = [
+    "PinnedPools",
     "StageBundle",
     "UploadError",
     "WorkerPool",
     "estimate_window",
+    "make_pinned_pools",
     "predict_feedback",
     "init_worker",
     "make_pool",
@@ -271,28 +277,20 @@ class StageBundle:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def make_bundle(tracks: dict[str, CameraTrack], est: WalkEstimate, model: AppearanceModel,
+def make_bundle(tracks: dict[str, CameraTrack], est: WalkEstimate, model: AppearanceModel | None,
                 indices: list[int], image_size: dict[str, tuple[int, int]], *,
-                from_frame: int = 0, register: bool = True, rng: int = 0) -> StageBundle:
+                from_frame: int = 0, register: bool = True, rng: int = 0,
+                clouds: dict[str, np.ndarray] | None = None) -> StageBundle:
     """Collect what :mod:`service.rerun_log` draws; frames before ``from_frame`` (position
     in the window) are left out of the per-frame images (already drawn).
 
     With ``register`` False the registered silhouettes and cluster means are left
     empty, for :func:`register_stage` to fill later (off the live latency path).
+    ``clouds`` are the cameras' viewpoint clouds if drawn already
+    (:func:`viewpoint_clouds`, where the model is); otherwise drawn from ``model``.
     """
-    gen = np.random.default_rng(rng)
-    clouds = {}
-    offsets = model.member_offsets
-    for name in tracks:
-        labels = est.cameras[name].labels
-        matched = labels[labels >= 0]
-        if matched.size:
-            idx = np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in matched])
-            if idx.size > _MAX_CLOUD:
-                idx = gen.choice(idx, _MAX_CLOUD, replace=False)
-            clouds[name] = np.stack([model.member_azimuth_deg[idx], model.member_elevation_deg[idx]], -1)
-        else:
-            clouds[name] = np.zeros((0, 2))
+    if clouds is None:
+        clouds = viewpoint_clouds(model, {name: est.cameras[name].labels for name in tracks}, rng=rng)
     vps = {}
     for name, c in est.cameras.items():
         vp = c.viewpoint
@@ -310,6 +308,25 @@ def make_bundle(tracks: dict[str, CameraTrack], est: WalkEstimate, model: Appear
         phase=est.phase, states=est.states, joints3d=est.joints3d,
         extra={"from_frame": from_frame, **_rig_extra(est)})
     return register_stage(bundle, model) if register else bundle
+
+
+def viewpoint_clouds(model: AppearanceModel, labels: dict[str, np.ndarray], *, rng: int = 0
+                     ) -> dict[str, np.ndarray]:
+    """Per camera, the (azimuth, elevation) of the members of its frames' matched clusters
+    (at most ``_MAX_CLOUD``, drawn with ``rng``): the cloud Rerun shows around the viewpoint."""
+    gen = np.random.default_rng(rng)
+    offsets = model.member_offsets
+    clouds = {}
+    for name, lab in labels.items():
+        matched = lab[lab >= 0]
+        if matched.size:
+            idx = np.concatenate([np.arange(offsets[k], offsets[k + 1]) for k in matched])
+            if idx.size > _MAX_CLOUD:
+                idx = gen.choice(idx, _MAX_CLOUD, replace=False)
+            clouds[name] = np.stack([model.member_azimuth_deg[idx], model.member_elevation_deg[idx]], -1)
+        else:
+            clouds[name] = np.zeros((0, 2))
+    return clouds
 
 
 def _rig_extra(est: WalkEstimate) -> dict[str, Any]:
@@ -371,27 +388,145 @@ def json_safe(value: Any) -> Any:
 # ---------------------------------------------------------------------------- live windows
 
 
-def estimate_window(tracks: dict[str, CameraTrack], indices: list[int],
-                    image_size: dict[str, tuple[int, int]], *, bundle_from: int | None = None,
-                    keep_estimate: bool = False
-                    ) -> tuple[dict, StageBundle | None, float, WalkEstimate | None]:
-    """Estimate one live window (in a worker): ``(result, bundle, seconds, estimate)``.
+class PinnedPools(concurrent.futures.Executor):
+    """Worker processes addressed one by one, each a :class:`WorkerPool` of one process.
 
-    The bundle is None unless ``bundle_from`` is given; the estimate itself is
-    returned only with ``keep_estimate`` (for :func:`predict_feedback`).
+    A live window's cameras are split over them (:func:`estimate_window`), each
+    camera to the same process window after window: there its silhouettes of
+    the window before are in the match cache (live windows overlap by half),
+    and the window's second stage finds the first stage's registered
+    silhouettes where they were made. :meth:`submit` takes turns, for work
+    that may run anywhere.
     """
+
+    def __init__(self, pools: list[WorkerPool]) -> None:
+        if not pools:
+            raise ValueError("no pools")
+        self.pools = pools
+        self._turn = itertools.count()
+
+    def __len__(self) -> int:
+        return len(self.pools)
+
+    def submit(self, fn, /, *args, **kwargs) -> concurrent.futures.Future:
+        return self.submit_to(next(self._turn), fn, *args, **kwargs)
+
+    def submit_to(self, k: int, fn, /, *args, **kwargs) -> concurrent.futures.Future:
+        """Run ``fn`` in process ``k`` (modulo their number)."""
+        return self.pools[k % len(self.pools)].submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        for pool in self.pools:
+            pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    def terminate(self) -> None:
+        for pool in self.pools:
+            pool.terminate()
+
+    @property
+    def restarts(self) -> int:
+        return sum(pool.restarts for pool in self.pools)
+
+    @property
+    def pids(self) -> list[int]:
+        return [pid for pool in self.pools for pid in pool.pids]
+
+
+def make_pinned_pools(n: int, model_path: Path | None) -> PinnedPools:
+    """``n`` processes holding the model, started and warmed up side by side."""
+    with concurrent.futures.ThreadPoolExecutor(max_workers=n) as starter:
+        return PinnedPools(list(starter.map(lambda _: make_pool(1, model_path), range(n))))
+
+
+# A live window's cameras as observed by this process, until its refine (estimate_window);
+# a window whose refine never comes (its decoding failed) is pushed out by later ones.
+_observed: collections.OrderedDict[str, dict[str, CameraObservation]] = collections.OrderedDict()
+_MAX_OBSERVED = 8
+
+
+def observe_part(key: str, tracks: dict[str, CameraTrack], *, clouds: bool = False
+                 ) -> tuple[dict[str, CameraObservation], dict[str, np.ndarray] | None]:
+    """A live window's first stage for some of its cameras, in a worker: their light
+    observations (:func:`~estimator.pipeline.observe_cameras`), and their viewpoint clouds
+    for Rerun if asked; the registered silhouettes stay here under ``key``."""
     model = _get_model()
+    observed = observe_cameras(tracks, model, cache=_match_cache)
+    _observed[key] = observed
+    while len(_observed) > _MAX_OBSERVED:
+        _observed.popitem(last=False)
+    drawn = viewpoint_clouds(model, {n: o.estimate.labels for n, o in observed.items()}) if clouds else None
+    return {n: o.light() for n, o in observed.items()}, drawn
+
+
+def refine_part(key: str, states: np.ndarray, sides: dict[str, bool]) -> dict[str, PhaseRefinement]:
+    """A live window's second stage for the cameras :func:`observe_part` kept under ``key``, in a
+    worker (:func:`~estimator.pipeline.refine_cameras`)."""
+    observed = _observed.pop(key, None)
+    if observed is None:
+        raise RuntimeError(f"window {key}: its observed cameras are gone (the worker was restarted)")
+    return refine_cameras(observed, states, _get_model(), sides=sides)
+
+
+def camera_shares(names: list[str], rig: str, n: int) -> dict[int, list[str]]:
+    """Which of ``n`` processes observes which of a rig's cameras: dealt in turn, from a
+    place fixed by the rig's name (so that several small rigs do not all start on one)."""
+    first = zlib.crc32(rig.encode())
+    shares: dict[int, list[str]] = {}
+    for i, name in enumerate(names):
+        shares.setdefault((first + i) % n, []).append(name)
+    return shares
+
+
+def match_cache_hits() -> int:
+    """This worker's match-cache hits so far (for tests and benchmarks)."""
+    return _match_cache.hits
+
+
+def estimate_window(pools: PinnedPools, key: str, tracks: dict[str, CameraTrack], indices: list[int],
+                    image_size: dict[str, tuple[int, int]], *, bundle_from: int | None = None,
+                    timeout_s: float = 60.0) -> tuple[dict, StageBundle | None, float, WalkEstimate]:
+    """Estimate one live window with its cameras split over ``pools``: ``(result, bundle, seconds,
+    estimate)``. Runs in the calling thread, the work in the pools.
+
+    Cameras are independent until the HMM (§6): each process observes its
+    share (``observe_part``), the HMM joins them here
+    (:func:`~estimator.pipeline.decode_walk`), each process votes its cameras'
+    viewpoints again at the decoded phases (``refine_part``), and the HMM
+    decodes again; the estimate is :func:`~estimator.pipeline.estimate_walk`'s.
+    ``key`` names the window (unique while it is in flight); a camera's process
+    is fixed by its place among ``tracks`` (sorted names) and ``key``'s rig.
+    The bundle is None unless ``bundle_from`` is given. ValueError: nothing
+    estimable.
+    """
     t0 = time.perf_counter()
-    est = estimate_walk(tracks, model, cache=_match_cache)
+    names = list(tracks)
+    if not names or all(s is None for t in tracks.values() for s in t.silhouettes):
+        raise ValueError("no silhouettes in the window")
+    shares = camera_shares(names, key.split("/")[0], len(pools))
+    observing = {k: pools.submit_to(k, observe_part, key, {n: tracks[n] for n in share},
+                                    clouds=bundle_from is not None)
+                 for k, share in shares.items()}
+    light: dict[str, CameraObservation] = {}
+    clouds: dict[str, np.ndarray] = {}
+    for future in observing.values():
+        part, drawn = future.result(timeout=timeout_s)
+        light.update(part)
+        clouds.update(drawn or {})
+
+    def refine(states: np.ndarray, sides: dict[str, bool]) -> dict[str, PhaseRefinement]:
+        futures = [pools.submit_to(k, refine_part, key, states, sides) for k in shares]
+        return {n: r for f in futures for n, r in f.result(timeout=timeout_s).items()}
+
+    est = decode_walk({n: light[n] for n in names}, refine=refine)
     result = json_safe(est.to_result(first_index=indices[0]))
     for frame, index in zip(result["frames"], indices):
         frame["index"] = int(index)
     seconds = time.perf_counter() - t0
     bundle = None
     if bundle_from is not None:  # registration for display is done later (register_stage)
-        bundle = make_bundle(tracks, est, model, indices, image_size, from_frame=bundle_from,
-                             register=False)
-    return result, bundle, seconds, est if keep_estimate else None
+        bundle = make_bundle(est.tracks, est, None, indices, image_size, from_frame=bundle_from,
+                             register=False, clouds=clouds)
+    return result, bundle, seconds, est
 
 
 def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices: list[int],

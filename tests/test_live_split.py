@@ -1,0 +1,109 @@
+"""A live window's cameras split over worker processes (service.worker.estimate_window):
+the same estimate as in one process, each camera kept in its process, a dead worker
+costing one window at most. Real worker processes (spawned, holding the model)."""
+
+import json
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from estimator.appearance import load_model
+from estimator.damage import damage_sequence
+from estimator.mocap import read_motion
+from estimator.pipeline import estimate_walk, tracks_from_sequence
+from estimator.sequence import Sequence
+from estimator.skeleton import BodyShape
+from estimator.synth import SynthSpec, synthesize
+from estimator.windows import window_tracks
+from service.worker import camera_shares, estimate_window, json_safe, make_pinned_pools, match_cache_hits
+
+
+@pytest.fixture(scope="module")
+def pools(small_model_path):
+    p = make_pinned_pools(2, small_model_path)
+    yield p
+    p.terminate()
+
+
+def _same(a: dict, b: dict) -> None:
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def test_a_window_split_over_two_processes_is_the_one_process_estimate(pools, small_model, mocap_dir):
+    """The hardest window of tests/test_pipeline.py: a shadow cut at the feet puts two of three
+    cameras' motion cues on the wrong side, and the other cameras' phase settles them: that
+    step and the phase-given re-vote cross the processes; the estimate is the same."""
+    shape = BodyShape(height=1.88, leg_length=1.09, arm_length=0.90, trunk_length=1.07, shoulder_width=0.95,
+                      hip_width=1.02, girth=1.12)
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=23003, shape=shape, image_size=(320, 240)),
+                     motion=read_motion(os.path.join(mocap_dir, "07_05.amc")))
+    sils = damage_sequence(seq.silhouettes, "shadow", seed=23003, truth=seq.truth)
+    tracks = tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size, sils, seq.truth))
+    indices = list(range(100, 130))
+    sizes = {c: seq.image_size for c in tracks}
+
+    alone = estimate_walk(tracks, small_model)
+    expected = json_safe(alone.to_result(first_index=100))
+    for frame, index in zip(expected["frames"], indices):
+        frame["index"] = index
+    result, bundle, seconds, est = estimate_window(pools, "rig/1", tracks, indices, sizes, bundle_from=0)
+
+    assert len(set().union(*camera_shares(list(tracks), "rig", 2).values())) == 3
+    assert sum("settled by the other cameras" in n for c in result["cameras"].values() for n in c["notes"]) == 2
+    _same(result, expected)
+    np.testing.assert_array_equal(est.states, alone.states)
+    assert all(est.tracks[c].cut.sum() == alone.tracks[c].cut.sum() > 0 for c in tracks)  # the cleaned tracks
+    assert sorted(bundle.clouds) == sorted(tracks) and all(len(v) for v in bundle.clouds.values())
+    assert seconds > 0
+
+
+def test_each_camera_stays_in_its_process_so_overlapping_windows_are_matched_once(pools, small_model):
+    """Live windows overlap by half: the second window's shared frames are in the match cache of
+    the process that saw them, because each camera goes to the same process."""
+    seq = synthesize(SynthSpec(n_cameras=4, n_frames=30, seed=5, image_size=(320, 240)))
+    full = tracks_from_sequence(seq)
+    sizes = {c: seq.image_size for c in full}
+    shares = camera_shares(sorted(full), "walk", 2)
+    assert sorted(len(s) for s in shares.values()) == [2, 2]  # dealt evenly
+    assert camera_shares(sorted(full), "walk", 2) == shares  # and the same every window
+
+    def hits() -> int:
+        return sum(pools.submit_to(k, match_cache_hits).result(timeout=30) for k in range(len(pools)))
+
+    before = hits()
+    estimate_window(pools, "walk/1", window_tracks(full, 0, 20), list(range(20)), sizes)
+    within = hits() - before  # the shadow test's scores, found again by the match
+    second, *_ = estimate_window(pools, "walk/2", window_tracks(full, 10, 30), list(range(10, 30)), sizes)
+    assert hits() - before - within >= within + 4 * 10  # and every camera's frames 10-19, in its own process
+    alone = estimate_walk(window_tracks(full, 10, 30), small_model)
+    assert [f["phase"] for f in second["frames"]] == pytest.approx(alone.phase.tolist())
+
+
+def test_a_dead_worker_costs_a_window_at_most(pools, small_model):
+    """A worker process killed (out of memory, a crash): the window it held may fail, the next
+    one is estimated on a fresh process, and the other process's state is untouched."""
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=20, seed=9, image_size=(320, 240)))
+    tracks = tracks_from_sequence(seq)
+    sizes = {c: seq.image_size for c in tracks}
+    victim = pools.pools[1].pids[0]
+    os.kill(victim, signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:  # the pool notices the death
+        try:
+            os.kill(victim, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    outcomes = []
+    for seq_no in range(1, 4):
+        try:
+            outcomes.append(estimate_window(pools, f"dead/{seq_no}", tracks, list(range(20)), sizes)[0])
+        except Exception as exc:  # noqa: BLE001 - the window that hit the dead worker
+            outcomes.append(exc)
+    assert not isinstance(outcomes[-1], Exception) and sum(isinstance(o, Exception) for o in outcomes) <= 1
+    assert victim not in pools.pids and len(pools.pids) == 2
+    expected = json_safe(estimate_walk(tracks, small_model).to_result())
+    assert [f["phase"] for f in outcomes[-1]["frames"]] == [f["phase"] for f in expected["frames"]]
