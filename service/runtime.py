@@ -95,17 +95,18 @@ class Runtime:
         session = replicas = None
         try:
             model_path = await asyncio.to_thread(resolve_model_path, settings)
-            # Feedback priors render in a process of their own, so that they never
-            # hold up the next window's estimate, at a lower priority (nice 5): where the
-            # cores are short (16 cameras x 30 fps need ~6 cores of priors, docs/SCALING.md)
-            # the viewpoints go first and the priors, newest window first, take what is left.
-            # The live rig's postures run lower still (nice 10): they may lag, the viewpoints may not.
+            # Feedback priors and the live rig's postures run in processes of their own, so that
+            # they never hold up the next window's estimate, at the lowest priority (nice 19):
+            # where the cores are short (16 cameras x 30 fps need ~6 cores of priors,
+            # docs/SCALING.md) the viewpoints go first and the priors and the rig, newest window
+            # first, take what is left. (At nice 5 and 10 they took a quarter of the estimate's
+            # cores there: p95 664 -> 453 ms; 2 agents x 15 fps get their priors in time as often.)
             pools = await asyncio.gather(
                 asyncio.to_thread(make_pool, settings.job_workers, model_path) if settings.job_workers else _none(),
                 asyncio.to_thread(make_pinned_pools, settings.live_workers, model_path) if settings.live else _none(),
-                asyncio.to_thread(make_pool, 1, None, renderer=True, nice=5)  # rendering needs no model
+                asyncio.to_thread(make_pool, 1, None, renderer=True, nice=_BACKGROUND)  # rendering needs no model
                 if settings.live and settings.feedback else _none(),
-                asyncio.to_thread(make_pool, 1, None, nice=10) if settings.live and settings.live_rig else _none())
+                asyncio.to_thread(make_pool, 1, None, nice=_BACKGROUND) if settings.live and settings.live_rig else _none())
             job_pool, live_pool, feedback_pool, rig_pool = pools
             # Join the other replicas once the pools are up (the others hand this replica its
             # rigs as soon as it is seen) and before touching jobs: a replica whose id is taken
@@ -161,6 +162,9 @@ class Runtime:
         if self.rerun is not None:
             await asyncio.to_thread(self.rerun.close)
         self.store.close()
+
+
+_BACKGROUND = 19  # nice of the priors' and the live rig's processes
 
 
 async def _none() -> None:
