@@ -1,9 +1,13 @@
 """Where a live window's estimate spends its time: stages of ``estimate_walk`` per window.
 
-usage: python bench/profile_window.py [--cameras 16] [--frames 20] [--windows 10]
+usage: python bench/profile_window.py [--cameras 16] [--frames 20] [--windows 10] [--live]
 
 One process pinned to one core (BLAS and OpenCV one thread), the default model,
-synthetic walks seen from ``--cameras`` viewpoints around the walker. Prints the
+synthetic walks seen from ``--cameras`` viewpoints around the walker. Each
+window is a walk of its own; with ``--live``, windows are cut from one walk as
+the live service cuts them (``--frames`` every ``--frames / 2``) and estimated
+with a match cache, as a live worker estimates its cameras' windows (the
+frames shared with the window before are in the cache). Prints the
 CPU time per window and, from a cProfile run of the same windows, the
 cumulative share of each stage (a stage's time includes what it calls, so
 registration is also inside the shadow search's scoring; the profiler's own
@@ -24,8 +28,10 @@ single_threaded()
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from estimator.matchcache import MatchCache  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
+from estimator.windows import window_tracks  # noqa: E402
 
 # (label, module path suffix, function name): the stages in the order they run.
 STAGES = [
@@ -49,6 +55,7 @@ def main() -> None:
     ap.add_argument("--cameras", type=int, default=16)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--windows", type=int, default=10)
+    ap.add_argument("--live", action="store_true", help="overlapping windows of one walk, with a match cache")
     args = ap.parse_args()
     from service.cli.model import get_default_model
 
@@ -56,26 +63,36 @@ def main() -> None:
     model = get_default_model(progress=True)
     az = list(np.linspace(0, 360, args.cameras, endpoint=False) + 45.0)
     el = [10.0 + 5 * (k % 3) for k in range(args.cameras)]
-    seqs = [synthesize(SynthSpec(n_cameras=args.cameras, n_frames=args.frames, seed=s, azimuths=az, elevations=el))
-            for s in range(3)]
+    if args.live:
+        hop = args.frames // 2
+        walk = tracks_from_sequence(synthesize(SynthSpec(n_cameras=args.cameras, n_frames=args.frames + hop * (
+            2 * args.windows + 1), seed=1, azimuths=az, elevations=el)))
+        windows = [window_tracks(walk, k * hop, k * hop + args.frames) for k in range(2 * args.windows + 1)]
+        cache = MatchCache(max_entries=1280)  # as service.worker's
+        warm, timed, profiled = windows[0], windows[1:args.windows + 1], windows[args.windows + 1:]
+    else:
+        seqs = [synthesize(SynthSpec(n_cameras=args.cameras, n_frames=args.frames, seed=s, azimuths=az, elevations=el))
+                for s in range(3)]
+        cache = None
+        warm = tracks_from_sequence(seqs[0])
+        timed = profiled = [tracks_from_sequence(seqs[w % len(seqs)]) for w in range(args.windows)]
     pin()
-    estimate_walk(tracks_from_sequence(seqs[0]), model)  # warm-up
+    estimate_walk(warm, model, cache=cache)  # warm-up
     cpu = []
-    for w in range(args.windows):
-        tracks = tracks_from_sequence(seqs[w % len(seqs)])
+    for tracks in timed:
         t0 = time.process_time()
-        estimate_walk(tracks, model)
+        estimate_walk(tracks, model, cache=cache)
         cpu.append(time.process_time() - t0)
     cpu_ms = 1000 * np.array(cpu)
-    print(f"estimate_walk, {args.cameras} cameras x {args.frames} frames, {args.windows} windows, one core: "
+    print(f"estimate_walk, {args.cameras} cameras x {args.frames} frames, {args.windows} windows"
+          f"{' cut as live (a match cache)' if args.live else ''}, one core: "
           f"CPU per window median {np.median(cpu_ms):.0f} ms, min {cpu_ms.min():.0f} ms "
           f"({np.median(cpu_ms) / (args.cameras * args.frames):.2f} ms per frame and camera)")
 
-    tracks = [tracks_from_sequence(seqs[w % len(seqs)]) for w in range(args.windows)]
     prof = cProfile.Profile()
     prof.enable()
-    for t in tracks:
-        estimate_walk(t, model)
+    for t in profiled:
+        estimate_walk(t, model, cache=cache)
     prof.disable()
     stats = pstats.Stats(prof).stats  # (file, line, name) -> (cc, nc, tt, ct, callers)
     total = sum(v[3] for k, v in stats.items() if k[2] == "estimate_walk")

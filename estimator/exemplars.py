@@ -73,6 +73,19 @@ class ExemplarIndex:
         object.__setattr__(self, "_az", az)
         object.__setattr__(self, "_el", el)
 
+    def cells_at(self, azimuth_deg: float, elevation_deg: float, *, n_azimuths: int = 3, n_elevations: int = 2
+                 ) -> list[tuple[int, int]]:
+        """The grid viewpoints nearest a viewpoint, as ``(azimuth, elevation)`` grid indices."""
+        d_az = np.abs(azimuth_difference_deg(self._az, azimuth_deg))
+        ai = np.argsort(d_az, kind="stable")[:n_azimuths]
+        ei = np.argsort(np.abs(self._el - elevation_deg), kind="stable")[:n_elevations]
+        return [(int(a), int(e)) for a in ai for e in ei]
+
+    def rows_in_cell(self, cell: tuple[int, int]) -> np.ndarray:
+        """Rows of every phase at one grid viewpoint (:meth:`cells_at`), all styles: (n_phases, n_styles),
+        -1 where the grid has no example."""
+        return self._table[:, cell[0], cell[1]]
+
     def rows_at(self, azimuth_deg: float, elevation_deg: float, *, n_azimuths: int = 3, n_elevations: int = 2) -> np.ndarray:
         """Rows of every phase at the grid viewpoints nearest a viewpoint, all styles.
 
@@ -80,7 +93,5 @@ class ExemplarIndex:
 
         Entries are -1 where the grid has no example (e.g. a partial grid).
         """
-        d_az = np.abs(azimuth_difference_deg(self._az, azimuth_deg))
-        ai = np.argsort(d_az, kind="stable")[:n_azimuths]
-        ei = np.argsort(np.abs(self._el - elevation_deg), kind="stable")[:n_elevations]
-        return self._table[:, ai][:, :, ei].reshape(self.n_phases, -1)
+        cells = self.cells_at(azimuth_deg, elevation_deg, n_azimuths=n_azimuths, n_elevations=n_elevations)
+        return np.concatenate([self.rows_in_cell(c) for c in cells], axis=1)

@@ -3,10 +3,12 @@
 Live windows overlap (20 frames every 10: each frame is estimated twice), and
 within a window the clean-up's shadow test scores the same uncut silhouettes
 that are then matched. What depends on a silhouette alone — its registration
-(Izo–Grimson §5), its eq. 8 distance to every cluster mean and its walker
-score (:func:`estimator.pipeline.walker_score`) — is kept here, keyed by the
-silhouette's pixels, so that the window-level steps (viewpoint vote, phase
-evidence, HMM) are all that a frame costs the second time.
+(Izo–Grimson §5) and its eq. 8 distance to every cluster mean — is kept here,
+keyed by the silhouette's pixels, and so is what depends on the silhouette and
+a few window-level choices (:meth:`MatchCache.derived`, under a tag naming
+them: the members of its nearest clusters, the examples at its decoded phase),
+so that the viewpoint votes, the phase evidence at the window's viewpoint and
+the HMM are most of what a frame costs the second time.
 
 A :class:`MatchCache` is an explicit argument, never a global: the results
 are the same with or without one (``tests/test_pipeline.py``), up to the
@@ -20,15 +22,16 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Hashable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from .appearance import AppearanceModel
 from .registration import distance
 
-__all__ = ["MatchCache", "Matched", "match"]
+__all__ = ["MatchCache", "Matched", "derived", "match"]
 
 
 @dataclass
@@ -43,8 +46,6 @@ class Matched:
         Registered (not empty).
     means_distance : ndarray of shape (N, K), float32
         Eq. 8 distance to each cluster mean (inf where not ``valid``).
-    score : ndarray of shape (N,)
-        Walker score where the cache already holds it, else NaN.
     keys : list of bytes or None
         The silhouettes' cache keys (None without a cache).
     """
@@ -52,7 +53,6 @@ class Matched:
     registered: np.ndarray
     valid: np.ndarray
     means_distance: np.ndarray
-    score: np.ndarray
     keys: list[bytes] | None = None
 
 
@@ -61,7 +61,7 @@ class _Entry:
     bits: np.ndarray  # the registered silhouette, packed
     valid: bool
     means_distance: np.ndarray
-    score: float = np.nan
+    derived: dict[Hashable, Any] = field(default_factory=dict)  # MatchCache.derived, by tag
 
 
 class MatchCache:
@@ -71,7 +71,8 @@ class MatchCache:
     ----------
     max_entries : int
         Silhouettes kept (about 800 bytes each on the default 64 x 48 canvas
-        with 100 clusters).
+        with 100 clusters, and ~10 kB of derived results per phase or view
+        it was compared at).
     """
 
     def __init__(self, max_entries: int = 4096) -> None:
@@ -112,12 +113,31 @@ class MatchCache:
         while len(self._entries) > self.max_entries:
             self._entries.popitem(last=False)
 
-    def remember_scores(self, keys: Sequence[bytes], scores: np.ndarray) -> None:
-        """Keep walker scores of silhouettes :func:`match` has seen (still held)."""
-        for k, v in zip(keys, scores):
-            entry = self._entries.get(k)
-            if entry is not None:
-                entry.score = float(v)
+    def derived(self, keys: Sequence[bytes], tag: Hashable | Sequence[Hashable],
+                compute: Callable[[np.ndarray], Sequence[Any]]) -> list[Any]:
+        """Per silhouette (``keys``), what ``compute`` gives for it under ``tag`` (one for all, or a
+        list of one per silhouette): anything that depends on the silhouette alone once the tag's
+        choices are made. ``compute`` is called once, with the positions in ``keys`` of the
+        silhouettes not holding it yet, and returns one value each; a silhouette no longer held
+        is computed and not kept."""
+        tags = tag if isinstance(tag, list) else [tag] * len(keys)
+        entries = [self._entries.get(k) for k in keys]
+        out = [None if e is None else e.derived.get(t) for e, t in zip(entries, tags)]
+        todo = np.array([i for i, v in enumerate(out) if v is None], int)
+        if todo.size:
+            for i, v in zip(todo, compute(todo)):
+                out[i] = v
+                if entries[i] is not None:
+                    entries[i].derived[tags[i]] = v
+        return out
+
+
+def derived(cache: MatchCache | None, keys: Sequence[bytes] | None, n: int, tag: Hashable | list[Hashable],
+            compute: Callable[[np.ndarray], Sequence[Any]]) -> list[Any]:
+    """:meth:`MatchCache.derived` for ``n`` silhouettes, or ``compute`` on all of them without a cache."""
+    if cache is None or keys is None:
+        return list(compute(np.arange(n)))
+    return cache.derived(keys, tag, compute)
 
 
 def _match_fresh(model: AppearanceModel, silhouettes: Sequence[np.ndarray]) -> Matched:
@@ -125,7 +145,7 @@ def _match_fresh(model: AppearanceModel, silhouettes: Sequence[np.ndarray]) -> M
     dist = np.full((len(registered), model.n_clusters), np.inf, np.float32)
     if tf.valid.any():
         dist[tf.valid] = distance(registered[tf.valid], model.means)
-    return Matched(registered, tf.valid.copy(), dist, np.full(len(registered), np.nan))
+    return Matched(registered, tf.valid.copy(), dist)
 
 
 def match(model: AppearanceModel, silhouettes: Sequence[np.ndarray], cache: MatchCache | None = None) -> Matched:
@@ -144,4 +164,4 @@ def match(model: AppearanceModel, silhouettes: Sequence[np.ndarray], cache: Matc
     h, w = model.params.size
     registered = np.unpackbits(np.stack([e.bits for e in entries]), axis=1, count=h * w)
     return Matched(registered.reshape(len(entries), h, w).astype(np.float32), np.array([e.valid for e in entries]),
-                   np.stack([e.means_distance for e in entries]), np.array([e.score for e in entries], float), keys)
+                   np.stack([e.means_distance for e in entries]), keys)

@@ -40,7 +40,7 @@ from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
 from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
-from .matchcache import MatchCache, match
+from .matchcache import MatchCache, derived, match
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, head_points, motion_cue
@@ -476,12 +476,19 @@ def _member_rows(model: AppearanceModel, clusters: np.ndarray) -> np.ndarray:
 
 
 def _member_distances(model: AppearanceModel, index: ExemplarIndex, bits: np.ndarray, dist: np.ndarray,
-                      top_clusters: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                      top_clusters: int, cache: MatchCache | None = None, keys: list[bytes] | None = None
+                      ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per input: the rows of the members of its ``top_clusters`` nearest cluster means
-    (``dist`` to the means) and the eq. 8 distance of the input to each of them."""
+    (``dist`` to the means) and the eq. 8 distance of the input to each of them (kept in ``cache``
+    under the inputs' ``keys``)."""
     top = np.argsort(dist, axis=1)[:, :top_clusters]
-    rows = [_member_rows(model, top[t]) for t in range(len(bits))]
-    return rows, [_hamming(bits[t : t + 1], index.bits[r])[0] for t, r in enumerate(rows)]
+
+    def compute(todo: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        rows = [_member_rows(model, top[t]) for t in todo]
+        return [(r, _hamming(bits[t : t + 1], index.bits[r])[0]) for t, r in zip(todo, rows)]
+
+    pairs = derived(cache, keys, len(bits), ("members", top_clusters), compute)
+    return [p[0] for p in pairs], [p[1] for p in pairs]
 
 
 def _cloud_paper(model: AppearanceModel, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -544,9 +551,10 @@ def _cloud(index: ExemplarIndex, frame_rows: list[np.ndarray], distances: list[n
 
 
 def _cloud_exemplars(model: AppearanceModel, index: ExemplarIndex, bits: np.ndarray, dist: np.ndarray,
-                     config: EstimateConfig) -> _Cloud:
+                     config: EstimateConfig, cache: MatchCache | None = None, keys: list[bytes] | None = None
+                     ) -> _Cloud:
     """Members of each frame's best clusters weighted by their own distance to the input."""
-    return _cloud(index, *_member_distances(model, index, bits, dist, config.top_clusters), config)
+    return _cloud(index, *_member_distances(model, index, bits, dist, config.top_clusters, cache, keys), config)
 
 
 def _rows_by_phase(index: ExemplarIndex) -> list[np.ndarray]:
@@ -556,41 +564,55 @@ def _rows_by_phase(index: ExemplarIndex) -> list[np.ndarray]:
 
 
 def _cloud_at_phases(index: ExemplarIndex, by_phase: list[np.ndarray], registered: np.ndarray, states: np.ndarray,
-                     config: EstimateConfig) -> _Cloud:
+                     config: EstimateConfig, cache: MatchCache | None = None, keys: list[bytes] | None = None
+                     ) -> _Cloud:
     """Each frame's examples at its decoded phase, from every viewpoint, weighted by their distance.
 
     The §5 registration puts the centroid of a silhouette at the canvas
     centre; a hole or a missing forearm moves the centroid, so the distance
     to an example is the least over shifts of the input by up to
-    ``config.phase_shift_px`` canvas pixels along either axis.
+    ``config.phase_shift_px`` canvas pixels along either axis
+    (:func:`_distances_at_phases`). A frame's distances at a phase are kept in
+    ``cache`` under its key (the next window decodes it at the same phase).
+    """
+    r = config.phase_shift_px
+    reach = _CLOUD_REACH * config.tau_view
+    tags = [("phase", int(k), r, reach) for k in states]
+    dists = derived(cache, keys, len(registered), tags,
+                    lambda todo: _distances_at_phases(index, by_phase, registered[todo], states[todo], r, reach))
+    return _cloud(index, [by_phase[int(k)] for k in states], dists, config)
+
+
+def _distances_at_phases(index: ExemplarIndex, by_phase: list[np.ndarray], registered: np.ndarray,
+                         states: np.ndarray, r: int, reach: float) -> list[np.ndarray]:
+    """Distance of each registered input to each example at its phase (``by_phase[state]``), the
+    least over shifts of the input by up to ``r`` canvas pixels along either axis: per input an
+    int32 row.
 
     The shifts are tried only where they can matter (exact, by the triangle
     inequality): an example whose unshifted distance ``d0`` exceeds the
-    frame's least ``d0`` plus the cloud's reach plus ``H(shifted, unshifted)``
-    cannot come within the reach by that shift. Examples left out of the
-    cloud keep their unshifted distance.
+    input's least ``d0`` plus ``reach`` plus ``H(shifted, unshifted)``
+    cannot come within the reach by that shift. Examples out of reach keep
+    their unshifted distance.
     """
-    r = config.phase_shift_px
     shifts = [(0, 0)] + [(d, 0) for d in range(-r, r + 1) if d] + [(0, d) for d in range(-r, r + 1) if d]
     S = len(shifts)
-    reach = _CLOUD_REACH * config.tau_view
-    rows, dists = [None] * len(registered), [None] * len(registered)
-    for k in np.unique(states):  # the frames at one phase share their examples
+    moved = pack(np.stack([np.roll(registered, sh, axis=(1, 2)) for sh in shifts], axis=1)
+                 .reshape(len(registered) * S, *registered.shape[1:])).reshape(len(registered), S, -1)
+    moved_by = _hamming_pairs(moved[:, 1:], moved[:, :1])  # (inputs, S - 1): H(shifted, unshifted)
+    out: list[np.ndarray] = [None] * len(registered)
+    for k in np.unique(states):  # the inputs at one phase share their examples
         frames = np.flatnonzero(states == k)
-        moved = pack(np.stack([np.roll(registered[frames], sh, axis=(1, 2)) for sh in shifts], axis=1)
-                     .reshape(len(frames) * S, *registered.shape[1:])).reshape(len(frames), S, -1)
-        moved_by = _hamming_pairs(moved[:, 1:], moved[:, :1])  # (frames, S - 1): H(shifted, unshifted)
-        rr = by_phase[int(k)]
-        bank = index.bits[rr]
-        d0 = _hamming(moved[:, 0], bank)  # (frames, examples)
+        bank = index.bits[by_phase[int(k)]]
+        d0 = _hamming(moved[frames, 0], bank)  # (frames, examples)
         d, bound = d0.copy(), d0.min(axis=1, keepdims=True) + reach
         for s in range(1, S):
-            f, e = np.nonzero(d0 - moved_by[:, s - 1, None] <= bound)
+            f, e = np.nonzero(d0 - moved_by[frames, s - 1, None] <= bound)
             if f.size:
-                d[f, e] = np.minimum(d[f, e], _hamming_pairs(moved[f, s], bank[e]))
+                d[f, e] = np.minimum(d[f, e], _hamming_pairs(moved[frames[f], s], bank[e]))
         for i, t in enumerate(frames):
-            rows[t], dists[t] = rr, d[i]
-    return _cloud(index, rows, dists, config)
+            out[t] = d[i].astype(np.int32)
+    return out
 
 
 def _fold_distance(az: np.ndarray, centre: float) -> np.ndarray:
@@ -639,13 +661,24 @@ def _vote(cloud: _Cloud, n_frames: int, cue: MotionCue | None, config: EstimateC
     return vp, weight
 
 
-def _phase_distances(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint) -> np.ndarray:
-    """Distance of each input to the nearest example of each phase at the viewpoint: (T, n_phases)."""
-    rows = index.rows_at(vp.azimuth_deg, vp.elevation_deg)
-    valid = rows >= 0
-    d = _hamming(bits, index.bits[np.maximum(rows, 0).ravel()]).reshape(len(bits), *rows.shape).astype(float)
-    d[:, ~valid] = np.inf
-    return d.min(axis=2)
+def _phase_distances(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint, cache: MatchCache | None = None,
+                     keys: list[bytes] | None = None) -> np.ndarray:
+    """Distance of each input to the nearest example of each phase at the viewpoint: (T, n_phases).
+
+    Taken per grid viewpoint near ``vp`` (the least over them), each kept in
+    ``cache`` under the input's key: the re-vote and the next window look at
+    most of the same grid viewpoints.
+    """
+    best = np.full((len(bits), index.n_phases), np.inf)
+    for cell in index.cells_at(vp.azimuth_deg, vp.elevation_deg):
+        rows = index.rows_in_cell(cell)
+
+        def compute(todo: np.ndarray, rows: np.ndarray = rows) -> np.ndarray:
+            d = _hamming(bits[todo], index.bits[np.maximum(rows, 0).ravel()]).reshape(len(todo), *rows.shape)
+            return np.where(rows >= 0, d, np.inf).min(axis=2)
+
+        best = np.minimum(best, np.stack(derived(cache, keys, len(bits), ("cell", *cell), compute)))
+    return best
 
 
 def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_clusters: int = 3,
@@ -659,14 +692,12 @@ def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_c
     silhouette is registered and scored once (:mod:`estimator.matchcache`).
     """
     m = match(model, silhouettes, cache)
-    out = np.where(m.valid, m.score if top_clusters == 3 else np.nan, np.inf)  # the cache keeps top-3 scores
-    todo = m.valid & np.isnan(out)
-    if todo.any():
-        _, dists = _member_distances(model, model.exemplars(), pack(m.registered[todo]), m.means_distance[todo],
-                                     top_clusters)
-        out[todo] = [d.min() for d in dists]
-        if cache is not None and top_clusters == 3:  # the score the cache keeps
-            cache.remember_scores([k for k, t in zip(m.keys, todo) if t], out[todo])
+    out = np.full(len(silhouettes), np.inf)
+    valid = np.flatnonzero(m.valid)
+    if valid.size:
+        _, dists = _member_distances(model, model.exemplars(), pack(m.registered[valid]), m.means_distance[valid],
+                                     top_clusters, cache, None if m.keys is None else [m.keys[i] for i in valid])
+        out[valid] = [d.min() for d in dists]
     return out
 
 
@@ -725,6 +756,7 @@ class CameraObservation:
     mirror: tuple[Viewpoint, np.ndarray, np.ndarray] | None = None  # the other side's (viewpoint, evidence, obs)
     registered: np.ndarray | None = None
     bits: np.ndarray | None = None
+    keys: list[bytes] | None = None  # the present frames' silhouettes in the match cache
 
     def light(self) -> CameraObservation:
         """The observation without the registered silhouettes (to send to the joint decoding)."""
@@ -783,9 +815,11 @@ def observe_cameras(
                 "cropped silhouettes: no position in the full frame, so no motion cue (ahead/behind decided by "
                 "the majority of matches), and joints2d are in each crop's own pixels"
             )
+        keys = None
         if present.size:
             m = match(model, [track.silhouettes[k] for k in present], cache)
             present, registered, d = present[m.valid], m.registered[m.valid], m.means_distance[m.valid]
+            keys = None if m.keys is None else [k for k, v in zip(m.keys, m.valid) if v]
         if present.size == 0:
             cam_notes.append("no silhouette in this window")
             vp = Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)
@@ -808,14 +842,15 @@ def observe_cameras(
             out[name] = CameraObservation(cam, track, dist, present)
             continue
         bits = pack(registered)
-        vp, _ = _vote(_cloud_exemplars(model, exemplars, bits, d, config), len(bits), cue, config)
-        evidence = _phase_evidence(exemplars, bits, vp, obs, present, config)
+        vp, _ = _vote(_cloud_exemplars(model, exemplars, bits, d, config, cache, keys), len(bits), cue, config)
+        evidence = _phase_evidence(exemplars, bits, vp, obs, present, config, cache, keys)
         cam = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes, reports.get(name))
         mirror = None
         if _settles(config, cam):  # its other side, for the other cameras' phase to weigh
             mirror_vp, mirror_obs = _mirrored(vp), np.full(T, np.nan)
-            mirror = (mirror_vp, _phase_evidence(exemplars, bits, mirror_vp, mirror_obs, present, config), mirror_obs)
-        out[name] = CameraObservation(cam, track, dist, present, evidence, mirror, registered, bits)
+            mirror = (mirror_vp, _phase_evidence(exemplars, bits, mirror_vp, mirror_obs, present, config, cache, keys),
+                      mirror_obs)
+        out[name] = CameraObservation(cam, track, dist, present, evidence, mirror, registered, bits, keys)
     return out
 
 
@@ -826,6 +861,7 @@ def refine_cameras(
     *,
     config: EstimateConfig | None = None,
     sides: dict[str, bool] | None = None,
+    cache: MatchCache | None = None,
 ) -> dict[str, PhaseRefinement]:
     """Each observed camera's viewpoint voted again from the examples at the decoded phases.
 
@@ -835,7 +871,8 @@ def refine_cameras(
     viewpoint, so a frame that looks like another phase seen from elsewhere
     (a cut limb, a hole) no longer votes for elsewhere. ``sides`` holds the
     cameras whose ahead/behind the other cameras settled. Per camera, like
-    :func:`observe_cameras`; observations without ``registered`` are skipped.
+    :func:`observe_cameras` (with the same ``cache``); observations without
+    ``registered`` are skipped.
     """
     config = config or EstimateConfig()
     index = model.exemplars()
@@ -845,10 +882,10 @@ def refine_cameras(
         if o.registered is None or o.present.size == 0:
             continue
         c = o.estimate
-        vp, weight = _vote(_cloud_at_phases(index, by_phase, o.registered, states[o.present], config),
+        vp, weight = _vote(_cloud_at_phases(index, by_phase, o.registered, states[o.present], config, cache, o.keys),
                            len(o.present), c.cue, config, ahead=(sides or {}).get(name))
         obs = np.full(len(states), np.nan)
-        ev = _phase_evidence(index, o.bits, vp, obs, o.present, config)
+        ev = _phase_evidence(index, o.bits, vp, obs, o.present, config, cache, o.keys)
         out[name] = PhaseRefinement(vp, obs, ev, int(np.sum(weight < 0.5)))
     return out
 
@@ -891,7 +928,7 @@ def estimate_walk(
     observations = observe_cameras(tracks, model, config=config, cache=cache)
     return decode_walk(observations, config=config, gait=gait, model=model,
                        refine=lambda states, sides: refine_cameras(observations, states, model, config=config,
-                                                                   sides=sides))
+                                                                   sides=sides, cache=cache))
 
 
 def decode_walk(
@@ -986,10 +1023,11 @@ def decode_walk(
 
 
 def _phase_evidence(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint, obs: np.ndarray, present: np.ndarray,
-                    config: EstimateConfig) -> np.ndarray:
+                    config: EstimateConfig, cache: MatchCache | None = None, keys: list[bytes] | None = None
+                    ) -> np.ndarray:
     """Phase log-emission cost of one camera's frames at its viewpoint, (frames, n_phases);
     the nearest phase is written into ``obs``."""
-    pd = _phase_distances(index, bits, vp)
+    pd = _phase_distances(index, bits, vp, cache, keys)
     obs[present] = np.argmin(pd, axis=1) / index.n_phases
     return (pd - pd.min(axis=1, keepdims=True)) / config.tau_phase
 

@@ -464,7 +464,7 @@ def refine_part(key: str, states: np.ndarray, sides: dict[str, bool]) -> dict[st
     observed = _observed.pop(key, None)
     if observed is None:
         raise RuntimeError(f"window {key}: its observed cameras are gone (the worker was restarted)")
-    return refine_cameras(observed, states, _get_model(), sides=sides)
+    return refine_cameras(observed, states, _get_model(), sides=sides, cache=_match_cache)
 
 
 def camera_shares(names: list[str], rig: str, n: int) -> dict[int, list[str]]:

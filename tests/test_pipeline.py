@@ -307,8 +307,34 @@ def test_a_match_cache_changes_nothing_but_the_work(small_model):
         for cam in seq.cameras:
             assert cached.cameras[cam].viewpoint.azimuth_deg == plain.cameras[cam].viewpoint.azimuth_deg
             np.testing.assert_array_equal(cached.cameras[cam].labels, plain.cameras[cam].labels)
+        assert json.dumps(cached.to_result(), default=str) == json.dumps(plain.to_result(), default=str)
         if k:  # frames 10-19 were matched in the first window
             assert cache.hits - hits >= 2 * 10
+    # what depends on a silhouette and a window's choices is kept too: its nearest clusters' members,
+    # the examples at its decoded phase, at the grid viewpoints near its camera's
+    tags = {t[0] for e in cache._entries.values() for t in e.derived}
+    assert tags == {"members", "phase", "cell"}
     small = MatchCache(max_entries=5)
     estimate_walk(window_tracks(full, 0, 20), small_model, cache=small)
     assert len(small) == 5
+
+
+def test_derived_results_are_computed_once_per_silhouette_and_tag(small_model):
+    """MatchCache.derived: compute runs on the silhouettes missing the tag only; a silhouette the
+    cache does not hold is computed every time and not kept; tags may differ per silhouette."""
+    from estimator.matchcache import MatchCache, derived, match
+
+    cache = MatchCache()
+    sils = [np.pad(np.ones((40 + 5 * k, 15), np.uint8), 2) for k in range(3)]
+    keys = match(small_model, sils[:2], cache).keys + [MatchCache.key(sils[2])]  # the third is not held
+    calls = []
+
+    def compute(todo):
+        calls.append(todo.tolist())
+        return [10 * int(i) for i in todo]
+
+    assert cache.derived(keys, "a", compute) == [0, 10, 20]
+    assert cache.derived(keys, "a", compute) == [0, 10, 20]
+    assert calls == [[0, 1, 2], [2]]  # the unheld third silhouette again, the held two not
+    assert cache.derived(keys, ["a", "b", "a"], compute) == [0, 10, 20] and calls[-1] == [1, 2]
+    assert derived(None, None, 2, "a", compute) == [0, 10] and calls[-1] == [0, 1]  # no cache: all
