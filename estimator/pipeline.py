@@ -166,11 +166,38 @@ class CameraTrack:
             if self.cut.shape != (len(self.silhouettes),):
                 raise ValueError(f"cut must have shape ({len(self.silhouettes)},), got {self.cut.shape}")
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled with 0/255 silhouettes packed to bits: tracks travel between the service's
+        processes every live window (8x fewer bytes, less CPU to send and receive)."""
+        state = dict(self.__dict__)
+        state["silhouettes"] = [_pack_mask(m) for m in self.silhouettes]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        state["silhouettes"] = [_unpack_mask(m) for m in state["silhouettes"]]
+        self.__dict__.update(state)
+
     def take(self, frames) -> CameraTrack:
         """The track on ``frames`` (indices, or a slice) only."""
         idx = np.arange(len(self.silhouettes))[frames]
         return CameraTrack([self.silhouettes[k] for k in idx], self.boxes[idx], self.full_frame, self.image_size,
                            None if self.cut is None else self.cut[idx])
+
+
+def _pack_mask(mask: np.ndarray | None):
+    """A uint8 0/255 mask as ``(shape, bits)``; anything else as it is."""
+    if mask is None or mask.dtype != np.uint8 or mask.ndim != 2:
+        return mask
+    if np.count_nonzero(mask) != np.count_nonzero(mask == 255):
+        return mask
+    return mask.shape, np.packbits(mask)
+
+
+def _unpack_mask(packed):
+    if not isinstance(packed, tuple):
+        return packed
+    shape, bits = packed
+    return np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape) * np.uint8(255)
 
 
 def crop_to_box(silhouette: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
