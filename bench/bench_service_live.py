@@ -158,7 +158,7 @@ def _rig_errors(cal: dict, cams: list[str], truth: list[tuple[float, float]]) ->
     true = rotations_from_viewpoints([truth[ref]] + truth)[1:]
     out = {}
     for k, cam in enumerate(cams):
-        r = rig["cameras"][cam]["rotation"]
+        r = rig["cameras"].get(cam, {}).get("rotation")  # a camera the rig left out: None
         if cam != rig["reference"]:
             out[cam] = None if r is None else round(float(geodesic_deg(np.array(r), true[k])), 2)
     return out
