@@ -31,7 +31,7 @@ from estimator.sequence import read_sequence
 
 from .limits import UploadLimits
 
-__all__ = ["VIDEO_EXTENSIONS", "StagedInput", "UploadError", "list_videos", "stage_upload"]
+__all__ = ["VIDEO_EXTENSIONS", "StagedInput", "UploadError", "list_videos", "stage_keypoints", "stage_upload"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v")
 _MAX_ZIP_MEMBERS = 200_000
@@ -95,6 +95,37 @@ def stage_upload(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: Uploa
         return _stage_videos(files, job_dir, limits)
     raise UploadError(415, f"expected one .zip sequence folder or videos ({', '.join(VIDEO_EXTENSIONS)}), "
                            f"got {names}")
+
+
+def stage_keypoints(fh: BinaryIO, job_dir: Path, limits: UploadLimits, staged: StagedInput) -> Path:
+    """Unpack and check a zip of a detector's keypoints for the staged recording; the folder to read.
+
+    The zip holds what :func:`service.keypoints_io.read_keypoints` reads
+    (OpenPose ``<camera>_json`` folders, also under ``pose/``; or one MMPose or
+    MediaPipe JSON file per camera), at its top or in its single top folder;
+    frame numbers are the recording's frame indices, and at least two cameras
+    must match the recording's by name. :class:`UploadError` (422) says what
+    does not fit.
+    """
+    from .keypoints_io import KeypointError, keypoints_on, read_keypoints
+
+    try:
+        zf = zipfile.ZipFile(fh)
+    except _ZIP_ERRORS as exc:
+        raise UploadError(400, f"keypoints: not a readable zip file: {exc}") from None
+    out = job_dir / "keypoints"
+    with zf:
+        members = zf.infolist()
+        _check_members(members, out, limits)
+        _extract(zf, members, out, limits)
+    tops = [p for p in out.iterdir() if p.name != "__MACOSX"]
+    root = tops[0] if len(tops) == 1 and tops[0].is_dir() and not tops[0].name.endswith("_json") else out
+    try:
+        keypoints_on(read_keypoints([root]), staged.cameras, staged.n_frames)
+    except KeypointError as exc:
+        raise UploadError(422, "keypoints: " + str(exc).replace(str(out) + os.sep, "").replace(str(out), ".")
+                          ) from None
+    return root
 
 
 # ------------------------------------------------------------------------------ zip

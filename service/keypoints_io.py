@@ -221,6 +221,30 @@ def match_cameras(available: Iterable[str], wanted: Sequence[str]) -> dict[str, 
     return out
 
 
+def keypoints_on(kp: Keypoints, cameras: Sequence[str], n_frames: int) -> dict[str, np.ndarray]:
+    """Per recording camera, its keypoints' 13 joints on the recording's ``n_frames`` frames
+    (n_frames, 13, 2), NaN where missed: cameras matched by name (:func:`match_cameras`), a
+    keypoint frame number being the recording's frame index (keypoints beyond it are left out).
+
+    Raises
+    ------
+    KeypointError
+        No keypoint frame within the recording, or fewer than two cameras matched.
+    """
+    frames = np.array(kp.frames)
+    inside = (frames >= 0) & (frames < n_frames)
+    if not inside.any():
+        raise KeypointError(f"frames {frames.min()}-{frames.max()}, the recording has 0-{n_frames - 1}")
+    out = {}
+    for name, source in match_cameras(kp.cameras, list(cameras)).items():
+        joints = np.full((n_frames, *kp.tracks.shape[2:]), np.nan)
+        joints[frames[inside]] = kp.tracks[kp.cameras.index(source)][inside]
+        out[name] = joints
+    if len(out) < 2:
+        raise KeypointError(f"cameras {kp.cameras} match fewer than two of the recording's ({', '.join(cameras)})")
+    return out
+
+
 def video_sizes(root: Path, cameras: Sequence[str]) -> dict[str, tuple[tuple[int, int], Path]] | None:
     """Each camera's image size (width, height) and video, read from the videos next to its keypoints, or
     None unless every camera has exactly one.

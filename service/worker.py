@@ -46,12 +46,13 @@ from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraObservation, CameraTrack, PhaseRefinement, WalkEstimate, crop_to_box,
                                 decode_walk, observe_cameras, pad_tracks, refine_cameras,
-                                tracks_from_sequence)
+                                track_length, tracks_from_sequence)
 from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
 from .intake import UploadError, list_videos, stage_upload
+from .keypoints_io import keypoints_on, read_keypoints
 from .jobs import JobGone, JobStore
 
 __all__ = [
@@ -617,7 +618,13 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         t0 = time.perf_counter()
         posture = MNBPConfig() if options.get("posture", "mnbp") == "mnbp" else None
         rig = RigConfig(height_m=float(options.get("height_m", 1.75)))
+        keypoints = None
+        if options.get("keypoints_dir"):  # a detector's keypoints calibrate the rig (checked when staged)
+            keypoints = keypoints_on(read_keypoints([Path(options["keypoints_dir"])]), list(tracks),
+                                     track_length(tracks))
+            posture, rig = None, RigConfig.for_keypoints(height_m=rig.height_m)
         walk = segment_walk(tracks, model, **options.get("windows", {}), posture=posture, rig=rig,
+                            keypoints=keypoints,
                             progress=lambda f: store.report(job_id, 0.5 + 0.4 * f, "estimating"))
         store.report(job_id, 0.9, "writing result")
         result = json_safe(walk.to_result())

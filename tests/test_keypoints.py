@@ -40,6 +40,20 @@ def _layout(name: str, joints: np.ndarray, conf: float = 0.9) -> np.ndarray:
     return out
 
 
+def write_openpose(root, cameras, joints) -> None:
+    """OpenPose BODY_25 folders ``root/<camera>_json`` of one file per frame, numbered from 0, from
+    ``joints`` (cameras, frames, 13, 2): a NaN joint is missed (0, 0, 0 as OpenPose writes it)."""
+    for cam, per_frame in zip(cameras, joints):
+        folder = Path(root) / f"{cam}_json"
+        folder.mkdir(parents=True)
+        body = _layout("BODY_25", np.nan_to_num(per_frame, nan=-1.0))
+        for t, people in enumerate(body):
+            people = people.copy()
+            people[(people[:, :2] < 0).any(-1)] = 0.0
+            (folder / f"{cam}_{t:012d}_keypoints.json").write_text(
+                json.dumps({"people": [{"pose_keypoints_2d": people.ravel().round(2).tolist()}]}))
+
+
 def _look_at(centre, target):
     f = np.asarray(target, float) - centre
     f /= np.linalg.norm(f)

@@ -431,20 +431,11 @@ def test_posecal_estimate_takes_a_detectors_keypoints(walk, small_model_path, tm
     frame, frames numbered as the recording's) give the result's rig; bad keypoints exit 2."""
     from estimator.sequence import write_sequence
     from service.cli import main
-    from test_keypoints import _layout
+    from test_keypoints import write_openpose
 
     seq, _, _ = walk
     write_sequence(tmp_path / "walk", seq)
-    kp = _detector_keypoints(seq, np.random.default_rng(1))
-    for c, name in enumerate(seq.cameras):
-        folder = tmp_path / "pose" / f"{name}_json"
-        folder.mkdir(parents=True)
-        body = _layout("BODY_25", np.nan_to_num(kp[c], nan=-1.0))  # a missed joint at (-1, -1)
-        for t in range(seq.n_frames):
-            people = body[t].copy()
-            people[(people[:, :2] < 0).any(-1)] = 0.0  # missed joints: 0, 0, 0 as OpenPose writes them
-            (folder / f"{name}_{t:012d}_keypoints.json").write_text(
-                json.dumps({"people": [{"pose_keypoints_2d": people.ravel().round(2).tolist()}]}))
+    write_openpose(tmp_path / "pose", seq.cameras, _detector_keypoints(seq, np.random.default_rng(1)))
     out = tmp_path / "r.json"
     assert main(["estimate", str(tmp_path / "walk"), "--model", small_model_path, "--keypoints", str(tmp_path / "pose"),
                  "--height", "1.8", "--out", str(out)]) == 0

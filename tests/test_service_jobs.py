@@ -284,3 +284,51 @@ def _alive(pid: int) -> bool:
             return fh.read().split(")")[-1].split()[0] != "Z"  # a zombie is dead too
     except FileNotFoundError:
         return False
+
+
+def test_a_job_calibrates_the_rig_from_uploaded_keypoints(tmp_path):
+    """``keypoints=`` beside the recording: a zip of OpenPose folders (a detector's errors on the renders'
+    joints) calibrates the job's rig in place of the mNBP postures, within 2 deg of the truth; keypoints
+    that do not fit the recording are refused with the reason, and the next job goes on."""
+    import numpy as np
+
+    from estimator._selfcal_core import geodesic_deg
+    from estimator.damage import detector_keypoints
+    from estimator.rig import rotations_from_viewpoints
+    from test_keypoints import write_openpose
+
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=8, azimuths=(40.0, 110.0, 300.0),
+                               elevations=(5.0, 15.0, 10.0), image_size=(320, 240)))
+    write_sequence(tmp_path / "walk", seq)
+    joints = np.array([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras])
+    write_openpose(tmp_path / "pose", seq.cameras, detector_keypoints(joints, np.random.default_rng(2)))
+    write_openpose(tmp_path / "other" / "pose", ["a", "b", "c"], joints)  # cameras of another rig
+
+    def submit(srv, keypoints: Path | None, **form):
+        files = {"files": ("walk.zip", sequence_zip(tmp_path / "walk"), "application/zip")}
+        if keypoints is not None:
+            files["keypoints"] = ("pose.zip", _zip_of(keypoints), "application/zip")
+        return srv.client.post("/v1/jobs", files=files, data=form)
+
+    with ServerThread(make_settings(tmp_path / "srv")) as srv:
+        r = submit(srv, tmp_path / "pose", height_m="1.8")
+        assert r.status_code == 202, r.text
+        bad = submit(srv, tmp_path / "other")
+        assert bad.status_code == 422 and "keypoints" in bad.json()["detail"] and "match fewer than two" in \
+            bad.json()["detail"], bad.text
+        assert str(srv.settings.data_dir) not in bad.json()["detail"]  # no server paths in the reason
+        junk = srv.client.post("/v1/jobs", files={"files": ("walk.zip", sequence_zip(tmp_path / "walk")),
+                                                  "keypoints": ("pose.zip", b"not a zip")})
+        assert junk.status_code == 400 and "keypoints" in junk.json()["detail"]
+        done = _done(srv, r.json()["id"], timeout=60)
+        assert done["state"] == "done", done
+        result = srv.client.get(f"/v1/jobs/{done['id']}/result").json()
+        assert any("detector's keypoints" in n for n in result["notes"]), result["notes"]
+        rig = result["rig"]
+        assert rig["source"] == "self-calibration" and result["body"]["stature_m"] == 1.8
+        truth = rotations_from_viewpoints([(seq.truth["cameras"][c]["azimuth_deg"],
+                                            seq.truth["cameras"][c]["elevation_deg"]) for c in seq.cameras])
+        errors = [geodesic_deg(np.array(rig["cameras"][c]["rotation"]), truth[k])
+                  for k, c in enumerate(seq.cameras) if k]
+        assert max(errors) < 2.0, errors
+        assert srv.client.get("/v1/jobs").json()["counts"]["done"] == 1  # the refused uploads left no job

@@ -159,25 +159,14 @@ def _read_keypoints(path: str):
 
 
 def _keypoints_on(kp, tracks: dict) -> dict[str, np.ndarray]:
-    """Per recording camera, its keypoints' 13 joints on the recording's frames (n_frames, 13, 2), NaN where
-    missed: cameras matched by name (:func:`service.keypoints_io.match_cameras`), a keypoint frame number
-    being the recording's frame index. CliError when no camera or no frame matches."""
-    from service.keypoints_io import match_cameras
+    """Per recording camera, its keypoints on the recording's frames
+    (:func:`service.keypoints_io.keypoints_on`); CliError when no camera or no frame matches."""
+    from service.keypoints_io import KeypointError, keypoints_on
 
-    n = max(len(t.silhouettes) for t in tracks.values())
-    frames = np.array(kp.frames)
-    inside = (frames >= 0) & (frames < n)
-    if not inside.any():
-        raise CliError(f"--keypoints: frames {frames.min()}-{frames.max()}, the recording has 0-{n - 1}")
-    out = {}
-    for name, source in match_cameras(kp.cameras, list(tracks)).items():
-        joints = np.full((n, *kp.tracks.shape[2:]), np.nan)
-        joints[frames[inside]] = kp.tracks[kp.cameras.index(source)][inside]
-        out[name] = joints
-    if len(out) < 2:
-        raise CliError(f"--keypoints: cameras {kp.cameras} match fewer than two of the recording's "
-                       f"({', '.join(tracks)})")
-    return out
+    try:
+        return keypoints_on(kp, list(tracks), max(len(t.silhouettes) for t in tracks.values()))
+    except KeypointError as exc:
+        raise CliError(f"--keypoints: {exc}") from None
 
 
 def _export(result: dict, exports: dict[str, tuple[Path, str]]) -> None:

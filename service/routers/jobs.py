@@ -15,6 +15,7 @@ from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep, bearer_scheme
 from ..exports import export_result
 from ..jobs import ACTIVE, STATES
 from ..schemas import JobList, JobOut, Result, error_responses, job_out
+from ..intake import stage_keypoints
 from ..worker import UploadError, stage_upload
 from ._export import export_content, export_response
 
@@ -55,12 +56,23 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
                    description="videos: 'auto' finds each video's time offset from the walk and pairs "
                    "frames by time (cameras not started together, different frame rates; the offsets in "
                    "the result's sync block, docs/SYNC.md); 'off' pairs frames by index")] = "auto",
+               keypoints: Annotated[UploadFile | None, File(
+                   description="a zip of a pose detector's 2D keypoints of the same recording (OpenPose / "
+                   "Pose2Sim <camera>_json folders, or one MMPose or MediaPipe JSON per camera; frame "
+                   "numbers = the recording's frames): they calibrate the rig in place of the postures "
+                   "measured on the silhouettes (docs/POSTURE.md); videos need sync=off")] = None,
                ) -> JobOut:
     """Validate and stage the upload, queue the job; 4xx with the reason if the upload is bad."""
     job_id = uuid.uuid4().hex
     job_dir = settings.data_dir / job_id
     try:
         staged = stage_upload([(f.filename or "", f.file) for f in files], job_dir, settings.upload_limits())
+        keypoints_dir = None
+        if keypoints is not None:
+            if staged.kind == "videos" and sync != "off":
+                raise UploadError(422, "keypoints with videos need sync=off: the keypoints' frame numbers are "
+                                       "each video's own, which sync=auto re-times")
+            keypoints_dir = stage_keypoints(keypoints.file, job_dir, settings.upload_limits(), staged)
     except UploadError as exc:
         shutil.rmtree(job_dir, ignore_errors=True)
         metrics.uploads_rejected.labels(str(exc.status)).inc()
@@ -77,6 +89,8 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
         options["warmup"] = warmup
     if refine:
         options.update(refine=True, refined_dir=str(job_dir))
+    if keypoints_dir is not None:
+        options["keypoints_dir"] = str(keypoints_dir)
     try:
         row = store.create(kind=staged.kind, input_dir=str(staged.path), options=options, job_id=job_id)
     except OperationalError as exc:  # the job store's disk is full (or the database is unreachable)
