@@ -749,6 +749,9 @@ class LiveService:
             publisher = rig.publisher
             if publisher is None:
                 publisher = rig.publisher = self.session.declare_publisher(estimate_key(w.rig))
+            cal = rig.calibration
+            person = None if cal is None or not cal.get("person") else {
+                **cal["person"], "window_seq": cal["window_seq"], "lag_windows": max(0, w.seq - cal["window_seq"])}
         for cam, note in _crowd_notes(w.frames).items():
             if cam in result["cameras"]:
                 result["cameras"][cam].setdefault("notes", []).append(note)
@@ -765,6 +768,8 @@ class LiveService:
             "latency_ms": {"estimate": round(seconds * 1e3, 2), "last_frame_to_result": round(latency * 1e3, 2)},
             "published_ns": done_ns,
         })
+        if person is not None:  # the live rig's newest posture of the person, with how far it lags
+            result["person"] = person
         # The attachment names the replica that estimated it (the result itself stays as documented).
         publisher.put(json.dumps(result, separators=(",", ":")), attachment=self.settings.replica_id)
         self.metrics.window_latency.observe(latency)

@@ -330,6 +330,22 @@ class LiveWindow(_Open):
         "(cameras that are in every frame are left out)"))
 
 
+class LivePerson(BaseModel):
+    """The person's posture at the newest frame of a live rig's calibration."""
+
+    frame_index: int = Field(description="the frame it belongs to (the rig lags the viewpoints by lag_windows)")
+    joints3d: list[list[float]] = Field(
+        description="13 joints (DESIGN order) x (x, y, z): person frame (x walking direction, y left, z up), "
+                    "metres at the rig's stature, centred on the joints' centroid")
+
+
+class LiveWindowPerson(LivePerson):
+    """The person's posture as a live window carries it: the live rig's newest, which lags."""
+
+    lag_windows: int = Field(description="windows between the calibration it comes from and this window")
+    window_seq: int = Field(description="the window after which the rig was calibrated")
+
+
 class LiveEstimate(_ResultBase):
     """A live window's result (docs/FORMATS.md, Live windows)."""
 
@@ -338,15 +354,10 @@ class LiveEstimate(_ResultBase):
     smoothed: dict[str, dict[str, Any]]
     latency_ms: dict[str, float]
     published_ns: int
-
-
-class LivePerson(BaseModel):
-    """The person's posture at the newest frame of a live rig's calibration."""
-
-    frame_index: int = Field(description="the frame it belongs to (the rig lags the viewpoints by lag_windows)")
-    joints3d: list[list[float]] = Field(
-        description="13 joints (DESIGN order) x (x, y, z): person frame (x walking direction, y left, z up), "
-                    "metres at the rig's stature, centred on the joints' centroid")
+    person: LiveWindowPerson | None = Field(
+        None, description="the person's posture from the live rig (GET /v1/rigs/{rig}/calibration), at its "
+                          "newest frame with all 13 joints, lagging this window by lag_windows; absent while the "
+                          "live rig is off or has no self-calibration")
 
 
 class LiveCalibration(BaseModel):

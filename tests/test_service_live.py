@@ -22,6 +22,7 @@ from capture.wire import Box, SilhouetteMessage, estimate_key
 from capture.zconfig import build_config
 from conftest_service import ServerThread, make_settings, wait_for
 from estimator.windows import ViewpointTrack
+from service.schemas import LiveEstimate
 from service.live import FrameAssembler, WindowBuffer
 
 # ----------------------------------------------------------------------------- units
@@ -318,7 +319,16 @@ def test_the_live_rig_is_calibrated_from_a_few_postures_per_window(tmp_path, ren
         cal = wait_for(lambda: (r := srv.client.get(f"/v1/rigs/{RIG}/calibration")).status_code == 200
                        and (c := r.json())["frames"] >= 8 and c,
                        timeout=90, what="a calibration on 8 frames")
+        # Each window estimated after it carries the person's posture from the live rig, and how far it lags
+        # (the cameras stream the walk again: the agents restart, their frames are realigned onto the rig).
+        _run_agents(settings.zenoh_listen[0], rendered)
+        carried = wait_for(lambda: (e := srv.client.get(f"/v1/rigs/{RIG}/estimate").json()).get("person") and e,
+                           timeout=30, what="a window carrying the person's posture")
         metrics = srv.client.get("/metrics").text
+    person = carried["person"]
+    assert person["lag_windows"] == carried["window"]["seq"] - person["window_seq"] >= 0
+    assert person["frame_index"] <= carried["window"]["last_index"] and np.shape(person["joints3d"]) == (13, 3)
+    LiveEstimate.model_validate(carried)  # as documented
     assert cal["rig"] == RIG and cal["frames"] >= 8 and 0 <= cal["lag_windows"] <= rig["windows"]["estimated"]
     assert cal["source"] == "self-calibration", cal["notes"]
     r = np.array(cal["calibration"]["cameras"]["c1"]["rotation"])
