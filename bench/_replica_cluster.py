@@ -216,10 +216,11 @@ class Traffic:
         self.session.close()
 
 
-def shutdown(traffic: "Traffic | None", replicas: dict[str, "Replica"], router: Router) -> None:
-    """Stop the rigs' traffic, every replica and the router (the end of a cluster's run)."""
+def shutdown(traffic: "Traffic | None", replicas: dict[str, "Replica"], *routers: Router) -> None:
+    """Stop the rigs' traffic, every replica and the routers (the end of a cluster's run)."""
     if traffic is not None:
         traffic.close()
     for r in replicas.values():
         r.stop()
-    router.kill(signal.SIGTERM)
+    for router in routers:
+        router.kill(signal.SIGTERM)

@@ -81,14 +81,16 @@ def _listening(endpoint: str) -> bool:
 
 
 class Router:
-    """``posecal router --listen ENDPOINT`` in a process of its own."""
+    """``posecal router --listen ENDPOINT`` in a process of its own (``--connect``: to other routers,
+    a mesh)."""
 
-    def __init__(self, endpoint: str, log: Path) -> None:
-        self.endpoint, self.log, self.proc = endpoint, log, None
+    def __init__(self, endpoint: str, log: Path, connect: tuple[str, ...] = ()) -> None:
+        self.endpoint, self.log, self.connect, self.proc = endpoint, log, connect, None
 
     def start(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "router", "--listen", self.endpoint],
-                                     stdout=open(self.log, "a"), stderr=subprocess.STDOUT)
+        links = [arg for ep in self.connect for arg in ("--connect", ep)]
+        self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "router", "--listen", self.endpoint,
+                                      *links], stdout=open(self.log, "a"), stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 30
         while not _listening(self.endpoint):
             if self.proc.poll() is not None or time.monotonic() > deadline:

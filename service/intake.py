@@ -109,15 +109,8 @@ def stage_keypoints(fh: BinaryIO, job_dir: Path, limits: UploadLimits, staged: S
     """
     from .keypoints_io import KeypointError, keypoints_on, read_keypoints
 
-    try:
-        zf = zipfile.ZipFile(fh)
-    except _ZIP_ERRORS as exc:
-        raise UploadError(400, f"keypoints: not a readable zip file: {exc}") from None
     out = job_dir / "keypoints"
-    with zf:
-        members = zf.infolist()
-        _check_members(members, out, limits)
-        _extract(zf, members, out, limits)
+    _unzip(fh, out, limits, "keypoints: not a readable zip file")
     tops = [p for p in out.iterdir() if p.name != "__MACOSX"]
     root = tops[0] if len(tops) == 1 and tops[0].is_dir() and not tops[0].name.endswith("_json") else out
     try:
@@ -138,16 +131,22 @@ def _frame_number(stem: str) -> int | None:
     return int(stem) if len(stem) <= 18 else 10 ** 18  # int() of a 5,000-digit name is refused
 
 
-def _stage_zip(fh: BinaryIO, job_dir: Path, limits: UploadLimits) -> StagedInput:
+def _unzip(fh: BinaryIO, out: Path, limits: UploadLimits, unreadable: str) -> None:
+    """Check a zip's directory (:func:`_check_members`), then extract it into ``out`` counting what is
+    written; 400 with ``unreadable`` when it is not a zip."""
     try:
         zf = zipfile.ZipFile(fh)
     except _ZIP_ERRORS as exc:
-        raise UploadError(400, f"the upload is not a readable zip file: {exc}") from None
-    out = job_dir / "input"
+        raise UploadError(400, f"{unreadable}: {exc}") from None
     with zf:
         members = zf.infolist()
         _check_members(members, out, limits)
         _extract(zf, members, out, limits)
+
+
+def _stage_zip(fh: BinaryIO, job_dir: Path, limits: UploadLimits) -> StagedInput:
+    out = job_dir / "input"
+    _unzip(fh, out, limits, "the upload is not a readable zip file")
     folder = _find_sequence_root(out)
     _check_sequence_headers(folder, limits)
     try:

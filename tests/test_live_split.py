@@ -10,15 +10,11 @@ import time
 import numpy as np
 import pytest
 
-from estimator.appearance import load_model
-from estimator.damage import damage_sequence
-from estimator.mocap import read_motion
 from estimator.pipeline import estimate_walk, tracks_from_sequence
-from estimator.sequence import Sequence
-from estimator.skeleton import BodyShape
 from estimator.synth import SynthSpec, synthesize
 from estimator.windows import window_tracks
 from service.worker import camera_shares, estimate_window, json_safe, make_pinned_pools, match_cache_hits
+from test_pipeline import contested_shadow_walk
 
 
 @pytest.fixture(scope="module")
@@ -36,12 +32,7 @@ def test_a_window_split_over_two_processes_is_the_one_process_estimate(pools, sm
     """The hardest window of tests/test_pipeline.py: a shadow cut at the feet puts two of three
     cameras' motion cues on the wrong side, and the other cameras' phase settles them: that
     step and the phase-given re-vote cross the processes; the estimate is the same."""
-    shape = BodyShape(height=1.88, leg_length=1.09, arm_length=0.90, trunk_length=1.07, shoulder_width=0.95,
-                      hip_width=1.02, girth=1.12)
-    seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=23003, shape=shape, image_size=(320, 240)),
-                     motion=read_motion(os.path.join(mocap_dir, "07_05.amc")))
-    sils = damage_sequence(seq.silhouettes, "shadow", seed=23003, truth=seq.truth)
-    tracks = tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size, sils, seq.truth))
+    seq, tracks = contested_shadow_walk(mocap_dir)
     indices = list(range(100, 130))
     sizes = {c: seq.image_size for c in tracks}
 

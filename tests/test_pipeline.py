@@ -217,13 +217,9 @@ def test_a_shadow_cut_off_the_feet_leaves_the_motion_cue_to_the_head(small_model
             assert c.cue.signs()[0] == np.sign(cos)
 
 
-def test_cameras_whose_motion_cue_is_contested_take_the_side_the_other_cameras_phase_agrees_with(
-        small_model, mocap_dir):
-    """A shadow cut at the feet of a walker who speeds up (CMU 07_05): height and head
-    disagree on whether the walker approaches, the head wins and puts two of three
-    cameras on the wrong side of the ahead/behind fold (azimuth 180 - a, 75 and 150
-    deg off). Those cameras then see the phase half a cycle off the third's; taking
-    the sides whose phases agree puts all three within 10 deg."""
+def contested_shadow_walk(mocap_dir: str):
+    """A shadow cut at the feet of a walker who speeds up (CMU 07_05), 3 cameras x 30 frames:
+    ``(sequence, tracks)``; two cameras' motion cues point the wrong way."""
     from estimator.damage import damage_sequence
     from estimator.mocap import read_motion
     from estimator.sequence import Sequence
@@ -234,7 +230,17 @@ def test_cameras_whose_motion_cue_is_contested_take_the_side_the_other_cameras_p
     seq = synthesize(SynthSpec(n_cameras=3, n_frames=30, seed=23003, shape=shape, image_size=(320, 240)),
                      motion=read_motion(os.path.join(mocap_dir, "07_05.amc")))
     sils = damage_sequence(seq.silhouettes, "shadow", seed=23003, truth=seq.truth)
-    tracks = tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size, sils, seq.truth))
+    return seq, tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size, sils, seq.truth))
+
+
+def test_cameras_whose_motion_cue_is_contested_take_the_side_the_other_cameras_phase_agrees_with(
+        small_model, mocap_dir):
+    """A shadow cut at the feet of a walker who speeds up (CMU 07_05): height and head
+    disagree on whether the walker approaches, the head wins and puts two of three
+    cameras on the wrong side of the ahead/behind fold (azimuth 180 - a, 75 and 150
+    deg off). Those cameras then see the phase half a cycle off the third's; taking
+    the sides whose phases agree puts all three within 10 deg."""
+    seq, tracks = contested_shadow_walk(mocap_dir)
     true_az = {c: seq.truth["cameras"][c]["azimuth_deg"] for c in seq.cameras}
     alone = estimate_walk(tracks, small_model, config=EstimateConfig(settle_ahead_behind=False))
     wrong = [c for c in seq.cameras if az_error(alone.cameras[c].viewpoint.azimuth_deg, true_az[c]) > 60]

@@ -213,3 +213,41 @@ def test_each_rig_has_one_replica_and_moves_within_5_s_when_it_dies(tmp_path):
         assert _metric(b, "posecal_rigs_handed_over_total") == 2
     finally:
         shutdown(traffic, reps, router)
+
+
+def test_rigs_move_across_a_mesh_of_two_routers(tmp_path):
+    """A site of two ``posecal router`` joined as a mesh: replica a on the first, b on the second, the
+    cameras on the first. Liveliness and estimates cross the routers: each rig is estimated by its
+    owner only, and when a is killed its rigs resume on b, behind the other router, within 5 s."""
+    rigs = _even_rigs(["a", "b"], 2)
+    owner = {r: rendezvous_owner(r, ["a", "b"]) for r in rigs}
+    of_a = [r for r in rigs if owner[r] == "a"]
+    first, second = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    routers = [Router(first, tmp_path / "router-1.log"), Router(second, tmp_path / "router-2.log", (first,))]
+    for router in routers:
+        router.start()
+    reps = {n: Replica(n, tmp_path, ep, model=str(small_model_path()), window=WINDOW, hop=HOP)
+            for n, ep in (("a", first), ("b", second))}
+    traffic = None
+    try:
+        for r in reps.values():
+            r.start()
+        for r in reps.values():
+            r.wait_ready()
+        a, b = reps["a"], reps["b"]
+        wait_for(lambda: len(b.get("/v1/replicas").json()["replicas"]) == 2, timeout=30,
+                 what="b to see a through the routers")
+        t_start = time.monotonic()
+        traffic = Traffic(first, rigs, fps=FPS)
+        wait_for(lambda: all(Counter(e.rig for e in traffic.since(t_start))[r] >= 3 for r in rigs), timeout=60,
+                 what="3 windows of every rig")
+        assert traffic.estimated_by(t_start) == {r: {owner[r]} for r in rigs}  # b's estimates cross back
+        t_kill = a.send(signal.SIGKILL)
+        a.stop(signal.SIGKILL)
+        failover = traffic.failover(of_a, "a", t_kill, timeout=30)
+        print("\nfailover across the routers (kill -> first window on b): "
+              + ", ".join(f"{rig} {s:.2f} s" for rig, s in sorted(failover.items())))
+        assert max(failover.values()) <= FAILOVER_BOUND_S + SLACK_S, failover
+        assert b.rigs() == rigs
+    finally:
+        shutdown(traffic, reps, *routers)
