@@ -822,6 +822,8 @@ def observe_cameras(
     """
     config = config or EstimateConfig()
     exemplars = model.exemplars() if config.method == "exemplars" else None
+    if exemplars is not None and exemplars.n_phases != config.hmm.n_states:
+        raise ValueError(f"exemplars have {exemplars.n_phases} phases, the HMM {config.hmm.n_states}")
     reports: dict[str, CleanupReport] = {}
     if config.cleanup is not None:
         tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))

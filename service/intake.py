@@ -114,10 +114,14 @@ def stage_keypoints(fh: BinaryIO, job_dir: Path, limits: UploadLimits, staged: S
     tops = [p for p in out.iterdir() if p.name != "__MACOSX"]
     root = tops[0] if len(tops) == 1 and tops[0].is_dir() and not tops[0].name.endswith("_json") else out
     try:
-        keypoints_on(read_keypoints([root]), staged.cameras, staged.n_frames)
+        kp = read_keypoints([root])
+        # a video whose header gives no frame count (0): the frames are checked when it is decoded
+        keypoints_on(kp, staged.cameras, staged.n_frames or max(kp.frames) + 1)
     except KeypointError as exc:
         raise UploadError(422, "keypoints: " + str(exc).replace(str(out) + os.sep, "").replace(str(out), ".")
                           ) from None
+    except (ValueError, IndexError, TypeError, RecursionError, OverflowError) as exc:  # a file that lies
+        raise UploadError(422, f"keypoints: not understood ({type(exc).__name__})") from None
     return root
 
 

@@ -231,14 +231,14 @@ def keypoints_on(kp: Keypoints, cameras: Sequence[str], n_frames: int) -> dict[s
     KeypointError
         No keypoint frame within the recording, or fewer than two cameras matched.
     """
-    frames = np.array(kp.frames)
-    inside = (frames >= 0) & (frames < n_frames)
+    inside = np.array([0 <= f < n_frames for f in kp.frames], bool)  # Python ints: any size
     if not inside.any():
-        raise KeypointError(f"frames {frames.min()}-{frames.max()}, the recording has 0-{n_frames - 1}")
+        raise KeypointError(f"frames {min(kp.frames)}-{max(kp.frames)}, the recording has 0-{n_frames - 1}")
+    frames = np.array([f for f, i in zip(kp.frames, inside) if i], np.int64)
     out = {}
     for name, source in match_cameras(kp.cameras, list(cameras)).items():
         joints = np.full((n_frames, *kp.tracks.shape[2:]), np.nan)
-        joints[frames[inside]] = kp.tracks[kp.cameras.index(source)][inside]
+        joints[frames] = kp.tracks[kp.cameras.index(source)][inside]
         out[name] = joints
     if len(out) < 2:
         raise KeypointError(f"cameras {kp.cameras} match fewer than two of the recording's ({', '.join(cameras)})")
@@ -302,6 +302,8 @@ def _load_json(path: Path) -> Any:
         return json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise KeypointError(f"cannot read {path}: {exc}") from None
+    except RecursionError:
+        raise KeypointError(f"cannot read {path}: it nests too deeply") from None
 
 
 def _frame_number(path: Path) -> int:

@@ -728,8 +728,9 @@ class LiveService:
             bundle_from = sum(1 for i in w.indices if i <= last)
         feedback = self.feedback_pool is not None
         try:
-            result, bundle, seconds, est = estimate_window(self.pool, f"{w.rig}/{w.seq}", tracks, w.indices, sizes,
-                                                           bundle_from=bundle_from)
+            result, bundle, seconds, est = estimate_window(self.pool, w.rig, tracks, w.indices, sizes,
+                                                           bundle_from=bundle_from,
+                                                           in_flight=self.settings.live_workers)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
             self._count(w.rig, "skipped")

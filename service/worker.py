@@ -442,18 +442,22 @@ def make_pinned_pools(n: int, model_path: Path | None) -> PinnedPools:
 # A live window's cameras as observed by this process, until its refine (estimate_window);
 # a window whose refine never comes (its decoding failed) is pushed out by later ones.
 _observed: collections.OrderedDict[str, dict[str, CameraObservation]] = collections.OrderedDict()
-_MAX_OBSERVED = 8
+_STALE_OBSERVED = 4  # kept beyond the windows in flight
+# Names of the live windows in flight, unique in the service process (a rig forgotten and heard
+# again counts its windows from 1 again).
+_window_ids = itertools.count()
 
 
-def observe_part(key: str, tracks: dict[str, CameraTrack], *, clouds: bool = False
+def observe_part(key: str, tracks: dict[str, CameraTrack], *, clouds: bool = False, in_flight: int = 2
                  ) -> tuple[dict[str, CameraObservation], dict[str, np.ndarray] | None]:
     """A live window's first stage for some of its cameras, in a worker: their light
     observations (:func:`~estimator.pipeline.observe_cameras`), and their viewpoint clouds
-    for Rerun if asked; the registered silhouettes stay here under ``key``."""
+    for Rerun if asked; the registered silhouettes stay here under ``key`` (with those of
+    at most ``in_flight`` other windows, and a few whose refine never came)."""
     model = _get_model()
     observed = observe_cameras(tracks, model, cache=_match_cache)
     _observed[key] = observed
-    while len(_observed) > _MAX_OBSERVED:
+    while len(_observed) > in_flight + _STALE_OBSERVED:
         _observed.popitem(last=False)
     drawn = viewpoint_clouds(model, {n: o.estimate.labels for n, o in observed.items()}) if clouds else None
     return {n: o.light() for n, o in observed.items()}, drawn
@@ -464,7 +468,8 @@ def refine_part(key: str, states: np.ndarray, sides: dict[str, bool]) -> dict[st
     worker (:func:`~estimator.pipeline.refine_cameras`)."""
     observed = _observed.pop(key, None)
     if observed is None:
-        raise RuntimeError(f"window {key}: its observed cameras are gone (the worker was restarted)")
+        raise RuntimeError(f"window {key}: its observed cameras are gone (the worker was restarted, or more "
+                           "windows were in flight than it keeps)")
     return refine_cameras(observed, states, _get_model(), sides=sides, cache=_match_cache)
 
 
@@ -483,9 +488,10 @@ def match_cache_hits() -> int:
     return _match_cache.hits
 
 
-def estimate_window(pools: PinnedPools, key: str, tracks: dict[str, CameraTrack], indices: list[int],
+def estimate_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack], indices: list[int],
                     image_size: dict[str, tuple[int, int]], *, bundle_from: int | None = None,
-                    timeout_s: float = 60.0) -> tuple[dict, StageBundle | None, float, WalkEstimate]:
+                    in_flight: int = 2, timeout_s: float = 60.0
+                    ) -> tuple[dict, StageBundle | None, float, WalkEstimate]:
     """Estimate one live window with its cameras split over ``pools``: ``(result, bundle, seconds,
     estimate)``. Runs in the calling thread, the work in the pools.
 
@@ -494,18 +500,19 @@ def estimate_window(pools: PinnedPools, key: str, tracks: dict[str, CameraTrack]
     (:func:`~estimator.pipeline.decode_walk`), each process votes its cameras'
     viewpoints again at the decoded phases (``refine_part``), and the HMM
     decodes again; the estimate is :func:`~estimator.pipeline.estimate_walk`'s.
-    ``key`` names the window (unique while it is in flight); a camera's process
-    is fixed by its place among ``tracks`` (sorted names) and ``key``'s rig.
-    The bundle is None unless ``bundle_from`` is given. ValueError: nothing
-    estimable.
+    A camera's process is fixed by its place among ``tracks`` (sorted names)
+    and the ``rig``'s name; ``in_flight`` is how many windows the caller may
+    estimate at once. The bundle is None unless ``bundle_from`` is given.
+    ValueError: nothing estimable.
     """
     t0 = time.perf_counter()
     names = list(tracks)
     if not names or all(s is None for t in tracks.values() for s in t.silhouettes):
         raise ValueError("no silhouettes in the window")
-    shares = camera_shares(names, key.split("/")[0], len(pools))
+    key = f"{rig}/{next(_window_ids)}"
+    shares = camera_shares(names, rig, len(pools))
     observing = {k: pools.submit_to(k, observe_part, key, {n: tracks[n] for n in share},
-                                    clouds=bundle_from is not None)
+                                    clouds=bundle_from is not None, in_flight=in_flight)
                  for k, share in shares.items()}
     light: dict[str, CameraObservation] = {}
     clouds: dict[str, np.ndarray] = {}
@@ -525,7 +532,7 @@ def estimate_window(pools: PinnedPools, key: str, tracks: dict[str, CameraTrack]
     seconds = time.perf_counter() - t0
     bundle = None
     if bundle_from is not None:  # registration for display is done later (register_stage)
-        bundle = make_bundle(est.tracks, est, None, indices, image_size, from_frame=bundle_from,
+        bundle = make_bundle(tracks, est, None, indices, image_size, from_frame=bundle_from,
                              register=False, clouds=clouds)
     return result, bundle, seconds, est
 

@@ -40,7 +40,7 @@ def test_a_window_split_over_two_processes_is_the_one_process_estimate(pools, sm
     expected = json_safe(alone.to_result(first_index=100))
     for frame, index in zip(expected["frames"], indices):
         frame["index"] = index
-    result, bundle, seconds, est = estimate_window(pools, "rig/1", tracks, indices, sizes, bundle_from=0)
+    result, bundle, seconds, est = estimate_window(pools, "rig", tracks, indices, sizes, bundle_from=0)
 
     assert len(set().union(*camera_shares(list(tracks), "rig", 2).values())) == 3
     assert sum("settled by the other cameras" in n for c in result["cameras"].values() for n in c["notes"]) == 2
@@ -65,9 +65,9 @@ def test_each_camera_stays_in_its_process_so_overlapping_windows_are_matched_onc
         return sum(pools.submit_to(k, match_cache_hits).result(timeout=30) for k in range(len(pools)))
 
     before = hits()
-    estimate_window(pools, "walk/1", window_tracks(full, 0, 20), list(range(20)), sizes)
+    estimate_window(pools, "walk", window_tracks(full, 0, 20), list(range(20)), sizes)
     within = hits() - before  # the shadow test's scores, found again by the match
-    second, *_ = estimate_window(pools, "walk/2", window_tracks(full, 10, 30), list(range(10, 30)), sizes)
+    second, *_ = estimate_window(pools, "walk", window_tracks(full, 10, 30), list(range(10, 30)), sizes)
     assert hits() - before - within >= within + 4 * 10  # and every camera's frames 10-19, in its own process
     alone = estimate_walk(window_tracks(full, 10, 30), small_model)
     assert [f["phase"] for f in second["frames"]] == pytest.approx(alone.phase.tolist())
@@ -89,9 +89,9 @@ def test_a_dead_worker_costs_a_window_at_most(pools, small_model):
             break
         time.sleep(0.05)
     outcomes = []
-    for seq_no in range(1, 4):
+    for _ in range(3):
         try:
-            outcomes.append(estimate_window(pools, f"dead/{seq_no}", tracks, list(range(20)), sizes)[0])
+            outcomes.append(estimate_window(pools, "dead", tracks, list(range(20)), sizes)[0])
         except Exception as exc:  # noqa: BLE001 - the window that hit the dead worker
             outcomes.append(exc)
     assert not isinstance(outcomes[-1], Exception) and sum(isinstance(o, Exception) for o in outcomes) <= 1

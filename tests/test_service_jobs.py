@@ -320,6 +320,16 @@ def test_a_job_calibrates_the_rig_from_uploaded_keypoints(tmp_path):
         junk = srv.client.post("/v1/jobs", files={"files": ("walk.zip", sequence_zip(tmp_path / "walk")),
                                                   "keypoints": ("pose.zip", b"not a zip")})
         assert junk.status_code == 400 and "keypoints" in junk.json()["detail"]
+        # files that lie: a frame number beyond any integer type (left out: it is not in the recording),
+        # a file nested too deeply (refused with a reason, not a 500)
+        shutil.copytree(tmp_path / "pose", tmp_path / "huge" / "pose")
+        (tmp_path / "huge" / "pose" / "c0_json" / f"c0_{'9' * 20}_keypoints.json").write_text(
+            (tmp_path / "pose" / "c0_json" / "c0_000000000000_keypoints.json").read_text())
+        assert submit(srv, tmp_path / "huge").status_code == 202
+        shutil.copytree(tmp_path / "pose", tmp_path / "deep" / "pose")
+        (tmp_path / "deep" / "pose" / "c1_json" / "c1_000000000003_keypoints.json").write_text("[" * 100_000)
+        deep = submit(srv, tmp_path / "deep")
+        assert deep.status_code == 422 and "keypoints" in deep.json()["detail"], deep.text
         done = _done(srv, r.json()["id"], timeout=60)
         assert done["state"] == "done", done
         result = srv.client.get(f"/v1/jobs/{done['id']}/result").json()
@@ -331,4 +341,7 @@ def test_a_job_calibrates_the_rig_from_uploaded_keypoints(tmp_path):
         errors = [geodesic_deg(np.array(rig["cameras"][c]["rotation"]), truth[k])
                   for k, c in enumerate(seq.cameras) if k]
         assert max(errors) < 2.0, errors
-        assert srv.client.get("/v1/jobs").json()["counts"]["done"] == 1  # the refused uploads left no job
+        assert srv.client.get("/v1/jobs").json()["counts"]["done"] >= 1
+        assert len(srv.client.get("/v1/jobs").json()["jobs"]) == 2  # the refused uploads left no job
+        assert sorted(p.name for p in srv.settings.data_dir.iterdir()) == sorted(
+            j["id"] for j in srv.client.get("/v1/jobs").json()["jobs"])  # nor files
