@@ -28,6 +28,7 @@ import concurrent.futures
 import concurrent.futures.process
 import itertools
 import logging
+import math
 import multiprocessing
 import os
 import shutil
@@ -376,10 +377,12 @@ def json_safe(value: Any) -> Any:
     """The result with NaN/inf (e.g. the viewpoint of a camera without silhouettes) as None:
     strict JSON for REST and Zenoh."""
     if isinstance(value, float):
-        return value if np.isfinite(value) else None
+        return value if math.isfinite(value) else None
     if isinstance(value, dict):
         return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
+        if all(type(v) is float for v in value):  # a row of numbers (joints): the common leaf
+            return list(value) if all(map(math.isfinite, value)) else [v if math.isfinite(v) else None for v in value]
         return [json_safe(v) for v in value]
     if isinstance(value, np.generic):
         return json_safe(value.item())

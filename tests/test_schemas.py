@@ -74,3 +74,21 @@ def test_openapi_publishes_the_schemas_and_the_error_statuses():
     assert {"400", "413", "415", "422"} <= set(spec["paths"]["/v1/jobs"]["post"]["responses"])
     cal = spec["paths"]["/v1/rigs/{rig}/calibration"]["get"]["responses"]
     assert cal["200"]["content"]["application/json"]["schema"]["$ref"].endswith("/LiveCalibration")
+
+
+def test_json_safe_makes_strict_json_of_numbers_rows_and_numpy_scalars():
+    """NaN and inf become null wherever they are (rows of floats take a fast path), tuples become
+    lists, numpy scalars Python numbers; the result is what json.dumps(allow_nan=False) accepts."""
+    import json
+
+    import numpy as np
+
+    from service.worker import json_safe
+
+    value = {"row": [1.0, float("nan"), 2.5], "fine": (2.0, 3.0), "mixed": [np.float32(1.5), np.inf, 3],
+             "nested": [[1.0, -np.inf], [0.5, 0.25]], "scalar": np.float64(np.nan), "text": ["a", 1.0]}
+    safe = json_safe(value)
+    assert safe == {"row": [1.0, None, 2.5], "fine": [2.0, 3.0], "mixed": [1.5, None, 3],
+                    "nested": [[1.0, None], [0.5, 0.25]], "scalar": None, "text": ["a", 1.0]}
+    assert type(safe["fine"]) is list and safe["nested"][1] is not value["nested"][1]  # copies, not aliases
+    json.dumps(safe, allow_nan=False)
