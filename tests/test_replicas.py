@@ -143,6 +143,17 @@ def _metric(replica: Replica, name: str) -> float:
     return float(next(line.split()[-1] for line in lines if line.startswith(name + " ")))
 
 
+def _start_replicas(tmp_path: Path, routers: dict[str, str], reps: dict[str, Replica]) -> list[Replica]:
+    """Start a replica per name on its router endpoint (added to ``reps`` at once, for shutdown);
+    the replicas once every one answers."""
+    for name, ep in routers.items():
+        reps[name] = Replica(name, tmp_path, ep, model=str(small_model_path()), window=WINDOW, hop=HOP)
+        reps[name].start()
+    for name in routers:
+        reps[name].wait_ready()
+    return [reps[name] for name in routers]
+
+
 def test_each_rig_has_one_replica_and_moves_within_5_s_when_it_dies(tmp_path):
     """Two ``posecal serve`` replicas on one ``posecal router``, four rigs of two cameras. Each rig
     is estimated by exactly one replica (the estimates' attachment names it; /v1/rigs lists it
@@ -155,15 +166,10 @@ def test_each_rig_has_one_replica_and_moves_within_5_s_when_it_dies(tmp_path):
     router_ep = f"tcp/127.0.0.1:{free_port()}"
     router = Router(router_ep, tmp_path / "router.log")
     router.start()
-    reps = {n: Replica(n, tmp_path, router_ep, model=str(small_model_path()), window=WINDOW, hop=HOP)
-            for n in ("a", "b")}
+    reps: dict[str, Replica] = {}
     traffic = None
     try:
-        for r in reps.values():
-            r.start()
-        for r in reps.values():
-            r.wait_ready()
-        a, b = reps["a"], reps["b"]
+        a, b = _start_replicas(tmp_path, {"a": router_ep, "b": router_ep}, reps)
         t_start = time.monotonic()
         traffic = Traffic(router_ep, rigs, fps=FPS)
         dup = reps["b again"] = Replica("b", tmp_path / "dup", router_ep, model=str(small_model_path()),
@@ -226,15 +232,10 @@ def test_rigs_move_across_a_mesh_of_two_routers(tmp_path):
     routers = [Router(first, tmp_path / "router-1.log"), Router(second, tmp_path / "router-2.log", (first,))]
     for router in routers:
         router.start()
-    reps = {n: Replica(n, tmp_path, ep, model=str(small_model_path()), window=WINDOW, hop=HOP)
-            for n, ep in (("a", first), ("b", second))}
+    reps: dict[str, Replica] = {}
     traffic = None
     try:
-        for r in reps.values():
-            r.start()
-        for r in reps.values():
-            r.wait_ready()
-        a, b = reps["a"], reps["b"]
+        a, b = _start_replicas(tmp_path, {"a": first, "b": second}, reps)
         wait_for(lambda: len(b.get("/v1/replicas").json()["replicas"]) == 2, timeout=30,
                  what="b to see a through the routers")
         t_start = time.monotonic()
