@@ -68,7 +68,10 @@ def main() -> int:
     ap.add_argument("--cameras", type=int, default=4)
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--loop-frames", type=int, default=60, help="rendered frames, replayed in a loop")
+    ap.add_argument("--loop-frames", type=int, default=300,
+                    help="rendered frames, replayed in a loop (default 300: more than a live worker's match cache "
+                         "holds, so that no frame comes back from it as a real stream's would not; until session "
+                         "20 the default was 60, which the cache held whole)")
     ap.add_argument("--model", help="appearance model (default: the service's default model)")
     ap.add_argument("--rerun", help="the service's Rerun sink, e.g. save:/tmp/bench.rrd (default: off)")
     ap.add_argument("--json", help="write the figures here")
