@@ -29,6 +29,12 @@ def azimuth_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.n
     return (np.asarray(a, dtype=float) - b + 180.0) % 360.0 - 180.0
 
 
+FALL_MIN_ELEVATION_DEG = 5.0
+"""The feet's path settles ahead/behind (:meth:`MotionCue.fall_sign`) only where the viewpoint's cloud is
+at least this far above the walker: a camera below the walker's centroid may be below its feet too (the
+synthetic grid goes down to -20 deg), where the feet's path reads the other way."""
+
+
 @dataclass(frozen=True)
 class MotionCue:
     """How the walker moves in one camera's full frame over a window.
@@ -52,6 +58,10 @@ class MotionCue:
         ``conflict`` errors) and one of them was dropped: the sign of
         ``growth`` is then contested, and :func:`estimator.pipeline.estimate_walk`
         lets the other cameras settle ahead/behind.
+    fall, fall_se : float
+        The foot point's motion down the image per frame, in body heights
+        (> 0: approaching, for a camera above the ground), and its standard
+        error (inf: not measured, e.g. feet cut by the clean-up).
     """
 
     growth: float
@@ -60,6 +70,8 @@ class MotionCue:
     growth_se: float = 0.0
     source: str = "height"
     conflict: bool = False
+    fall: float = 0.0
+    fall_se: float = float("inf")
 
     def signs(self, *, z: float = 3.0, min_travel: float = 0.01) -> tuple[int, int]:
         """(sign of cos azimuth, sign of sin azimuth) the motion implies; 0 = no evidence.
@@ -69,6 +81,19 @@ class MotionCue:
         cos_sign = int(np.sign(self.growth)) if abs(self.growth) > z * self.growth_se else 0
         sin_sign = int(-np.sign(self.travel)) if abs(self.travel) >= min_travel else 0
         return cos_sign, sin_sign
+
+    def fall_sign(self, *, z: float = 3.0) -> int:
+        """The sign of cos azimuth the feet's motion down the image implies (0: no evidence).
+
+        Any camera above the ground sees a receding walker's feet rise towards
+        the horizon: for a level camera at height ``H_c`` the foot point lies
+        ``h H_c / H_p`` pixels below the horizon (``h`` the walker's image
+        height, ``H_p`` its stature), so its fall in heights per frame is
+        ``H_c / H_p`` times ``growth``: on a camera above a walker's head, a
+        larger signal than the size change (vtest.avi: 2-4 times). Only for
+        cameras that look down on the walker (:func:`estimate_viewpoint`).
+        """
+        return int(np.sign(self.fall)) if abs(self.fall) > z * self.fall_se else 0
 
 
 def head_points(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *, depth: float = 0.08) -> np.ndarray:
@@ -178,6 +203,8 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     # Heights are whole pixels: their log is known to 1 / (sqrt(12) h) at best.
     growth, se = _theil_sen(t, np.log(h), floor=1.0 / (np.sqrt(12.0) * np.median(h)))
     travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
+    fall, fall_se = (0.0, float("inf")) if feet_cut else _theil_sen(t, (y + h) / np.median(h),
+                                                                    floor=1.0 / (np.sqrt(12.0) * np.median(h)))
     source, conflict_seen = "height", False
     if heads is not None:
         heads = np.asarray(heads, dtype=float)
@@ -198,7 +225,7 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
                     growth, se, source = (wa * growth + wb * g_head) / (wa + wb), float(np.sqrt(1 / (wa + wb))), \
                         "head+height"
     return MotionCue(growth=growth, travel=travel, n_frames=int(ok.sum()), growth_se=se, source=source,
-                     conflict=conflict_seen)
+                     conflict=conflict_seen, fall=fall, fall_se=fall_se)
 
 
 @dataclass(frozen=True)
@@ -292,6 +319,8 @@ def estimate_viewpoint(
         raise ValueError("weights must be non-negative, one per sample, not all zero")
     w = w / w.sum()
     cos_sign, sin_sign = cue.signs() if cue is not None else (0, 0)
+    if cos_sign == 0 and cue is not None and float(np.sum(w * el)) >= FALL_MIN_ELEVATION_DEG:
+        cos_sign = cue.fall_sign()  # the size hardly changes (a walker crossing the view): the feet's path
     r = np.deg2rad(az)
     in_front = np.cos(r) >= 0
     share_ahead = float(w[in_front].sum())
