@@ -40,9 +40,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from eval_real_video import FPS, load_video  # noqa: E402
+from eval_real_video import load_video  # noqa: E402
+from eval_real_video import segment as segment_clip  # noqa: E402
 
-from capture.segment import Segmenter, SegmentSettings, sample_indices  # noqa: E402
+from capture.segment import SegmentSettings  # noqa: E402
 from estimator.pipeline import CameraTrack, estimate_walk  # noqa: E402
 from estimator.viewpoint import azimuth_difference_deg  # noqa: E402
 
@@ -50,19 +51,10 @@ WINDOW, HOP = 20, 10
 
 
 def segment(video: np.ndarray) -> tuple[list, np.ndarray]:
-    """The tracked walker's crop and full-frame box per frame (None / NaN where none)."""
-    settings = SegmentSettings()
-    seg = Segmenter(settings)
-    seg.bootstrap([video[i] for i in sample_indices(len(video), FPS, settings)])
-    crops, boxes = [], np.full((len(video), 4), np.nan)
-    for k, image in enumerate(video):
-        s = seg.apply(image, k)
-        seg.learn()
-        empty = s is None or s.box.empty
-        crops.append(None if empty else s.mask)
-        if not empty:
-            boxes[k] = [s.box.x, s.box.y, s.box.w, s.box.h]
-    return crops, boxes
+    """The tracked walker's crop and full-frame box per frame (None / NaN where none), default settings."""
+    found, _ = segment_clip(video, SegmentSettings())
+    boxes = np.array([[np.nan] * 4 if s is None else [s.box.x, s.box.y, s.box.w, s.box.h] for s in found], float)
+    return [None if s is None else s.mask for s in found], boxes
 
 
 def passes(boxes: np.ndarray, min_frames: int = WINDOW) -> list[tuple[int, int]]:

@@ -78,8 +78,9 @@ def crop(a: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     return a[:, y:y + h, x:x + w]
 
 
-def run(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:
-    """Segment a clip as the agent segments a file; (full masks or None, ms per frame)."""
+def segment(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:
+    """Segment a clip as the agent segments a file: (the tracked walker's ``Segmentation`` per frame,
+    None where there is none; ms per frame)."""
     seg = Segmenter(settings)
     if settings.background == "bootstrap":
         seg.bootstrap([frames[i] for i in sample_indices(len(frames), FPS, settings)])
@@ -87,8 +88,14 @@ def run(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:
     for k, image in enumerate(frames):
         s = seg.apply(image, k)
         seg.learn()
-        out.append(None if s is None or s.box.empty else s.full_mask())
+        out.append(None if s is None or s.box.empty else s)
     return out, (time.perf_counter() - t) * 1e3 / len(frames)
+
+
+def run(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:
+    """:func:`segment` as full-frame masks (or None); ms per frame."""
+    found, ms = segment(frames, settings)
+    return [None if s is None else s.full_mask() for s in found], ms
 
 
 def load_fixtures() -> list[dict]:

@@ -43,11 +43,12 @@ from .joints import JOINT_NAMES, N_JOINTS
 from .matchcache import MatchCache, derived, match
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
-from .viewpoint import MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint, head_points, motion_cue
+from .viewpoint import (FALL_MIN_ELEVATION_DEG, MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint,
+                        head_points, motion_cue)
 
 __all__ = ["CameraObservation", "CameraTrack", "EstimateConfig", "PhaseRefinement", "WalkEstimate", "clean_tracks",
-           "concat_estimates", "decode_walk", "estimate_walk", "observe_cameras", "refine_cameras", "take_frames",
-           "track_length", "tracks_from_sequence"]
+           "concat_estimates", "decode_walk", "estimable_frames", "estimate_walk", "observe_cameras",
+           "refine_cameras", "take_frames", "track_length", "tracks_from_sequence"]
 
 _J = {name: i for i, name in enumerate(FULL_JOINT_NAMES)}
 
@@ -100,6 +101,11 @@ class EstimateConfig:
         HMM's log-probability per frame. Only cameras whose two sides are at
         least 60 deg apart (``|cos azimuth| >= settle_min_cos``) are settled
         so: nearer the walker's side the fold costs little.
+    fall_min_elevation_deg : float
+        Where a camera's growth is no evidence of ahead/behind, the feet's
+        path in the image decides if its viewpoint is at least this far above
+        the walker (:func:`estimator.viewpoint.estimate_viewpoint`); ``inf``
+        never.
     """
 
     method: str = "exemplars"
@@ -118,6 +124,7 @@ class EstimateConfig:
     settle_ahead_behind: bool = True
     settle_margin: float = 0.5
     settle_min_cos: float = 0.5
+    fall_min_elevation_deg: float = FALL_MIN_ELEVATION_DEG
 
     def __post_init__(self) -> None:
         if self.method not in ("exemplars", "paper"):
@@ -675,7 +682,8 @@ def _vote(cloud: _Cloud, n_frames: int, cue: MotionCue | None, config: EstimateC
         weight = _biweight(np.maximum(cloud.best - med, 0.0) / max(config.frame_outlier_mads * mad, 1e-9))
         if weight.sum() <= 0:
             weight = np.ones(n_frames)
-    vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue, ahead=ahead)
+    vote = dict(cue=cue, ahead=ahead, fall_min_elevation_deg=config.fall_min_elevation_deg)
+    vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], **vote)
     if np.isfinite(config.vote_outlier_deg):
         match = weight
         for _ in range(iterations):
@@ -684,7 +692,7 @@ def _vote(cloud: _Cloud, n_frames: int, cue: MotionCue | None, config: EstimateC
             if w.sum() <= 0:
                 break
             weight = w
-            vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], cue=cue, ahead=ahead)
+            vp = estimate_viewpoint(cloud.az, cloud.el, cloud.w * weight[cloud.frame], **vote)
     return vp, weight
 
 
@@ -755,6 +763,15 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
     return out, reports
 
 
+def estimable_frames(tracks: dict[str, CameraTrack]) -> int:
+    """The frames of a window that has something to estimate (:func:`track_length`); ValueError for
+    no cameras, tracks of different lengths, or no silhouette at all."""
+    T = track_length(tracks)
+    if T == 0 or all(s is None for t in tracks.values() for s in t.silhouettes):
+        raise ValueError("no silhouettes in the window")
+    return T
+
+
 def track_length(tracks: dict[str, CameraTrack]) -> int:
     """Frames of synchronized camera tracks; ValueError for no cameras or differing lengths."""
     if not tracks:
@@ -786,8 +803,9 @@ class CameraObservation:
     keys: list[bytes] | None = None  # the present frames' silhouettes in the match cache
 
     def light(self) -> CameraObservation:
-        """The observation without the registered silhouettes (to send to the joint decoding)."""
-        return replace(self, registered=None, bits=None)
+        """The observation without what only :func:`refine_cameras` needs (the registered
+        silhouettes and their cache keys): what the joint decoding is sent."""
+        return replace(self, registered=None, bits=None, keys=None)
 
 
 @dataclass
@@ -860,7 +878,8 @@ def observe_cameras(
         labels[present] = np.argmin(d, axis=1)
         obs = np.full(T, np.nan)
         if exemplars is None:
-            vp = estimate_viewpoint(*_cloud_paper(model, labels[present]), cue=cue)
+            vp = estimate_viewpoint(*_cloud_paper(model, labels[present]), cue=cue,
+                                    fall_min_elevation_deg=config.fall_min_elevation_deg)
             for k in present:
                 sl = slice(model.member_offsets[labels[k]], model.member_offsets[labels[k] + 1])
                 near = (_abs_az_diff(model.member_azimuth_deg[sl], vp.azimuth_deg) <= config.phase_view_window_deg) & (
@@ -951,9 +970,7 @@ def estimate_walk(
         No cameras, tracks of different lengths, or no silhouette at all.
     """
     config = config or EstimateConfig()
-    T = track_length(tracks)
-    if T == 0 or all(s is None for t in tracks.values() for s in t.silhouettes):
-        raise ValueError("no silhouettes in the window")
+    estimable_frames(tracks)
     observations = observe_cameras(tracks, model, config=config, cache=cache)
     return decode_walk(observations, config=config, gait=gait, model=model,
                        refine=lambda states, sides: refine_cameras(observations, states, model, config=config,
@@ -993,17 +1010,17 @@ def decode_walk(
     with np.errstate(divide="ignore"):
         log_start, log_trans = np.log(hmm.startprob_), np.log(hmm.transmat_)
     sides: dict[str, bool] = {}
+    voted = {name: o for name, o in observations.items() if o.evidence is not None}  # exemplar path only
     if not exemplars:
         log_emission = hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
     else:
-        voted = {name: o for name, o in observations.items() if o.evidence is not None}
         if config.settle_ahead_behind:
             sides = _settle_ahead_behind(voted, log_start, log_trans, T, config)
         log_emission = np.zeros((T, n_phases))
         for o in voted.values():
             log_emission[o.present] -= o.evidence
     log_prob, states = viterbi(log_start, log_trans, log_emission)
-    if exemplars and config.phase_refine and any(o.evidence is not None for o in observations.values()):
+    if voted and config.phase_refine:
         if refine is None:
             raise ValueError("phase_refine needs refine")
         refined = refine(states, sides)

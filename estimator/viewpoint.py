@@ -30,9 +30,10 @@ def azimuth_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.n
 
 
 FALL_MIN_ELEVATION_DEG = 5.0
-"""The feet's path settles ahead/behind (:meth:`MotionCue.fall_sign`) only where the viewpoint's cloud is
-at least this far above the walker: a camera below the walker's centroid may be below its feet too (the
-synthetic grid goes down to -20 deg), where the feet's path reads the other way."""
+"""Default of :func:`estimate_viewpoint`'s ``fall_min_elevation_deg``: the feet's path settles
+ahead/behind (:meth:`MotionCue.fall_sign`) only where the viewpoint's cloud is at least this far above the
+walker; a camera below the walker's centroid may be below its feet too (the synthetic grid goes down to
+-20 deg), where the feet's path reads the other way."""
 
 
 @dataclass(frozen=True)
@@ -201,10 +202,10 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     x, y, w, h = boxes[ok].T
     # Robust slopes (Theil-Sen: median of pairwise slopes) resist a bad frame.
     # Heights are whole pixels: their log is known to 1 / (sqrt(12) h) at best.
-    growth, se = _theil_sen(t, np.log(h), floor=1.0 / (np.sqrt(12.0) * np.median(h)))
+    pixel = 1.0 / (np.sqrt(12.0) * np.median(h))  # a whole-pixel edge, in walker heights
+    growth, se = _theil_sen(t, np.log(h), floor=pixel)
     travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
-    fall, fall_se = (0.0, float("inf")) if feet_cut else _theil_sen(t, (y + h) / np.median(h),
-                                                                    floor=1.0 / (np.sqrt(12.0) * np.median(h)))
+    fall, fall_se = (0.0, float("inf")) if feet_cut else _theil_sen(t, (y + h) / np.median(h), floor=pixel)
     source, conflict_seen = "height", False
     if heads is not None:
         heads = np.asarray(heads, dtype=float)
@@ -291,6 +292,7 @@ def estimate_viewpoint(
     *,
     cue: MotionCue | None = None,
     ahead: bool | None = None,
+    fall_min_elevation_deg: float = FALL_MIN_ELEVATION_DEG,
 ) -> Viewpoint:
     """Fit the viewpoint ellipse to a cloud of example viewpoints.
 
@@ -307,6 +309,10 @@ def estimate_viewpoint(
         :func:`estimator.pipeline.estimate_walk`): the cloud is folded onto
         the side in front of the walker (``cos(azimuth) > 0``) if True,
         behind it if False, whatever the cue says; ``flip`` is ``"cameras"``.
+    fall_min_elevation_deg : float
+        Where the cue's growth is no evidence, its feet's path decides
+        (:meth:`MotionCue.fall_sign`) if the cloud is at least this far above
+        the walker; ``inf`` never.
     """
     az = np.asarray(azimuth_deg, dtype=float) % 360.0
     el = np.asarray(elevation_deg, dtype=float)
@@ -319,7 +325,7 @@ def estimate_viewpoint(
         raise ValueError("weights must be non-negative, one per sample, not all zero")
     w = w / w.sum()
     cos_sign, sin_sign = cue.signs() if cue is not None else (0, 0)
-    if cos_sign == 0 and cue is not None and float(np.sum(w * el)) >= FALL_MIN_ELEVATION_DEG:
+    if cos_sign == 0 and cue is not None and float(np.sum(w * el)) >= fall_min_elevation_deg:
         cos_sign = cue.fall_sign()  # the size hardly changes (a walker crossing the view): the feet's path
     r = np.deg2rad(az)
     in_front = np.cos(r) >= 0

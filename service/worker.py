@@ -46,7 +46,7 @@ from estimator.appearance import AppearanceModel, load_model
 from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraObservation, CameraTrack, PhaseRefinement, WalkEstimate, crop_to_box,
-                                decode_walk, observe_cameras, pad_tracks, refine_cameras,
+                                decode_walk, estimable_frames, observe_cameras, pad_tracks, refine_cameras,
                                 track_length, tracks_from_sequence)
 from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
@@ -509,9 +509,8 @@ def estimate_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack]
     ValueError: nothing estimable.
     """
     t0 = time.perf_counter()
+    estimable_frames(tracks)
     names = list(tracks)
-    if not names or all(s is None for t in tracks.values() for s in t.silhouettes):
-        raise ValueError("no silhouettes in the window")
     key = f"{rig}/{next(_window_ids)}"
     shares = camera_shares(names, rig, len(pools))
     observing = {k: pools.submit_to(k, observe_part, key, {n: tracks[n] for n in share},

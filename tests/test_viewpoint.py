@@ -69,6 +69,8 @@ def test_the_feet_rising_settle_behind_when_the_size_does_not_change():
     assert abs((vp.azimuth_deg - 200.0 + 180) % 360 - 180) < 5.0 and vp.flip == "motion", vp
     low = estimate_viewpoint(a, e - 10.0, cue=cue)  # 10 deg below: the feet are not read
     assert np.cos(np.radians(low.azimuth_deg)) > 0 and low.flip != "motion"
+    off = estimate_viewpoint(a, e + 15.0, cue=cue, fall_min_elevation_deg=np.inf)  # EstimateConfig's switch
+    assert np.cos(np.radians(off.azimuth_deg)) > 0 and off.flip != "motion"
 
 
 @pytest.mark.parametrize("az", [0.0, 60.0, 90.0, 160.0, 250.0])

@@ -13,9 +13,9 @@ from sqlalchemy.exc import OperationalError
 
 from ..deps import MetricsDep, RunnerDep, SettingsDep, StoreDep, bearer_scheme
 from ..exports import export_result
+from ..intake import stage_keypoints
 from ..jobs import ACTIVE, STATES
 from ..schemas import JobList, JobOut, Result, error_responses, job_out
-from ..intake import stage_keypoints
 from ..worker import UploadError, stage_upload
 from ._export import export_content, export_response
 
