@@ -143,6 +143,14 @@ class SegmentSettings(BaseModel):
                          "speckle; thins limbs); 0 = off")
     close_px: int = Field(9, ge=0, description="closing kernel in reference pixels, applied at "
                           "full resolution (fills holes); 0 = off")
+    fill_holes: float | None = Field(0.1, ge=0, le=1, description="fill each hole the walker's "
+                                     "outline encloses that is at least this fraction of the walker's "
+                                     "area with its holes (None = off, 0 = every hole): where the walker "
+                                     "stood in most frames the background was bootstrapped from (walking "
+                                     "towards or away from the camera), the background model holds the "
+                                     "walker and only the outline differs; smaller holes are left, such "
+                                     "as the gap between legs whose feet the closing joined "
+                                     "(docs/CAPTURE.md)")
     min_area: int = Field(600, ge=1, description="a largest component below this many "
                           "reference pixels = nothing")
     min_width: float = Field(12.0, ge=0, description="a candidate must be at least this wide "
@@ -277,6 +285,21 @@ def sample_indices(n_frames: int, fps: float | None, settings: SegmentSettings) 
     if span <= 0:
         return []
     return sorted({int(round(v)) for v in np.linspace(0, span - 1, min(span, settings.bootstrap_samples))})
+
+
+def filled(mask: np.ndarray, min_fraction: float = 0.0) -> np.ndarray:
+    """``mask`` (0/255 uint8) with the holes it encloses filled (what a flood fill from outside, a
+    one-pixel frame added around it, does not reach), each hole that is at least ``min_fraction`` of
+    the mask's area with its holes."""
+    outside = cv2.copyMakeBorder(mask, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    cv2.floodFill(outside, None, (0, 0), 255)
+    holes = cv2.bitwise_not(outside[1:-1, 1:-1])
+    if min_fraction > 0:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
+        big = stats[:, cv2.CC_STAT_AREA] >= min_fraction * (cv2.countNonZero(mask) + cv2.countNonZero(holes))
+        big[0] = False  # the background label (the mask itself and what the fill reached)
+        holes = np.where(big[labels], 255, 0).astype(np.uint8)
+    return cv2.bitwise_or(mask, holes)
 
 
 def _median(stack: np.ndarray, moving: np.ndarray | None = None) -> np.ndarray:
@@ -828,6 +851,9 @@ class Segmenter:
         crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
         ox, oy = rx + x - x0, ry + y - y0
         crop[oy:oy + h, ox:ox + w] = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
+        if self.settings.fill_holes is not None:
+            crop = filled(crop, self.settings.fill_holes)
+            area = cv2.countNonZero(crop)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, area, used_prior,
                             len(candidates))
 

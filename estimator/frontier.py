@@ -165,7 +165,8 @@ class FrontierResult:
     ----------
     rotations, centres, focal_px : ndarray of shape (C, 3, 3), (C, 3), (C,)
     residual_px : (float, float)
-        Median absolute tangent residual at the start and at the end.
+        Median absolute tangent residual at the start and at the end (inf at the
+        end when the adjusted cameras leave no outline pair to measure).
     pairs : list of (int, int)
         Camera pairs that had enough frames of tangents.
     frames : int
@@ -400,7 +401,7 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
     # read from the residuals' median (robust: 1.4826 x the median absolute value)
     jac = jacobian(x)
     tangent_rows = np.r_[np.arange(res.size), np.arange(res.size + n_rot, n_tan + n_rot + 1 + n_cam)]
-    sigma = 1.4826 * float(np.median(np.abs(res[used])))
+    sigma = 1.4826 * _median_abs(res[used])
     info = jac[tangent_rows].T @ jac[tangent_rows]
     with np.errstate(invalid="ignore"):
         cov = np.linalg.pinv(info)[:n_rot, :n_rot] * sigma ** 2
@@ -413,7 +414,12 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
             x = solve()
             k, r, c, _ = cameras(x[None])
             res, used = tangent_residuals(k[0], r[0], c[0], hulls, pairs, config.max_span_deg)
-    return FrontierResult(r[0], c[0], k[0, :, 0, 0],
-                          (float(np.median(np.abs(start[started]))), float(np.median(np.abs(res[used])))),
+    return FrontierResult(r[0], c[0], k[0, :, 0, 0], (_median_abs(start[started]), _median_abs(res[used])),
                           [tuple(int(i) for i in p) for p in pairs], int(used.any(axis=-1).sum()), np.r_[0.0, spread],
                           len(hold))
+
+
+def _median_abs(residuals: np.ndarray) -> float:
+    """Median absolute residual (px); inf when no tangent is left to measure (the cameras moved so
+    that no outline pair faces the other camera any more)."""
+    return float(np.median(np.abs(residuals))) if residuals.size else np.inf

@@ -584,6 +584,11 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
     return (None, why_not) if why_not else (pin, "")
 
 
+def _rounded(value: float, digits: int) -> float | None:
+    """``value`` rounded for the result, None when not finite (JSON has no inf or NaN)."""
+    return round(value, digits) if np.isfinite(value) else None
+
+
 def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, tracks: np.ndarray,
                  pinhole: PerspectiveRig, config: RigConfig) -> tuple[PerspectiveRig, str, dict]:
     """The pinhole rig adjusted to the silhouettes' epipolar tangents, the posture fitted again with
@@ -604,8 +609,10 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     before, after = found.residual_px
     turn = max(float(geodesic_deg(a, b)) for a, b in zip(found.rotations, pinhole.rotations))
     spread = float(found.rotation_std_deg.max())
-    summary.update(frame_pairs=found.frames, residual_px=[round(before, 3), round(after, 3)],
-                   largest_turn_deg=round(turn, 2), rotation_std_deg=round(spread, 2), held_directions=found.held)
+    summary.update(frame_pairs=found.frames, residual_px=[_rounded(before, 3), _rounded(after, 3)],
+                   largest_turn_deg=round(turn, 2), rotation_std_deg=_rounded(spread, 2), held_directions=found.held)
+    if not np.isfinite(after):
+        return pinhole, "epipolar tangents not used (the adjustment left no outline pair to measure)", summary
     holding = f", {found.held} direction{'s' * (found.held > 1)} of it held" if found.held else ""
     if not (after < before and after <= config.tangent_max_residual_px and turn <= config.tangent_max_turn_deg):
         return pinhole, (f"epipolar tangents not used (residual {before:.2f} -> {after:.2f} px, largest turn "

@@ -69,6 +69,18 @@ class SyncConfig:
         needs ``sqrt(margin_span_s / seconds seen)`` times more (the margin is a
         mean over fewer frames).
     margin_span_s : float
+    together_margin : float
+        The index pairing's margin (as ``min_margin`` in :func:`sync_tracks`) for
+        recordings of equal frame rate and length, which a rig started together
+        makes and hand-started cameras hardly ever do: their index pairing
+        stands unless the best offsets fit the walk better by this much (mean
+        pair cost). Synchronised 3 s walks (CMU motion, random bodies) gave gaps
+        up to 0.09 on exact silhouettes and up to 0.37 through a real background
+        and the segmenter, where a camera's phase was spoiled (one walk of 24:
+        1.05); real offsets of equal-length clips gave 0.65-2.05, and 0.41-0.51
+        for offsets the walk found wrong anyway (14 frames of 2.8 s clips), or
+        0.004-0.07 for whole numbers of half cycles, which the walk cannot tell
+        from zero (docs/SYNC.md).
     min_fps : float
         Cameras slower than this are reported ``ambiguous`` whatever the margin:
         a gait cycle of about a second needs some eight frames to be followed.
@@ -87,6 +99,7 @@ class SyncConfig:
     full_cycle_weight: float = 0.25
     unexplained: float = 0.1
     min_margin: float = 0.02
+    together_margin: float = 0.5
     margin_span_s: float = 6.0
     min_fps: float = 8.0
     hints: dict[str, float] | None = None
@@ -431,8 +444,9 @@ def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: Ap
     offsets.
 
     With equal frame rates, when pairing the frames by index fits the walk about as well
-    as the best offsets found (within ``config.min_margin``), the index pairing stands:
-    cameras that were started together stay as they were; the result says so.
+    as the best offsets found (within ``config.min_margin``; ``config.together_margin`` when
+    the recordings are also equally long, as a rig started together makes them), the index
+    pairing stands: cameras that were started together stay as they were; the result says so.
     """
     config = config or SyncConfig()
     clocks = {}
@@ -463,10 +477,13 @@ def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: Ap
     rates = {round(f, 3) for f in fps.values()}
     if len(rates) == 1 and any(abs(o) * result.fps[c] >= 0.5 for c, o in result.offsets_s.items()):
         index_cost = index_pairing_cost(clocks, config)
-        if index_cost - result.best_cost < config.min_margin:
+        together = len({len(t.silhouettes) for t in tracks.values()}) == 1
+        margin = config.together_margin if together else config.min_margin
+        if index_cost - result.best_cost < margin:
+            why = "the videos have the same frame rate and length, " if together else ""
             result = SyncResult(result.reference, {c: 0.0 for c in tracks}, result.fps,
                                 {c: np.nan for c in tracks}, result.margin, {c: False for c in tracks},
-                                result.notes + [f"pairing frames by index fits the walk within {config.min_margin} "
+                                result.notes + [f"{why}pairing frames by index fits the walk within {margin} "
                                                 "of the best offsets: kept (the cameras look started together)"],
                                 best_cost=index_cost)
     aligned, times = align_tracks(tracks, result)

@@ -225,7 +225,9 @@ class EpipolarTangents(_Open):
 
     used: bool = Field(description="the rig's cameras are the refined ones")
     frame_pairs: int = Field(description="frames of tangents over the camera pairs")
-    residual_px: list[float] | None = Field(description="median tangent residual before and after, pixels")
+    residual_px: list[float | None] | None = Field(description="median tangent residual before and after, pixels "
+                                                   "(after: null when the adjusted cameras left no outline "
+                                                   "pair to measure)")
     largest_turn_deg: float | None
     rotation_std_deg: float | None = Field(description="how well the tangents alone determine the rotations "
                                            "(degrees; over 1.5 the directions they hardly see are held)")

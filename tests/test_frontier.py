@@ -144,3 +144,16 @@ def test_too_few_frames_with_tangents_give_none(rendered):
     shapes, rotations, centres, focal, principal = rendered[:5]
     few = [type(s)(s.vertices, s.valid & (np.arange(len(s.valid)) < 5), s.loose) for s in shapes]
     assert refine_on_tangents(focal, principal, rotations, centres, few, FrontierConfig(min_frames=8)) is None
+
+
+def test_a_refinement_left_without_tangents_reports_null_not_nan():
+    """When the adjusted cameras leave no outline pair to measure, the final residual is infinite, and the
+    result's summary says null (a NaN there once stopped `posecal estimate` from writing JSON)."""
+    import json
+
+    from estimator.frontier import _median_abs
+    from estimator.rig import _rounded
+
+    assert _median_abs(np.array([])) == np.inf and _median_abs(np.array([-2.0, 1.0, 3.0])) == 2.0
+    summary = {"residual_px": [_rounded(1.23456, 3), _rounded(_median_abs(np.array([])), 3)]}
+    assert json.loads(json.dumps(summary, allow_nan=False)) == {"residual_px": [1.235, None]}

@@ -4,6 +4,7 @@ and jobs on videos that were not started together."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from estimator.synth import SynthSpec, synthesize, synthesize_recordings
 from service.cli import main
 
 RATES = np.array([15.0, 25.0, 30.0])
+MOCAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
 
 
 def _clocks(starts, seconds: float = 5.0) -> dict[str, np.ndarray]:
@@ -216,3 +218,29 @@ def test_a_hint_settles_the_whole_cycle_at_an_even_pace():
     with pytest.raises(ValueError, match="unknown camera"):
         synchronize(clocks, SyncConfig(hints={"z": 1.0}))
     assert main(["sync", "a", "b", "--hint", "c1"]) == 2
+
+
+def test_a_short_recording_of_a_rig_started_together_stays_paired_by_index(small):
+    """Three equal 3 s videos of a CMU walk from a synchronised rig: the walk alone fits half a cycle
+    later about as well (the old rule moved two cameras by 9 frames); equal rate and length keep the
+    index pairing. A real 4-frame offset between equal-length clips is still found."""
+    from estimator.mocap import read_motion
+    from estimator.sync import sync_tracks
+
+    motion = read_motion(MOCAP / "16_15.bvh")
+    tracks = tracks_from_sequence(synthesize(SynthSpec(n_cameras=3, n_frames=45, seed=0, image_size=(320, 240)),
+                                             motion=motion))
+    rates = {c: 15.0 for c in tracks}
+    before = SyncConfig(together_margin=SyncConfig().min_margin)  # the rule before
+    _, _, old = sync_tracks(tracks, rates, small, config=before)
+    assert max(abs(o) for o in old.offsets_frames().values()) > 4
+    _, _, res = sync_tracks(tracks, rates, small)
+    assert all(o == 0.0 for o in res.offsets_s.values())
+    assert "same frame rate and length" in res.notes[-1]
+    late = {c: CameraTrack(t.silhouettes[4:] if c == "c1" else t.silhouettes[:41],
+                           t.boxes[4:] if c == "c1" else t.boxes[:41], t.full_frame, t.image_size)
+            for c, t in tracks.items()}
+    _, _, res = sync_tracks(late, rates, small)
+    # Not imposed: the walk's own answer (the small model's is half a cycle off, -4.9 frames, its own
+    # ambiguity on a 2.7 s walk; the shipped model finds 4 +- 0.5 on such clips, docs/SYNC.md).
+    assert abs(res.offsets_frames()["c1"]) > 3 and not any("kept" in n for n in res.notes)
