@@ -175,8 +175,9 @@ class FrontierResult:
         How well the tangents alone determine each camera's rotation: the
         largest posterior standard deviation of its rotation vector's
         components (Laplace approximation without the prior), degrees; 0 for
-        the reference. Two cameras on a straight walk are often poorly
-        determined (3-8 deg on the tuning walks): see ``held``.
+        the reference (inf where no tangent was left to measure it). Two
+        cameras on a straight walk are often poorly determined (3-8 deg on
+        the tuning walks): see ``held``.
     held : int
         Directions of the rotations held at the start (``hold_std_deg``).
     """

@@ -263,8 +263,9 @@ class Rig:
     tangents : dict or None
         With pinhole cameras and ``RigConfig.tangents``: what the refinement on
         the epipolar tangents found (:func:`estimator.frontier.refine_on_tangents`):
-        ``used``, ``frame_pairs``, ``residual_px`` (median before and after),
-        ``largest_turn_deg``, ``rotation_std_deg`` (None where it did not run), ``held_directions``.
+        ``used``, ``frame_pairs``, ``residual_px`` (median before and after; after None when no
+        outline pair was left to measure), ``largest_turn_deg``, ``rotation_std_deg`` (None where it
+        did not run or could not be measured), ``held_directions``.
     """
 
     cameras: tuple[str, ...]
