@@ -76,11 +76,11 @@ class SyncConfig:
         stands unless the best offsets fit the walk better by this much (mean
         pair cost). Synchronised 3 s walks (CMU motion, random bodies) gave gaps
         up to 0.09 on exact silhouettes and up to 0.37 through a real background
-        and the segmenter, where a camera's phase was spoiled (one walk of 24:
-        1.05); real offsets of equal-length clips gave 0.65-2.05, and 0.41-0.51
-        for offsets the walk found wrong anyway (14 frames of 2.8 s clips), or
-        0.004-0.07 for whole numbers of half cycles, which the walk cannot tell
-        from zero (docs/SYNC.md).
+        and the segmenter, but 0.5-1.05 in 4 of 24 walks (two draws) where one
+        camera's phase was spoiled; real offsets of equal-length clips gave
+        0.65-2.05, and 0.41-0.51 for offsets the walk found wrong anyway (14
+        frames of 2.8 s clips), or 0.004-0.07 for whole numbers of half cycles,
+        which the walk cannot tell from zero (docs/SYNC.md).
     min_fps : float
         Cameras slower than this are reported ``ambiguous`` whatever the margin:
         a gait cycle of about a second needs some eight frames to be followed.
