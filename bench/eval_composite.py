@@ -155,22 +155,18 @@ def backgrounds(video: np.ndarray, n_frames: int, rng: np.random.Generator) -> n
 
 
 def write_videos(folder: Path, seq: Sequence, video: np.ndarray, rng: np.random.Generator, *, cast_shadow: bool
-                 ) -> tuple[dict[str, np.ndarray], Outfit]:
-    """Each camera's composite as ``<camera>.avi`` (MJPG, 15 fps); returns the frames written and the outfit."""
+                 ) -> Outfit:
+    """Each camera's composite as ``<camera>.avi`` (MJPG, 15 fps); returns the outfit."""
     folder.mkdir(parents=True, exist_ok=True)
     outfit = Outfit.random(rng, shadow=cast_shadow)
-    written = {}
     for cam in seq.cameras:
         bg = backgrounds(video, len(seq.silhouettes[cam]), rng)
         writer = cv2.VideoWriter(str(folder / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), FPS, SIZE)
-        frames = []
         for k, sil in enumerate(seq.silhouettes[cam]):
             mask = np.zeros(SIZE[::-1], np.uint8) if sil is None else sil
-            frames.append(composite(bg[k], mask, seq.truth["frames"][k]["joints2d"][cam], outfit))
-            writer.write(frames[-1])
+            writer.write(composite(bg[k], mask, seq.truth["frames"][k]["joints2d"][cam], outfit))
         writer.release()
-        written[cam] = np.stack(frames)
-    return written, outfit
+    return outfit
 
 
 def estimate(folder: Path, out: Path, *flags: str) -> dict:
@@ -224,11 +220,10 @@ def score(result: dict, seq: Sequence) -> dict[str, list[float]]:
             r = rig["cameras"].get(c, {}).get("rotation")
             out["rig"].append(np.nan if r is None else float(geodesic_deg(np.array(r), t)))
             out["rig_viewpoints"].append(float(geodesic_deg(v, t)) if np.isfinite(v).all() else np.nan)
-    person = [f.get("person_joints3d") for f in result["frames"]]
-    if any(p is not None for p in person):
-        idx = [k for k, f in frames.items() if f.get("person_joints3d") is not None and 0 <= k < len(truth["frames"])]
-        person = [frames[k]["person_joints3d"] for k in idx]
-        est3d = np.array([[[np.nan] * 3 if q is None else q for q in p] for p in person if p is not None], float)
+    idx = [k for k, f in frames.items() if f.get("person_joints3d") is not None and 0 <= k < len(truth["frames"])]
+    if idx:
+        est3d = np.array([[[np.nan] * 3 if q is None else q for q in frames[k]["person_joints3d"]] for k in idx],
+                         float)
         true3d = np.array([truth["frames"][k]["joints3d"] for k in idx], float)
         out["person3d"] += list(aligned_error(est3d, true3d) / truth["body"]["height"])
     sync = result.get("sync") or {}
@@ -246,9 +241,9 @@ def _image_height(sil: np.ndarray | None) -> float:
     return float(rows[-1] - rows[0] + 1) if rows.size else np.nan
 
 
-def segmentation_iou(frames: np.ndarray, seq: Sequence, cam: str) -> list[float]:
-    """IoU per frame of the command's segmenter (default settings, the frames as decoded) with the exact mask."""
-    segs = segment(list(frames), SegmentSettings(), fps=FPS)
+def segmentation_iou(segs: list, seq: Sequence, cam: str) -> list[float]:
+    """IoU per frame of the command's segmenter's output ``segs`` (:func:`capture.refine.segment` of the
+    frames as decoded, default settings) with the exact mask."""
     out = []
     for s, sil in zip(segs, seq.silhouettes[cam]):
         if sil is None or not sil.any():
@@ -284,7 +279,7 @@ def main() -> None:
             ("exact silhouettes", "exact", ())]
     rows: dict[str, dict[str, list[float]]] = {name: {} for name, _, _ in runs}
     ious, failures, shadows = [], [], 0
-    montage: list[np.ndarray] = []  # the first walk's decoded frames, per camera
+    montage: list[tuple[np.ndarray, np.ndarray]] = []  # the first walk's middle frame and silhouette, per camera
     work = args.keep or Path(tempfile.mkdtemp(prefix="posecal-composite-"))
     for i in tqdm(range(args.sequences), desc="walks", file=sys.stderr):
         n, shape, distance = int(rng.integers(2, 5)), body(rng), float(rng.uniform(5.0, 12.0))
@@ -293,7 +288,7 @@ def main() -> None:
         seq = synthesize(spec, motion=motions[i % 2])
         walk_rng = np.random.default_rng([args.seed, i])
         videos, exact = work / f"walk{i}" / "videos", work / f"walk{i}" / "exact"
-        _, outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1)
+        outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1)
         shadows += outfit.shadow_gain < 1.0
         write_sequence(exact, seq)
         for name, kind, flags in runs:
@@ -304,9 +299,12 @@ def main() -> None:
                 rows[name].setdefault(k, []).extend(v)
         for cam in seq.cameras:
             frames = load_video(videos / f"{cam}.avi")
-            ious.extend(segmentation_iou(frames, seq, cam))
+            segs = segment(list(frames), SegmentSettings(), fps=FPS)
+            ious.extend(segmentation_iou(segs, seq, cam))
             if i == 0:
-                montage.append(frames)
+                mid = len(frames) // 2
+                montage.append((frames[mid], segs[mid].full_mask() if segs[mid] is not None
+                                else np.zeros(frames.shape[1:3], np.uint8)))
     cams = len(rows["exact silhouettes"].get("azimuth", []))
     print(f"\n{args.sequences} walks ({cams} cameras, {args.frames} frames at 15 Hz, CMU motion, random bodies; "
           f"{shadows} with a ground shadow) composited over vtest.avi; `posecal estimate FOLDER`, no flags\n")
@@ -362,15 +360,12 @@ def plot(path: Path, rows: dict[str, dict[str, list[float]]]) -> None:
     fig.savefig(path, dpi=90)
 
 
-def write_montage(path: Path, cameras: list[np.ndarray]) -> None:
-    """The first walk's middle frame per camera (top row) over the segmenter's silhouette (bottom row)."""
+def write_montage(path: Path, cameras: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    """A frame per camera (top row) over the segmenter's silhouette in it (bottom row)."""
     columns = []
-    for frames in cameras:
-        mid = len(frames) // 2
-        segs = segment(list(frames), SegmentSettings(), fps=FPS)
-        mask = segs[mid].full_mask() if segs[mid] is not None else np.zeros(frames.shape[1:3], np.uint8)
+    for frame, mask in cameras:
         bottom = cv2.cvtColor(cv2.resize(mask, (320, 240), interpolation=cv2.INTER_NEAREST), cv2.COLOR_GRAY2BGR)
-        columns.append(np.vstack([cv2.resize(frames[mid], (320, 240)), bottom]))
+        columns.append(np.vstack([cv2.resize(frame, (320, 240)), bottom]))
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), np.hstack(columns))
 

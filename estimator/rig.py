@@ -292,27 +292,24 @@ class Rig:
 
     def to_dict(self) -> dict:
         """The result's ``rig`` (strict JSON: a camera left out of the rig has ``None`` values)."""
-        def num(v, digits: int):
-            return np.round(v, digits).tolist() if np.all(np.isfinite(v)) else None
-
         cams = {}
         for k, name in enumerate(self.cameras):
             r = self.rotations[k]
             ok = bool(np.all(np.isfinite(r)))
-            d = {"rotation": num(r, 6),
-                 "rotvec": num(Rotation.from_matrix(r).as_rotvec(), 6) if ok else None,
-                 "quaternion_xyzw": num(Rotation.from_matrix(r).as_quat(canonical=True), 8) if ok else None,
-                 "euler_xyz_deg": num(Rotation.from_matrix(r).as_euler("xyz", degrees=True), 3) if ok else None,
-                 "scale": num(self.scales[k], 5)}
+            d = {"rotation": _num(r, 6),
+                 "rotvec": _num(Rotation.from_matrix(r).as_rotvec(), 6) if ok else None,
+                 "quaternion_xyzw": _num(Rotation.from_matrix(r).as_quat(canonical=True), 8) if ok else None,
+                 "euler_xyz_deg": _num(Rotation.from_matrix(r).as_euler("xyz", degrees=True), 3) if ok else None,
+                 "scale": _num(self.scales[k], 5)}
             if self.euler_std_deg is not None:
-                d["euler_xyz_std_deg"] = num(self.euler_std_deg[k], 3)
+                d["euler_xyz_std_deg"] = _num(self.euler_std_deg[k], 3)
             if self.rotvec_cov is not None:
-                d["rotvec_covariance_rad2"] = num(self.rotvec_cov[k], 9)
+                d["rotvec_covariance_rad2"] = _num(self.rotvec_cov[k], 9)
             if self.scale_std is not None:
-                d["scale_std"] = num(self.scale_std[k], 5)
+                d["scale_std"] = _num(self.scale_std[k], 5)
             if self.focal_px is not None:
-                d["focal_px"] = num(self.focal_px[k], 1)
-                d["centre_m"] = num(self.centres_m[k], 3)
+                d["focal_px"] = _num(self.focal_px[k], 1)
+                d["centre_m"] = _num(self.centres_m[k], 3)
             if self.image_sizes is not None and np.all(np.isfinite(self.image_sizes[k])):
                 d["image_size"] = [int(v) for v in self.image_sizes[k]]
             cams[name] = d
@@ -585,9 +582,10 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
     return (None, why_not) if why_not else (pin, "")
 
 
-def _rounded(value: float, digits: int) -> float | None:
-    """``value`` rounded for the result, None when not finite (JSON has no inf or NaN)."""
-    return round(value, digits) if np.isfinite(value) else None
+def _num(value, digits: int):
+    """``value`` (a number or an array) rounded for the result, None when any of it is not finite (strict
+    JSON has no inf or NaN)."""
+    return np.round(value, digits).tolist() if np.all(np.isfinite(value)) else None
 
 
 def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, tracks: np.ndarray,
@@ -610,8 +608,8 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     before, after = found.residual_px
     turn = max(float(geodesic_deg(a, b)) for a, b in zip(found.rotations, pinhole.rotations))
     spread = float(found.rotation_std_deg.max())
-    summary.update(frame_pairs=found.frames, residual_px=[_rounded(before, 3), _rounded(after, 3)],
-                   largest_turn_deg=round(turn, 2), rotation_std_deg=_rounded(spread, 2), held_directions=found.held)
+    summary.update(frame_pairs=found.frames, residual_px=[_num(before, 3), _num(after, 3)],
+                   largest_turn_deg=round(turn, 2), rotation_std_deg=_num(spread, 2), held_directions=found.held)
     if not np.isfinite(after):
         return pinhole, "epipolar tangents not used (the adjustment left no outline pair to measure)", summary
     holding = f", {found.held} direction{'s' * (found.held > 1)} of it held" if found.held else ""

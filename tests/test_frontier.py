@@ -152,8 +152,8 @@ def test_a_refinement_left_without_tangents_reports_null_not_nan():
     import json
 
     from estimator.frontier import _median_abs
-    from estimator.rig import _rounded
+    from estimator.rig import _num
 
     assert _median_abs(np.array([])) == np.inf and _median_abs(np.array([-2.0, 1.0, 3.0])) == 2.0
-    summary = {"residual_px": [_rounded(1.23456, 3), _rounded(_median_abs(np.array([])), 3)]}
+    summary = {"residual_px": [_num(1.23456, 3), _num(_median_abs(np.array([])), 3)]}
     assert json.loads(json.dumps(summary, allow_nan=False)) == {"residual_px": [1.235, None]}
