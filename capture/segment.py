@@ -3,8 +3,9 @@
 Paper §7: an adaptive Stauffer–Grimson mixture-of-Gaussians background model
 (OpenCV's MOG2 is of that family) is first learned from ``warmup_frames``
 empty frames (the paper used 100); each later frame is classified per pixel,
-cleaned with morphology, and the largest connected component is kept as the
-walker. The result is the crop and its box in the full frame.
+cleaned with morphology, and one connected component is kept as the walker:
+the one continuing the tracked walker, else the tallest (``pick``). The
+result is the crop and its box in the full frame.
 
 The model runs downscaled to ``model_width`` (160: a quarter of 640x480,
 16x fewer pixels) and only finds *where* the walker is: every pixel within
@@ -151,6 +152,13 @@ class SegmentSettings(BaseModel):
                                      "walker and only the outline differs; smaller holes are left, such "
                                      "as the gap between legs whose feet the closing joined "
                                      "(docs/CAPTURE.md)")
+    pick: Literal["tallest", "largest"] = Field("tallest", description="with no tracked walker to "
+                                                "continue, the candidate kept: the tallest (ties: the larger), "
+                                                "or the largest by area. People walking together, or a "
+                                                "passer-by nearer the camera with their shadow, make one blob "
+                                                "larger than the walker but rarely a taller one; by area such "
+                                                "a pair was kept and then tracked for a whole clip "
+                                                "(docs/ROBUSTNESS.md)")
     min_area: int = Field(600, ge=1, description="a largest component below this many "
                           "reference pixels = nothing")
     min_width: float = Field(12.0, ge=0, description="a candidate must be at least this wide "
@@ -807,7 +815,7 @@ class Segmenter:
 
     def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool,
                  image: np.ndarray | None = None, gain: float = 1.0) -> Segmentation:
-        """Close holes, keep the tracked walker's component (else the largest), crop it.
+        """Close holes, keep the tracked walker's component (else the tallest, ``pick``), crop it.
 
         Closing and labelling run only inside the bounding rectangle of all
         foreground (plus room for the closing kernel): usually a small region
@@ -841,7 +849,8 @@ class Segmenter:
                  for k in candidates}
         best = self._continuing(boxes)
         if best is None:
-            best = max(candidates, key=lambda k: stats[k, cv2.CC_STAT_AREA])
+            key = cv2.CC_STAT_HEIGHT if self.settings.pick == "tallest" else cv2.CC_STAT_AREA
+            best = max(candidates, key=lambda k: (stats[k, key], stats[k, cv2.CC_STAT_AREA]))
         self._track, self._track_missed = boxes[best], 0
         area = int(stats[best, cv2.CC_STAT_AREA])
         x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region

@@ -65,6 +65,29 @@ def test_only_the_largest_component_is_kept():
     assert iou(seg.full_mask(), frame.mask) > 0.85
 
 
+@pytest.mark.parametrize("pick", ["tallest", "largest"])
+def test_the_tallest_candidate_is_the_walker_when_none_is_tracked(pick):
+    """Two people walking side by side are one blob, larger than the walker but not taller
+    (docs/ROBUSTNESS.md, walk 9's c1): with the default the walker is found and then tracked."""
+    segmenter = Segmenter(SegmentSettings(warmup_frames=100, pick=pick))
+    kept = []
+    for frame in scene_frames(SMALL):
+        image = frame.image
+        if frame.index >= 100:  # the pair: 90 x 60 px, about 1.6 times the walker's area
+            image = image.copy()
+            x = 245 - (frame.index - 100)
+            for cx in (x - 22, x + 22):
+                cv2.ellipse(image, (cx, 140), (23, 30), 0, 0, 360, (30, 30, 30), -1)
+        seg = segmenter.apply(image, frame.index)
+        if seg is not None:
+            kept.append((seg.n_candidates, iou(seg.full_mask(), frame.mask)))
+    assert len(kept) == 30 and all(n == 2 for n, _ in kept)
+    if pick == "tallest":
+        assert min(v for _, v in kept) > 0.8
+    else:  # the test's premise: by area the pair is kept, and tracked from then on
+        assert max(v for _, v in kept) == 0.0
+
+
 def _prior_from(mask: np.ndarray, index: int, shift: int = 3) -> FeedbackMessage:
     """A slightly misregistered rendering of the truth, as the service would send."""
     pm = np.roll(mask, shift, axis=1)
