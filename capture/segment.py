@@ -104,7 +104,8 @@ class SegmentSettings(BaseModel):
                                     "the frame's")
     track_frames: int = Field(15, ge=0, description="frames the tracked walker's box is kept "
                               "while no component continues it; a component continuing it is "
-                              "kept rather than the largest")
+                              "kept rather than the tallest, chosen by overlap and by height "
+                              "against the walker's median height over this many frames")
     track_grow: float = Field(0.3, ge=0, description="the tracked box is grown by this fraction "
                               "of its size per side (per frame missed, plus one) to find its "
                               "continuation")
@@ -369,6 +370,7 @@ class Segmenter:
         self._residuals: list[np.ndarray] = []
         self._track: tuple[int, int, int, int] | None = None  # last tracked walker box
         self._track_missed = 0
+        self._heights: list[int] = []  # the tracked walker's box heights, last track_frames frames
         self._static: list[list] = []  # [box, frames seen in place] per still component
         self.ghosts = 0  # ghost regions absorbed into the background
 
@@ -848,10 +850,14 @@ class Segmenter:
         boxes = {k: (rx + int(stats[k, 0]), ry + int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]))
                  for k in candidates}
         best = self._continuing(boxes)
+        continued = best is not None
         if best is None:
             key = cv2.CC_STAT_HEIGHT if self.settings.pick == "tallest" else cv2.CC_STAT_AREA
             best = max(candidates, key=lambda k: (stats[k, key], stats[k, cv2.CC_STAT_AREA]))
         self._track, self._track_missed = boxes[best], 0
+        recent = self._heights[-(self.settings.track_frames - 1):] \
+            if continued and self.settings.track_frames > 1 else []
+        self._heights = [*recent, self._track[3]]
         area = int(stats[best, cv2.CC_STAT_AREA])
         x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region
         m = self.settings.margin_px
@@ -882,26 +888,36 @@ class Segmenter:
         """No walker in this frame; the tracked box ages (forgotten after ``track_frames``)."""
         self._track_missed += 1
         if self._track_missed > self.settings.track_frames:
-            self._track = None
+            self._track, self._heights = None, []
         return Segmentation.nothing(size, used_prior, n)
 
     def _continuing(self, boxes: dict[int, tuple[int, int, int, int]]) -> int | None:
-        """The candidate that overlaps the tracked walker's grown box most, if any: the
-        intersection with the grown box over the union of the candidate's and the
-        tracked box's own areas (not :func:`box_iou` with the grown box)."""
+        """The candidate that best continues the tracked walker, if any overlaps its grown box.
+
+        The score is the overlap (the intersection with the grown box over the
+        union of the candidate's and the tracked box's own areas, not
+        :func:`box_iou` with the grown box) times the ratio of the candidate's
+        height to the walker's median height over the last ``track_frames``
+        frames (the smaller over the larger). By overlap alone, a walker torn
+        in two by clothing the colour of the ground lost the track to the
+        piece passers-by had joined, and the track then went on with them
+        (docs/ROBUSTNESS.md); the walker's height changes slowly.
+        """
         if self._track is None or self._track_missed > self.settings.track_frames:
             return None
         x, y, w, h = self._track
         grow = self.settings.track_grow * (1 + self._track_missed)
         gx, gy = x - grow * w, y - grow * h
         gw, gh = w * (1 + 2 * grow), h * (1 + 2 * grow)
-        best, best_overlap = None, 0.0
+        tall = float(np.median(self._heights)) if self._heights else float(h)
+        best, best_score = None, 0.0
         for k, (bx, by, bw, bh) in boxes.items():
             ix = max(0.0, min(gx + gw, bx + bw) - max(gx, bx))
             iy = max(0.0, min(gy + gh, by + bh) - max(gy, by))
             overlap = ix * iy / (bw * bh + w * h - ix * iy)  # IoU with the grown box
-            if overlap > best_overlap:
-                best, best_overlap = k, overlap
+            score = overlap * min(bh, tall) / max(bh, tall)
+            if score > best_score:
+                best, best_score = k, score
         return best
 
     def _drop_ghosts(self, candidates: list[int], labels: np.ndarray, stats: np.ndarray,
