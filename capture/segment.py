@@ -104,8 +104,8 @@ class SegmentSettings(BaseModel):
                                     "the frame's")
     track_frames: int = Field(15, ge=0, description="frames the tracked walker's box is kept "
                               "while no component continues it; a component continuing it is "
-                              "kept rather than the tallest, chosen by overlap and by height "
-                              "against the walker's median height over this many frames")
+                              "kept rather than the `pick`, chosen by overlap and by height "
+                              "against the walker's median height over this many of its last detections")
     track_grow: float = Field(0.3, ge=0, description="the tracked box is grown by this fraction "
                               "of its size per side (per frame missed, plus one) to find its "
                               "continuation")
@@ -160,7 +160,7 @@ class SegmentSettings(BaseModel):
                                                 "larger than the walker but rarely a taller one; by area such "
                                                 "a pair was kept and then tracked for a whole clip "
                                                 "(docs/ROBUSTNESS.md)")
-    min_area: int = Field(600, ge=1, description="a largest component below this many "
+    min_area: int = Field(600, ge=1, description="a candidate below this many "
                           "reference pixels = nothing")
     min_width: float = Field(12.0, ge=0, description="a candidate must be at least this wide "
                              "somewhere (reference pixels; the widest disc inside it): a torso "
@@ -370,7 +370,7 @@ class Segmenter:
         self._residuals: list[np.ndarray] = []
         self._track: tuple[int, int, int, int] | None = None  # last tracked walker box
         self._track_missed = 0
-        self._heights: list[int] = []  # the tracked walker's box heights, last track_frames frames
+        self._heights: list[int] = []  # the tracked walker's box heights, last track_frames detections
         self._static: list[list] = []  # [box, frames seen in place] per still component
         self.ghosts = 0  # ghost regions absorbed into the background
 
@@ -897,8 +897,8 @@ class Segmenter:
         The score is the overlap (the intersection with the grown box over the
         union of the candidate's and the tracked box's own areas, not
         :func:`box_iou` with the grown box) times the ratio of the candidate's
-        height to the walker's median height over the last ``track_frames``
-        frames (the smaller over the larger). By overlap alone, a walker torn
+        height to the walker's median height over its last ``track_frames``
+        detections (the smaller over the larger). By overlap alone, a walker torn
         in two by clothing the colour of the ground lost the track to the
         piece passers-by had joined, and the track then went on with them
         (docs/ROBUSTNESS.md); the walker's height changes slowly.
