@@ -10,6 +10,7 @@ scores every silhouette *as received* against the ground truth (IoU) and
 reports capture-to-receive latency.
 
     .venv/bin/python bench/bench_capture.py [--frames 600] [--core 0] [--model-width 0] [--refine-px 0]
+                                            [--no-colour-split]
     .venv/bin/python bench/bench_capture.py --source synthetic:seed=3,azimuth=90 --frames 300
 
 Target (issue 6): >= 30 fps at 640x480 on one core; IoU is reported.
@@ -128,6 +129,8 @@ def agent(args: argparse.Namespace) -> int:
 
     overrides = {k: v for k, v in (("model_width", args.model_width),
                                    ("refine_px", args.refine_px)) if v is not None}
+    if args.no_colour_split:
+        overrides["colour_split"] = False
     segment = SegmentSettings(warmup_frames=warmup, **overrides)
     settings = capture_agent.AgentSettings(rig="bench", camera="c0", stats_interval_s=1e9,
                                            segment=segment)
@@ -170,6 +173,8 @@ def main() -> int:
                         help="background-model width, 0 = full (default: SegmentSettings')")
     parser.add_argument("--refine-px", type=float, default=None,
                         help="refinement band in model pixels (default: SegmentSettings')")
+    parser.add_argument("--no-colour-split", action="store_true",
+                        help="segment without the colour split (SegmentSettings.colour_split)")
     parser.add_argument("--timeout", type=float, default=120.0)
     args = parser.parse_args()
     args.endpoint = args.endpoint or _free_endpoint()

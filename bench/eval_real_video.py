@@ -189,7 +189,7 @@ def montage(path: Path, clips: dict, results: dict, frames: list[tuple[str, int]
     tiles = []
     for clip, k in frames:
         image = clips[clip][k].copy()
-        new, old = results[clip]["bootstrap"][0][k], results[clip]["warmup"][0][k]
+        new, old = results[clip]["bootstrap (default)"][0][k], results[clip]["warmup"][0][k]
         if new is not None:
             image[new > 0] = (0.5 * image[new > 0] + (0, 0, 127)).astype(np.uint8)
         if old is not None:
@@ -215,8 +215,11 @@ def main() -> None:
     video = load_video()
     offline, changed = offline_masks(video), offline_masks(video, drop_shadows=False)
     clips = {name: crop(video, box) for name, box in CLIPS.items()}
-    results = {clip: {mode: run(frames, SegmentSettings(background=mode))
-                      for mode in ("bootstrap", "warmup")} for clip, frames in clips.items()}
+    variants = {"bootstrap (default)": SegmentSettings(),
+                "bootstrap, colour split off": SegmentSettings(colour_split=False),
+                "warmup": SegmentSettings(background="warmup")}
+    results = {clip: {name: run(frames, settings) for name, settings in variants.items()}
+               for clip, frames in clips.items()}
     if args.make_fixtures:
         make_fixtures(video, offline, changed, {"lawn": [655, 665, 675], "path": [4, 162, 377, 401]})
     print(f"vtest.avi crops, {FPS:.0f} fps; load avg {os.getloadavg()[0]:.2f}\n")
@@ -229,7 +232,7 @@ def main() -> None:
             got = np.array([m is not None for m in masks])
             ious = fixture_ious(clip, masks)
             ref = f"{np.mean(ious):.3f} (min {np.min(ious):.3f}, {len(ious)})" if ious else "-"
-            print(f"| {clip} | {mode}{' (default)' if mode == 'bootstrap' else ''} | "
+            print(f"| {clip} | {mode} | "
                   f"{got[inview].mean():.1%} of {inview.sum()} | {got[empty].mean():.1%} of {empty.sum()} | "
                   f"{ref} | {ms:.2f} |")
     if args.montage:

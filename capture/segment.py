@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -47,10 +48,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from estimator.prior import trust_factor
 
+from .colours import ColourSplit
+from .masks import filled
 from .wire import Box, FeedbackMessage
 
 __all__ = ["MAX_PRIORS", "PriorStats", "SegmentSettings", "Segmentation", "Segmenter", "default_warmup",
-           "box_iou", "describe", "sample_indices"]
+           "box_iou", "describe", "filled", "sample_indices"]
 
 MAX_PRIORS = 64  # priors kept per segmenter, newest frame indices first
 
@@ -160,6 +163,17 @@ class SegmentSettings(BaseModel):
                                                 "larger than the walker but rarely a taller one; by area such "
                                                 "a pair was kept and then tracked for a whole clip "
                                                 "(docs/ROBUSTNESS.md)")
+    colour_split: bool = Field(True, description="cut off the tracked walker's blob the regions "
+                               "whose colours are the other people's rather than the walker's (running "
+                               "colour histograms of both; capture/colours.py): a passer-by touching the "
+                               "walker is otherwise one blob with them (docs/ROBUSTNESS.md)")
+    colour_ratio: float = Field(2.7, gt=1, description="a region is cut where its colours are this many "
+                                "times likelier among the other people than on the walker")
+    colour_window: float = Field(0.04, gt=0, description="the colour evidence is averaged over a square "
+                                 "of this fraction of the walker's height")
+    colour_rate: float = Field(0.2, gt=0, le=1, description="running-mean rate of the colour histograms")
+    colour_frames: int = Field(5, ge=1, description="frames of the walker at its usual size its colours "
+                               "are learned from before anything is cut")
     min_area: int = Field(600, ge=1, description="a candidate below this many "
                           "reference pixels = nothing")
     min_width: float = Field(12.0, ge=0, description="a candidate must be at least this wide "
@@ -296,21 +310,6 @@ def sample_indices(n_frames: int, fps: float | None, settings: SegmentSettings) 
     return sorted({int(round(v)) for v in np.linspace(0, span - 1, min(span, settings.bootstrap_samples))})
 
 
-def filled(mask: np.ndarray, min_fraction: float = 0.0) -> np.ndarray:
-    """``mask`` (0/255 uint8) with the holes it encloses filled (what a flood fill from outside, a
-    one-pixel frame added around it, does not reach), each hole that is at least ``min_fraction`` of
-    the mask's area with its holes."""
-    outside = cv2.copyMakeBorder(mask, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
-    cv2.floodFill(outside, None, (0, 0), 255)
-    holes = cv2.bitwise_not(outside[1:-1, 1:-1])
-    if min_fraction > 0:
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
-        big = stats[:, cv2.CC_STAT_AREA] >= min_fraction * (cv2.countNonZero(mask) + cv2.countNonZero(holes))
-        big[0] = False  # the background label (the mask itself and what the fill reached)
-        holes = np.where(big[labels], 255, 0).astype(np.uint8)
-    return cv2.bitwise_or(mask, holes)
-
-
 def _median(stack: np.ndarray, moving: np.ndarray | None = None) -> np.ndarray:
     """Per-pixel median of ``stack`` (N, H, W, 3) uint8, preferring samples not ``moving``.
 
@@ -370,7 +369,11 @@ class Segmenter:
         self._residuals: list[np.ndarray] = []
         self._track: tuple[int, int, int, int] | None = None  # last tracked walker box
         self._track_missed = 0
-        self._heights: list[int] = []  # the tracked walker's box heights, last track_frames detections
+        # The tracked walker's box heights over its last track_frames detections.
+        self._heights: deque[int] = deque(maxlen=max(1, settings.track_frames))
+        self._colours = ColourSplit(ratio=settings.colour_ratio, window=settings.colour_window,
+                                    rate=settings.colour_rate, frames=settings.colour_frames,
+                                    history=settings.track_frames)
         self._static: list[list] = []  # [box, frames seen in place] per still component
         self.ghosts = 0  # ghost regions absorbed into the background
 
@@ -850,14 +853,13 @@ class Segmenter:
         boxes = {k: (rx + int(stats[k, 0]), ry + int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]))
                  for k in candidates}
         best = self._continuing(boxes)
-        continued = best is not None
-        if best is None:
+        if best is None:  # a new track
             key = cv2.CC_STAT_HEIGHT if self.settings.pick == "tallest" else cv2.CC_STAT_AREA
             best = max(candidates, key=lambda k: (stats[k, key], stats[k, cv2.CC_STAT_AREA]))
+            self._heights.clear()
+            self._colours.reset()
         self._track, self._track_missed = boxes[best], 0
-        recent = self._heights[-(self.settings.track_frames - 1):] \
-            if continued and self.settings.track_frames > 1 else []
-        self._heights = [*recent, self._track[3]]
+        self._heights.append(self._track[3])
         area = int(stats[best, cv2.CC_STAT_AREA])
         x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region
         m = self.settings.margin_px
@@ -866,6 +868,19 @@ class Segmenter:
         crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
         ox, oy = rx + x - x0, ry + y - y0
         crop[oy:oy + h, ox:ox + w] = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
+        if self.settings.colour_split and image is not None:
+            others = [k for k in candidates if k != best]
+            if others:
+                self._colours.see_others(image[ry:ry + labels.shape[0], rx:rx + labels.shape[1]],
+                                         np.isin(labels, others))
+            cut = self._colours.split(crop, image[y0:y1, x0:x1])
+            if cut is not crop:  # tighten the crop around what is left, with the margin
+                bx, by, bw, bh = cv2.boundingRect(cut)
+                cx0, cy0 = max(0, bx - m), max(0, by - m)
+                crop = cut[cy0:min(cut.shape[0], by + bh + m), cx0:min(cut.shape[1], bx + bw + m)]
+                x0, y0 = x0 + cx0, y0 + cy0
+                x1, y1 = x0 + crop.shape[1], y0 + crop.shape[0]
+            area = cv2.countNonZero(crop)
         if self.settings.fill_holes is not None:
             crop = filled(crop, self.settings.fill_holes)
             area = cv2.countNonZero(crop)
@@ -888,7 +903,8 @@ class Segmenter:
         """No walker in this frame; the tracked box ages (forgotten after ``track_frames``)."""
         self._track_missed += 1
         if self._track_missed > self.settings.track_frames:
-            self._track, self._heights = None, []
+            self._track = None
+            self._heights.clear()
         return Segmentation.nothing(size, used_prior, n)
 
     def _continuing(self, boxes: dict[int, tuple[int, int, int, int]]) -> int | None:

@@ -94,10 +94,11 @@ def test_a_torn_walker_is_not_left_for_the_people_joined_to_a_piece():
     the legs to the group. The track, which followed the legs and the group through those
     frames, goes back to the walker: the candidates' height is weighed against the walker's
     recent height. By overlap with the tracked box alone it went on with the group (IoU 0
-    for the rest of the clip when this was written; docs/ROBUSTNESS.md, seed 7's walk 5)."""
+    for the rest of the clip when this was written; docs/ROBUSTNESS.md, seed 7's walk 5).
+    The colour split is off: it cuts the dark group off the legs, which would hide the rule."""
     frames = list(scene_frames(SMALL))
     empty = frames[0].image
-    segmenter = Segmenter(SegmentSettings(warmup_frames=100))
+    segmenter = Segmenter(SegmentSettings(warmup_frames=100, colour_split=False))
     x0 = cv2.boundingRect(frames[100].mask)[0]
     right = x0 + 37 - 8  # the group's right edge
     torn, after = [], []
@@ -120,6 +121,44 @@ def test_a_torn_walker_is_not_left_for_the_people_joined_to_a_piece():
     # The premise: torn in two, the track is on the legs and the group, not on the walker.
     assert all(n >= 2 and v < 0.5 for n, v in torn), torn
     assert len(after) == 7 and min(after) > 0.9, after
+
+
+@pytest.mark.parametrize("passer_bgr", [(60, 170, 60), SMALL.walker_bgr])
+def test_a_passer_by_touching_the_walker_is_cut_off_by_colour(passer_bgr):
+    """A shorter passer-by walks beside the walker, apart for 15 frames, then touching
+    them for 15 (one blob). Dressed otherwise, they are cut off by their colours
+    (capture/colours.py); dressed like the walker, the split changes nothing. With the
+    split off (the premise) the blob stays whole. From the 9th merged frame on the merged
+    blob is the median's size and its colours start to be learned as the walker's: these
+    15 frames also check that this is slow enough."""
+
+    def run(split: bool) -> list[float]:
+        segmenter = Segmenter(SegmentSettings(warmup_frames=100, colour_split=split))
+        apart, merged = [], []
+        for frame in scene_frames(dataclasses.replace(SMALL, walker_alpha=1.0)):  # opaque clothing
+            image = frame.image
+            if frame.index >= 100:
+                x, y, w, h = cv2.boundingRect(frame.mask)
+                gap = 60 if frame.index < 115 else w // 2 + 10  # centre to centre; then touching
+                passer = np.zeros_like(frame.mask)
+                cv2.ellipse(passer, (x + w // 2 + gap, y + h - 30), (12, 30), 0, 0, 360, 255, -1)
+                passer[frame.mask > 0] = 0  # behind the walker
+                image = image.copy()
+                image[passer > 0] = passer_bgr
+            seg = segmenter.apply(image, frame.index)
+            if frame.index >= 100:
+                (apart if frame.index < 115 else merged).append(
+                    (seg.n_candidates, iou(seg.full_mask(), frame.mask)))
+        assert all(n == 2 and v > 0.9 for n, v in apart), apart  # two people, the walker tracked
+        assert all(n == 1 for n, _ in merged), merged  # one blob
+        return [v for _, v in merged]
+
+    whole, split = run(False), run(True)
+    assert max(whole) < 0.8, whole  # the premise: without the split the passer-by is kept
+    if passer_bgr == SMALL.walker_bgr:
+        assert split == whole
+    else:
+        assert min(split) > 0.85, split
 
 
 def _prior_from(mask: np.ndarray, index: int, shift: int = 3) -> FeedbackMessage:
