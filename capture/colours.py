@@ -33,15 +33,13 @@ walker pieces the cut leaves smaller than :data:`PIECE` of the largest. The
 walker's model is reset when a new track starts (another person). It learns
 from the track's first three detections whatever they hold, and from any
 blob within :data:`STABLE` of the median area: a passer-by who adds less
-than that, or who stays joined for more than about half of ``history``
-detections, is learned as the walker's. Measured (docs/ROBUSTNESS.md): composite IoU
+than that, or who stays joined for more than about half of the detections
+the median is taken over (``SegmentSettings.track_frames``), is learned as the walker's. Measured (docs/ROBUSTNESS.md): composite IoU
 and the downstream errors with and without, and vtest.avi's reference masks
 (real people, dark clothes like most passers-by) unchanged.
 """
 
 from __future__ import annotations
-
-from collections import deque
 
 import cv2
 import numpy as np
@@ -88,22 +86,17 @@ class ColourSplit:
         Running-mean rate of both histograms per frame.
     frames : int
         Stable frames the walker's model must rest on before anything is cut.
-    history : int
-        Detections over which the walker's median area is taken (at least 3).
     """
 
-    def __init__(self, *, ratio: float = 2.7, window: float = 0.04, rate: float = 0.2, frames: int = 5,
-                 history: int = 15) -> None:
+    def __init__(self, *, ratio: float = 2.7, window: float = 0.04, rate: float = 0.2, frames: int = 5) -> None:
         self.ratio, self.window, self.rate, self.frames = ratio, window, rate, frames
         self.walker: np.ndarray | None = None  # histograms, BINS**3 frequencies
         self.others: np.ndarray | None = None
         self.learned = 0  # stable frames the walker's histogram rests on
-        self.areas: deque[int] = deque(maxlen=max(3, history))  # the walker's blob areas, before the cut
 
     def reset(self) -> None:
         """Forget the walker (a new track starts); the others' colours stay."""
         self.walker, self.learned = None, 0
-        self.areas.clear()
 
     def _mean(self, old: np.ndarray | None, new: np.ndarray | None) -> np.ndarray | None:
         if new is None:
@@ -115,10 +108,13 @@ class ColourSplit:
         if mask.any():
             self.others = self._mean(self.others, _histogram(colour_bins(patch[mask])))
 
-    def split(self, crop: np.ndarray, patch: np.ndarray) -> np.ndarray:
+    def split(self, crop: np.ndarray, patch: np.ndarray, *, median_area: float = np.inf) -> np.ndarray:
         """The walker's blob ``crop`` (uint8 0/255) with the others' regions cut; learns the walker.
 
-        ``patch`` is the frame (BGR uint8) under ``crop``. Returns ``crop``
+        ``patch`` is the frame (BGR uint8) under ``crop``; ``median_area`` the
+        walker's median blob area over its last detections (inf while there are
+        fewer than three: the track's first frames are learned whatever they
+        hold). Pixels outside the blob count as no evidence. Returns ``crop``
         itself when nothing is cut.
         """
         inside = crop > 0
@@ -126,12 +122,10 @@ class ColourSplit:
         if not area:
             return crop
         bins = colour_bins(patch)
-        median = float(np.median(self.areas)) if len(self.areas) >= 3 else np.inf
-        self.areas.append(area)
         out = crop
         if self.learned >= self.frames and self.others is not None:
             out = self._cut(crop, inside, bins)
-        if area <= STABLE * median:
+        if area <= STABLE * median_area:
             self.walker = self._mean(self.walker, _histogram(bins[inside]))
             self.learned += 1
         return out
@@ -141,7 +135,8 @@ class ColourSplit:
         rows = np.flatnonzero(inside.any(axis=1))
         k = max(3, int(self.window * (rows[-1] - rows[0] + 1))) | 1
         weight = inside.astype(np.float32)
-        mean = cv2.blur(evidence * weight, (k, k)) / np.maximum(cv2.blur(weight, (k, k)), 1e-6)
+        mean = (cv2.blur(evidence * weight, (k, k), borderType=cv2.BORDER_CONSTANT)
+                / np.maximum(cv2.blur(weight, (k, k), borderType=cv2.BORDER_CONSTANT), 1e-6))
         cut = inside & (mean < -np.log(self.ratio))
         if not cut.any():
             return crop

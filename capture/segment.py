@@ -108,7 +108,8 @@ class SegmentSettings(BaseModel):
     track_frames: int = Field(15, ge=0, description="frames the tracked walker's box is kept "
                               "while no component continues it; a component continuing it is "
                               "kept rather than the `pick`, chosen by overlap and by height "
-                              "against the walker's median height over this many of its last detections")
+                              "against the walker's median height over this many (at least 3) of its last "
+                              "detections; the colour split's median area likewise")
     track_grow: float = Field(0.3, ge=0, description="the tracked box is grown by this fraction "
                               "of its size per side (per frame missed, plus one) to find its "
                               "continuation")
@@ -369,11 +370,10 @@ class Segmenter:
         self._residuals: list[np.ndarray] = []
         self._track: tuple[int, int, int, int] | None = None  # last tracked walker box
         self._track_missed = 0
-        # The tracked walker's box heights over its last track_frames detections.
-        self._heights: deque[int] = deque(maxlen=max(1, settings.track_frames))
+        # The tracked walker's blob (box height, area) over its last track_frames (at least 3) detections.
+        self._walker: deque[tuple[int, int]] = deque(maxlen=max(3, settings.track_frames))
         self._colours = ColourSplit(ratio=settings.colour_ratio, window=settings.colour_window,
-                                    rate=settings.colour_rate, frames=settings.colour_frames,
-                                    history=settings.track_frames)
+                                    rate=settings.colour_rate, frames=settings.colour_frames)
         self._static: list[list] = []  # [box, frames seen in place] per still component
         self.ghosts = 0  # ghost regions absorbed into the background
 
@@ -856,35 +856,31 @@ class Segmenter:
         if best is None:  # a new track
             key = cv2.CC_STAT_HEIGHT if self.settings.pick == "tallest" else cv2.CC_STAT_AREA
             best = max(candidates, key=lambda k: (stats[k, key], stats[k, cv2.CC_STAT_AREA]))
-            self._heights.clear()
+            self._walker.clear()
             self._colours.reset()
         self._track, self._track_missed = boxes[best], 0
-        self._heights.append(self._track[3])
-        area = int(stats[best, cv2.CC_STAT_AREA])
         x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region
-        m = self.settings.margin_px
-        x0, y0 = max(0, rx + x - m), max(0, ry + y - m)  # crop box in the full frame
-        x1, y1 = min(size[0], rx + x + w + m), min(size[1], ry + y + h + m)
-        crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        ox, oy = rx + x - x0, ry + y - y0
-        crop[oy:oy + h, ox:ox + w] = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
+        blob = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
+        x, y = rx + x, ry + y  # the blob's box in the full frame
+        areas = [a for _, a in self._walker]
+        self._walker.append((h, int(stats[best, cv2.CC_STAT_AREA])))
         if self.settings.colour_split and image is not None:
             others = [k for k in candidates if k != best]
             if others:
                 self._colours.see_others(image[ry:ry + labels.shape[0], rx:rx + labels.shape[1]],
                                          np.isin(labels, others))
-            cut = self._colours.split(crop, image[y0:y1, x0:x1])
-            if cut is not crop:  # tighten the crop around what is left, with the margin
-                bx, by, bw, bh = cv2.boundingRect(cut)
-                cx0, cy0 = max(0, bx - m), max(0, by - m)
-                crop = cut[cy0:min(cut.shape[0], by + bh + m), cx0:min(cut.shape[1], bx + bw + m)]
-                x0, y0 = x0 + cx0, y0 + cy0
-                x1, y1 = x0 + crop.shape[1], y0 + crop.shape[0]
-            area = cv2.countNonZero(crop)
+            cut = self._colours.split(blob, image[y:y + h, x:x + w],
+                                      median_area=float(np.median(areas)) if len(areas) >= 3 else np.inf)
+            if cut is not blob:  # the box tightened around what is left
+                bx, by, w, h = cv2.boundingRect(cut)
+                blob, x, y = cut[by:by + h, bx:bx + w], x + bx, y + by
         if self.settings.fill_holes is not None:
-            crop = filled(crop, self.settings.fill_holes)
-            area = cv2.countNonZero(crop)
-        return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, area, used_prior,
+            blob = filled(blob, self.settings.fill_holes)
+        m = self.settings.margin_px
+        x0, y0 = max(0, x - m), max(0, y - m)  # the crop: the box and the margin, in the frame
+        x1, y1 = min(size[0], x + w + m), min(size[1], y + h + m)
+        crop = cv2.copyMakeBorder(blob, y - y0, y1 - y - h, x - x0, x1 - x - w, cv2.BORDER_CONSTANT, value=0)
+        return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, cv2.countNonZero(blob), used_prior,
                             len(candidates))
 
     @staticmethod
@@ -904,7 +900,7 @@ class Segmenter:
         self._track_missed += 1
         if self._track_missed > self.settings.track_frames:
             self._track = None
-            self._heights.clear()
+            self._walker.clear()
         return Segmentation.nothing(size, used_prior, n)
 
     def _continuing(self, boxes: dict[int, tuple[int, int, int, int]]) -> int | None:
@@ -913,7 +909,7 @@ class Segmenter:
         The score is the overlap (the intersection with the grown box over the
         union of the candidate's and the tracked box's own areas, not
         :func:`box_iou` with the grown box) times the ratio of the candidate's
-        height to the walker's median height over its last ``track_frames``
+        height to the walker's median height over its last ``track_frames`` (at least 3)
         detections (the smaller over the larger). By overlap alone, a walker torn
         in two by clothing the colour of the ground lost the track to the
         piece passers-by had joined, and the track then went on with them
@@ -925,7 +921,7 @@ class Segmenter:
         grow = self.settings.track_grow * (1 + self._track_missed)
         gx, gy = x - grow * w, y - grow * h
         gw, gh = w * (1 + 2 * grow), h * (1 + 2 * grow)
-        tall = float(np.median(self._heights)) if self._heights else float(h)
+        tall = float(np.median([t for t, _ in self._walker])) if self._walker else float(h)
         best, best_score = None, 0.0
         for k, (bx, by, bw, bh) in boxes.items():
             ix = max(0.0, min(gx + gw, bx + bw) - max(gx, bx))

@@ -81,6 +81,15 @@ class SyncConfig:
         0.65-2.05, and 0.41-0.51 for offsets the walk found wrong anyway (14
         frames of 2.8 s clips), or 0.004-0.07 for whole numbers of half cycles,
         which the walk cannot tell from zero (docs/SYNC.md).
+    together_cadence : float
+        For such recordings, the largest disagreement of the cameras' cadences
+        (fastest over slowest, minus one) at which the walk may still move them.
+        Each camera's clock is its own phase track; when two of them run more
+        than this apart, at least one is wrong (spoiled silhouettes, a
+        left/right confusion) and so is any offset found from it. On 3 s
+        composite walks (docs/SYNC.md) every synchronised rig that the walk
+        moved had clocks 17-86 % apart, except one; clean silhouettes agree
+        within a few percent.
     min_fps : float
         Cameras slower than this are reported ``ambiguous`` whatever the margin:
         a gait cycle of about a second needs some eight frames to be followed.
@@ -100,6 +109,7 @@ class SyncConfig:
     unexplained: float = 0.1
     min_margin: float = 0.02
     together_margin: float = 0.5
+    together_cadence: float = 0.1
     margin_span_s: float = 6.0
     min_fps: float = 8.0
     hints: dict[str, float] | None = None
@@ -447,6 +457,8 @@ def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: Ap
     as the best offsets found (within ``config.min_margin``; ``config.together_margin`` when
     the recordings are also equally long, as a rig started together makes them), the index
     pairing stands: cameras that were started together stay as they were; the result says so.
+    Equally long recordings whose cameras' cadences disagree by more than
+    ``config.together_cadence`` keep the index pairing too: their clocks cannot be trusted.
     """
     config = config or SyncConfig()
     clocks = {}
@@ -479,15 +491,28 @@ def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: Ap
         index_cost = index_pairing_cost(clocks, config)
         together = len({len(t.silhouettes) for t in tracks.values()}) == 1
         margin = config.together_margin if together else config.min_margin
-        if index_cost - result.best_cost < margin:
+        cadences = sorted(_cadence(clk) for clk in seen.values())
+        spread = cadences[-1] / cadences[0] - 1 if len(cadences) > 1 else 0.0
+        if together and spread > config.together_cadence:
+            result = _by_index(result, tracks, index_cost, [
+                f"the videos have the same frame rate and length and the cameras' walks disagree on the "
+                f"cadence ({cadences[0]:.2f}-{cadences[-1]:.2f} cycles/s, {spread:.0%} apart, more than "
+                f"{config.together_cadence:.0%}): the walk cannot move cameras started together; paired by "
+                "index"])
+        elif index_cost - result.best_cost < margin:
             why = "the videos have the same frame rate and length, " if together else ""
-            result = SyncResult(result.reference, {c: 0.0 for c in tracks}, result.fps,
-                                {c: np.nan for c in tracks}, result.margin, {c: False for c in tracks},
-                                result.notes + [f"{why}pairing frames by index fits the walk within {margin} "
-                                                "of the best offsets: kept (the cameras look started together)"],
-                                best_cost=index_cost)
+            result = _by_index(result, tracks, index_cost, [
+                f"{why}pairing frames by index fits the walk within {margin} of the best offsets: kept "
+                "(the cameras look started together)"])
     aligned, times = align_tracks(tracks, result)
     return aligned, float(1.0 / np.median(np.diff(times))) if len(times) > 1 else min(fps.values()), result
+
+
+def _by_index(result: SyncResult, tracks: dict[str, CameraTrack], index_cost: float, notes: list[str]
+              ) -> SyncResult:
+    """``result`` with every offset zero (frames paired by index), saying why."""
+    return SyncResult(result.reference, {c: 0.0 for c in tracks}, result.fps, {c: np.nan for c in tracks},
+                      result.margin, {c: False for c in tracks}, result.notes + notes, best_cost=index_cost)
 
 
 def index_pairing_cost(clocks: dict[str, CameraClock], config: SyncConfig) -> float:
