@@ -37,7 +37,7 @@ from .hmm import posterior, viterbi
 from .pipeline import CameraTrack, EstimateConfig, estimate_walk
 
 __all__ = ["CameraClock", "SyncConfig", "SyncResult", "align_tracks", "camera_clock", "index_pairing_cost",
-           "sync_tracks", "synchronize"]
+           "sync_tracks", "synchronize", "timeline_frames"]
 
 
 @dataclass(frozen=True)
@@ -415,33 +415,46 @@ def _standard_error(ref: CameraClock, cam: CameraClock, offset: float, cadence: 
     return float(np.std(r) / cadence / np.sqrt(n_eff))
 
 
-def align_tracks(tracks: dict[str, CameraTrack], sync: SyncResult, *, fps: float | None = None
-                 ) -> tuple[dict[str, CameraTrack], np.ndarray]:
-    """The tracks on one timeline: frames paired by time, not by index.
+def timeline_frames(lengths: dict[str, int], sync: SyncResult, *, fps: float | None = None
+                    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Each camera's own frame at each instant of one timeline, and the timeline's times.
 
     The timeline runs at ``fps`` (default the slowest camera's rate, so that no
     frame is used twice) on the reference's clock, from the earliest camera's
-    first frame to the latest's last; each camera gives its nearest frame within
-    half of its own frame interval, or None. Returns the aligned tracks and the
-    timeline's times (s, reference clock).
+    first frame to the latest's last; each camera of ``lengths`` (its frame
+    count) gives its nearest frame within half of its own frame interval, or -1.
+    Cameras without an offset are left out. Anything indexed by a camera's own
+    frames (silhouettes, a detector's keypoints) goes on the timeline through
+    these indices.
     """
-    rate = fps or min(sync.fps[c] for c in tracks)
-    usable = [c for c in tracks if np.isfinite(sync.offsets_s.get(c, np.nan))]
+    rate = fps or min(sync.fps[c] for c in lengths)
+    usable = [c for c in lengths if np.isfinite(sync.offsets_s.get(c, np.nan))]
     if not usable:
         raise ValueError("no camera has an offset")
     start = min(sync.offsets_s[c] for c in usable)
-    stop = max(sync.offsets_s[c] + (len(tracks[c].silhouettes) - 1) / sync.fps[c] for c in usable)
+    stop = max(sync.offsets_s[c] + (lengths[c] - 1) / sync.fps[c] for c in usable)
     times = start + np.arange(int(np.floor((stop - start) * rate + 1e-9)) + 1) / rate
-    out = {}
+    frames = {}
     for name in usable:
-        t = tracks[name]
-        f = sync.fps[name]
-        pos = (times - sync.offsets_s[name]) * f
+        pos = (times - sync.offsets_s[name]) * sync.fps[name]
         k = np.rint(pos).astype(int)
-        ok = (k >= 0) & (k < len(t.silhouettes)) & (np.abs(pos - k) <= 0.5 + 1e-9)
-        k = np.clip(k, 0, len(t.silhouettes) - 1)
-        sils = [t.silhouettes[j] if good else None for j, good in zip(k, ok)]
-        boxes = np.where(ok[:, None], np.asarray(t.boxes, float)[k], np.nan)
+        ok = (k >= 0) & (k < lengths[name]) & (np.abs(pos - k) <= 0.5 + 1e-9)
+        frames[name] = np.where(ok, k, -1)
+    return frames, times
+
+
+def align_tracks(tracks: dict[str, CameraTrack], sync: SyncResult, *, fps: float | None = None
+                 ) -> tuple[dict[str, CameraTrack], np.ndarray]:
+    """The tracks on one timeline (:func:`timeline_frames`): frames paired by time, not by index.
+
+    Returns the aligned tracks and the timeline's times (s, reference clock).
+    """
+    frames, times = timeline_frames({c: len(t.silhouettes) for c, t in tracks.items()}, sync, fps=fps)
+    out = {}
+    for name, k in frames.items():
+        t = tracks[name]
+        sils = [t.silhouettes[j] if j >= 0 else None for j in k]
+        boxes = np.where((k >= 0)[:, None], np.asarray(t.boxes, float)[np.maximum(k, 0)], np.nan)
         out[name] = CameraTrack(sils, boxes, t.full_frame, t.image_size)
     return out, times
 

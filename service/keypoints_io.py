@@ -33,8 +33,8 @@ import numpy as np
 from estimator.joints import N_JOINTS
 from estimator.keypoints import SKELETONS, detect_skeleton, keypoints_to_joints, track_person
 
-__all__ = ["KeypointError", "Keypoints", "camera_key", "is_tracks_document", "match_cameras", "read_keypoints",
-           "video_sizes"]
+__all__ = ["KeypointError", "Keypoints", "camera_key", "is_tracks_document", "keypoints_on", "keypoints_on_timeline",
+           "match_cameras", "read_keypoints", "video_sizes"]
 
 
 class KeypointError(ValueError):
@@ -243,6 +243,17 @@ def keypoints_on(kp: Keypoints, cameras: Sequence[str], n_frames: int) -> dict[s
     if len(out) < 2:
         raise KeypointError(f"cameras {kp.cameras} match fewer than two of the recording's ({', '.join(cameras)})")
     return out
+
+
+def keypoints_on_timeline(kp: Keypoints, frames: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """:func:`keypoints_on` for recordings put on one timeline: ``frames`` gives, per camera, its
+    own frame at each frame of the timeline (-1 where it has none;
+    :func:`estimator.sync.timeline_frames`), as the keypoints are numbered by each video's
+    own frames. Returns per matched camera (len(timeline), 13, 2), NaN where missed."""
+    if not frames:
+        raise KeypointError("the recording has no cameras")
+    own = keypoints_on(kp, list(frames), max(int(k.max(initial=-1)) + 1 for k in frames.values()))
+    return {c: np.where((frames[c] >= 0)[:, None, None], j[np.maximum(frames[c], 0)], np.nan) for c, j in own.items()}
 
 
 def video_sizes(root: Path, cameras: Sequence[str]) -> dict[str, tuple[tuple[int, int], Path]] | None:

@@ -47,13 +47,13 @@ from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraObservation, CameraTrack, PhaseRefinement, WalkEstimate, crop_to_box,
                                 decode_walk, estimable_frames, observe_cameras, pad_tracks, refine_cameras,
-                                track_length, tracks_from_sequence)
+                                tracks_from_sequence)
 from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
 from .intake import UploadError, list_videos, stage_upload
-from .keypoints_io import keypoints_on, read_keypoints
+from .keypoints_io import keypoints_on_timeline, read_keypoints
 from .jobs import JobGone, JobStore
 
 __all__ = [
@@ -604,6 +604,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             seq = read_sequence(input_dir)
             store.report(job_id, 0.3, "building tracks")
             tracks = tracks_from_sequence(seq)
+            timeline = {c: np.arange(seq.n_frames) for c in seq.cameras}
             image_size = {c: tuple(seq.image_size) for c in seq.cameras}
             fps = seq.fps
             truth = seq.truth
@@ -617,7 +618,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
                 options=options)
             segmentations, image_size, decoding = info["segmentations"], info["sizes"], info["decoding"]
             store.report(job_id, 0.45, "synchronising the videos")
-            tracks, fps, sync = sync_videos(tracks, rates, _get_model(), options.get("sync", "auto"))
+            tracks, fps, sync, timeline = sync_videos(tracks, rates, _get_model(), options.get("sync", "auto"))
             truth = None
         else:
             raise ValueError(f"unknown job kind {kind!r}")
@@ -629,8 +630,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         rig = RigConfig(height_m=float(options.get("height_m", 1.75)))
         keypoints = None
         if options.get("keypoints_dir"):  # a detector's keypoints calibrate the rig (checked when staged)
-            keypoints = keypoints_on(read_keypoints([Path(options["keypoints_dir"])]), list(tracks),
-                                     track_length(tracks))
+            keypoints = keypoints_on_timeline(read_keypoints([Path(options["keypoints_dir"])]), timeline)
             posture, rig = None, RigConfig.for_keypoints(height_m=rig.height_m)
         walk = segment_walk(tracks, model, **options.get("windows", {}), posture=posture, rig=rig,
                             keypoints=keypoints,
@@ -763,18 +763,23 @@ def video_tracks(folder: Path, *, warmup: int | None, report, options: dict[str,
 
 
 def sync_videos(tracks: dict[str, CameraTrack], rates: dict[str, float], model: AppearanceModel, mode: str
-                ) -> tuple[dict[str, CameraTrack], float, dict[str, Any] | None]:
+                ) -> tuple[dict[str, CameraTrack], float, dict[str, Any] | None, dict[str, np.ndarray]]:
     """Recorded videos on one timeline (``mode`` "auto": offsets from the walk,
     :func:`estimator.sync.sync_tracks`; "off": frames paired by index, the first video's
-    rate): the tracks (padded), the timeline's rate and the result's ``sync`` block."""
+    rate): the tracks (padded), the timeline's rate, the result's ``sync`` block and each
+    camera's own frame at each frame of the timeline (-1 where it has none;
+    :func:`estimator.sync.timeline_frames`), by which a detector's keypoints follow."""
     if mode not in ("auto", "off"):
         raise ValueError(f"sync must be 'auto' or 'off', got {mode!r}")
+    lengths = {c: len(t.silhouettes) for c, t in tracks.items()}
     if mode == "off" or len(tracks) < 2:
-        return pad_tracks(tracks), next(iter(rates.values()), 15.0), None
-    from estimator.sync import sync_tracks
+        n = max(lengths.values(), default=0)
+        return (pad_tracks(tracks), next(iter(rates.values()), 15.0), None,
+                {c: np.where(np.arange(n) < m, np.arange(n), -1) for c, m in lengths.items()})
+    from estimator.sync import sync_tracks, timeline_frames
 
     aligned, rate, result = sync_tracks(tracks, rates, model)
-    return pad_tracks(aligned), rate, result.to_dict()
+    return pad_tracks(aligned), rate, result.to_dict(), timeline_frames(lengths, result)[0]
 
 
 def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any] | None = None

@@ -453,40 +453,25 @@ def test_posecal_estimate_takes_a_detectors_keypoints(walk, small_model_path, tm
                  "--rounds", "2"]) == 2
 
 
-def test_posecal_estimate_takes_keypoints_of_videos_with_sync_off(small_model_path, tmp_path, capsys):
+def test_posecal_estimate_takes_keypoints_of_videos(small_model_path, tmp_path):
     """Videos (one per camera, the agents' background subtraction) with keypoints numbered by each video's
-    frames: with ``--sync off`` frame k of the keypoints is frame k of the video; ``--sync auto`` is refused."""
-    import cv2
-
-    from capture.synthetic import SyntheticSource
+    frames, with no flag (the keypoints follow their video onto the timeline the walk synchronises, here
+    the index pairing of a rig started together) and with ``--sync off``."""
     from service.cli import main
-    from test_keypoints import _layout
+    from test_keypoints import write_walk_videos
 
     folder, pose = tmp_path / "videos", tmp_path / "pose"
     folder.mkdir()
     views = (("c0", 60.0), ("c1", 150.0))
-    rng = np.random.default_rng(5)
-    for cam, az in views:
-        src = SyntheticSource.from_spec(f"seed=3,azimuth={az},elevation=10,empty=12,pass=30,gap=0,size=320x240")
-        writer = cv2.VideoWriter(str(folder / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 15, (320, 240))
-        (pose / f"{cam}_json").mkdir(parents=True)
-        for i in range(42):
-            writer.write(src.render(i).image)
-            truth = src.truth(i)
-            people = []
-            if truth is not None:
-                _, joints2d = src._renderer.render(truth["joints"], src.camera)
-                noisy = joints2d + rng.normal(0, 1.0, joints2d.shape)  # a detector's noise, pixels
-                people = [{"pose_keypoints_2d": _layout("BODY_25", noisy).ravel().round(2).tolist()}]
-            (pose / f"{cam}_json" / f"{cam}_{i:012d}_keypoints.json").write_text(json.dumps({"people": people}))
-        writer.release()
-        src.close()
+    write_walk_videos(folder, views, 42, pose=pose)
     out = tmp_path / "r.json"
     args = ["estimate", str(folder), "--out", str(out), "--model", small_model_path, "--warmup", "10",
             "--keypoints", str(pose)]
-    assert main(args) == 2 and "--sync off" in capsys.readouterr().err
-    assert main([*args, "--sync", "off"]) == 0
-    rig = json.loads(out.read_text())["rig"]
     truth = rotations_from_viewpoints([(az, 10.0) for _, az in views])
-    assert rig["source"] == "self-calibration"
-    assert geodesic_deg(np.array(rig["cameras"]["c1"]["rotation"]), truth[1] @ truth[0].T) < 3.0, rig
+    for flags in ([], ["--sync", "off"]):
+        assert main([*args, *flags]) == 0
+        result = json.loads(out.read_text())
+        assert ("sync" in result) == (not flags)
+        rig = result["rig"]
+        assert rig["source"] == "self-calibration" and any("detector's keypoints" in n for n in result["notes"])
+        assert geodesic_deg(np.array(rig["cameras"]["c1"]["rotation"]), truth[1] @ truth[0].T) < 3.0, rig

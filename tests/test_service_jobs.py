@@ -77,23 +77,13 @@ def test_job_round_trip_and_lifecycle(tmp_path, good_zip):
         _check_video_job(srv, tmp_path)
 
 
-def _videos(tmp: Path, frames: int = 36) -> list:
-    """One small MJPG video per camera of the synthetic walker (12 empty frames first)."""
-    import cv2
+def _videos(tmp: Path, frames: int = 36, pose: Path | None = None) -> list:
+    """One small MJPG video per camera of the synthetic walker (12 empty frames first), as upload fields;
+    with ``pose``, a detector's keypoints of them there (``write_walk_videos``)."""
+    from test_keypoints import write_walk_videos
 
-    from capture.synthetic import SyntheticSource
-
-    files = []
-    for cam, az in zip(("c0", "c1"), TRUTH):
-        src = SyntheticSource.from_spec(f"seed=3,azimuth={az},elevation=10,empty=12,pass=30,gap=0,size=320x240")
-        path = tmp / f"{cam}.avi"
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 15, (320, 240))
-        for i in range(frames):
-            writer.write(src.render(i).image)
-        writer.release()
-        src.close()
-        files.append(("files", (path.name, path.read_bytes(), "video/x-msvideo")))
-    return files
+    return [("files", (p.name, p.read_bytes(), "video/x-msvideo"))
+            for p in write_walk_videos(tmp, zip(("c0", "c1"), TRUTH), frames, pose=pose)]
 
 
 def _check_video_job(srv: ServerThread, tmp_path: Path) -> None:
@@ -114,6 +104,28 @@ def _check_video_job(srv: ServerThread, tmp_path: Path) -> None:
     refined = _read_zip_sequence(srv.client.get(result["refined"]["silhouettes"]), tmp_path / "refined")
     assert refined.cameras == ["c0", "c1"] and refined.n_frames == 36
     assert sum(s is not None for s in refined.silhouettes["c0"]) >= 20
+
+
+def test_a_video_job_takes_a_detectors_keypoints_numbered_by_each_video(tmp_path):
+    """Videos with keypoints in each video's own frame numbers and the default sync=auto: the keypoints
+    go onto the job's timeline with their video's frames and calibrate its rig (within 3 deg)."""
+    import numpy as np
+
+    from estimator._selfcal_core import geodesic_deg
+    from estimator.rig import rotations_from_viewpoints
+
+    files = _videos(tmp_path, 42, pose=tmp_path / "pose")
+    with ServerThread(make_settings(tmp_path / "srv")) as srv:
+        r = srv.client.post("/v1/jobs", data={"warmup": "10"}, files=[
+            *files, ("keypoints", ("pose.zip", _zip_of(tmp_path / "pose"), "application/zip"))])
+        assert r.status_code == 202, r.text
+        done = _done(srv, r.json()["id"], timeout=60)
+        assert done["state"] == "done", done
+        result = srv.client.get(f"/v1/jobs/{done['id']}/result").json()
+    assert "sync" in result and any("detector's keypoints" in n for n in result["notes"]), result["notes"]
+    assert result["rig"]["source"] == "self-calibration"
+    truth = rotations_from_viewpoints([(az, 10.0) for az in TRUTH])
+    assert geodesic_deg(np.array(result["rig"]["cameras"]["c1"]["rotation"]), truth[1] @ truth[0].T) < 3.0
 
 
 def _read_zip_sequence(response, folder: Path):

@@ -11,7 +11,8 @@ import pytest
 
 from estimator.hmm import PhaseHMM
 from estimator.pipeline import CameraTrack, tracks_from_sequence
-from estimator.sync import CameraClock, SyncConfig, SyncResult, align_tracks, camera_clock, synchronize
+from estimator.sync import (CameraClock, SyncConfig, SyncResult, align_tracks, camera_clock, synchronize,
+                            timeline_frames)
 from estimator.synth import SynthSpec, synthesize, synthesize_recordings
 from service.cli import main
 
@@ -267,3 +268,30 @@ def test_cameras_started_together_whose_clocks_disagree_stay_paired_by_index(sma
     _, _, res = sync_tracks(tracks, rates, small)
     assert all(o == 0.0 for o in res.offsets_s.values())
     assert "disagree on the cadence" in res.notes[-1], res.notes
+
+
+def test_a_detectors_keypoints_follow_their_video_onto_the_timeline():
+    """Keypoints are numbered by each video's own frames; put on the common timeline through the same
+    frame indices as the silhouettes (``timeline_frames``), frame i of the timeline holds, per camera,
+    the keypoints of the video frame shown there: here b started 0.4 s after a and runs at 30 fps."""
+    from service.keypoints_io import Keypoints, keypoints_on_timeline
+
+    sync = SyncResult("a", {"a": 0.0, "b": 0.4}, {"a": 15.0, "b": 30.0}, {"a": 0.0, "b": 0.0},
+                      {"a": np.inf, "b": 1.0}, {"a": False, "b": False})
+    frames, times = timeline_frames({"a": 30, "b": 60}, sync)
+    assert len(times) == 36 and times[0] == 0.0  # 0 .. 2.4 s at 15 fps (b ends at 0.4 + 59/30 s)
+    assert frames["a"][:3].tolist() == [0, 1, 2] and frames["a"][30:].tolist() == [-1] * 6
+    assert frames["b"][:6].tolist() == [-1] * 6 and frames["b"][6:9].tolist() == [0, 2, 4]
+    # Each camera's keypoints carry their own frame number in x, so where they landed shows.
+    own = np.arange(60, dtype=float)[None, :, None, None] * np.array([1.0, 0.0])
+    kp = Keypoints(["a", "b"], np.broadcast_to(own, (2, 60, 13, 2)).copy(), np.ones((2, 60, 13)),
+                   list(range(60)), {"a": "BODY_25", "b": "BODY_25"}, "openpose")
+    on = keypoints_on_timeline(kp, frames)
+    assert on["a"].shape == on["b"].shape == (36, 13, 2)
+    np.testing.assert_array_equal(on["a"][:30, 0, 0], np.arange(30))
+    assert np.isnan(on["a"][30:]).all() and np.isnan(on["b"][:6]).all()
+    np.testing.assert_array_equal(on["b"][6:, 0, 0], 2 * np.arange(30))
+    tracks = {c: CameraTrack([np.full((4, 2), 255, np.uint8)] * n, np.tile([0.0, 0, 2, 4], (n, 1)), True, (64, 48))
+              for c, n in (("a", 30), ("b", 60))}
+    aligned, _ = align_tracks(tracks, sync)  # the silhouettes took the same frames
+    assert [s is None for s in aligned["b"].silhouettes] == (frames["b"] < 0).tolist()

@@ -53,9 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keypoints", metavar="PATH",
                    help="a detector's 2D keypoints of the same recording (OpenPose / Pose2Sim folders, MMPose or "
                         "MediaPipe files, as posecal selfcal reads them; frame numbers = the recording's frame "
-                        "indices, cameras matched by name): the rig and the person's posture come from them "
-                        "instead of from the postures measured on the silhouettes, which are then not measured "
-                        "(videos: with --sync off)")
+                        "indices, for videos each video's own, put on the common timeline as its frames are; "
+                        "cameras matched by name): the rig and the person's posture come from them instead of "
+                        "from the postures measured on the silhouettes, which are then not measured")
     p.add_argument("--rounds", type=int, default=1, metavar="N",
                    help="rounds of posture and calibration (Wang-Leow §5; default 1): each further round "
                         "measures the 3D posture on all views at once with the calibrated cameras and "
@@ -92,9 +92,6 @@ def run(args: argparse.Namespace) -> int:
     if args.keypoints is not None:
         if args.rounds != 1:
             raise CliError("--rounds refines the postures measured on the silhouettes; not with --keypoints")
-        if videos and args.sync != "off":
-            raise CliError("--keypoints with videos needs --sync off: the keypoints' frame numbers are each "
-                           "video's own, which --sync auto re-times")
         keypoints = _read_keypoints(args.keypoints)
         rig = RigConfig.for_keypoints(height_m=args.height)
     sequence = None
@@ -111,10 +108,11 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             if videos:
-                tracks, info, decoding = _video_tracks(args, videos, model, lambda f: progress(0.5 * f))
+                tracks, info, decoding, timeline = _video_tracks(args, videos, model, lambda f: progress(0.5 * f))
             else:
                 tracks = tracks_from_sequence(sequence)
-            per_camera = None if keypoints is None else _keypoints_on(keypoints, tracks)
+                timeline = {c: np.arange(sequence.n_frames) for c in tracks}
+            per_camera = None if keypoints is None else _keypoints_on(keypoints, timeline)
             walk = segment_walk(tracks, model, length=args.window, hop=args.hop,
                                 posture=MNBPConfig() if args.posture == "mnbp" and keypoints is None else None,
                                 rig=rig, keypoints=per_camera,
@@ -158,13 +156,13 @@ def _read_keypoints(path: str):
         raise CliError(f"--keypoints: {exc}") from None
 
 
-def _keypoints_on(kp, tracks: dict) -> dict[str, np.ndarray]:
-    """Per recording camera, its keypoints on the recording's frames
-    (:func:`service.keypoints_io.keypoints_on`); CliError when no camera or no frame matches."""
-    from service.keypoints_io import KeypointError, keypoints_on
+def _keypoints_on(kp, timeline: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per recording camera, its keypoints on the recording's timeline
+    (:func:`service.keypoints_io.keypoints_on_timeline`); CliError when no camera or no frame matches."""
+    from service.keypoints_io import KeypointError, keypoints_on_timeline
 
     try:
-        return keypoints_on(kp, list(tracks), max(len(t.silhouettes) for t in tracks.values()))
+        return keypoints_on_timeline(kp, timeline)
     except KeypointError as exc:
         raise CliError(f"--keypoints: {exc}") from None
 
@@ -196,15 +194,15 @@ def _videos(path: str) -> list[Path]:
 
 def _video_tracks(args: argparse.Namespace, videos: list[Path], model, progress):
     """Each video's silhouettes (background subtraction, as REST jobs do) as camera tracks on one
-    timeline (``--sync``), the input's ``sequence`` summary (with the ``sync`` block) and each
-    camera's decoded/announced frame counts."""
+    timeline (``--sync``), the input's ``sequence`` summary (with the ``sync`` block), each
+    camera's decoded/announced frame counts and its own frame at each frame of the timeline."""
     from service.worker import sync_videos, video_tracks
 
     tracks, rates, info = video_tracks(Path(args.sequence), warmup=args.warmup,
                                        report=lambda f, _: progress(0.9 * f),
                                        options={"windows": {"length": args.window}})
     try:
-        tracks, fps, sync = sync_videos(tracks, rates, model, args.sync)
+        tracks, fps, sync, timeline = sync_videos(tracks, rates, model, args.sync)
     except ValueError as exc:  # a camera without the walker
         raise CliFailure(f"{args.sequence}: synchronising the videos: {exc}") from None
     progress(1.0)
@@ -212,7 +210,7 @@ def _video_tracks(args: argparse.Namespace, videos: list[Path], model, progress)
     size = next(iter(info["sizes"].values()))
     summary = {"fps": fps, "image_size": list(size), "frames": frames, "videos": [p.name for p in videos],
                "warmup": info["warmup"], **({"sync": sync} if sync is not None else {})}
-    return tracks, summary, info["decoding"]
+    return tracks, summary, info["decoding"], timeline
 
 
 def _summary(result: dict, shape: tuple[int, int, dict | None], where: str) -> None:

@@ -59,8 +59,9 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
                keypoints: Annotated[UploadFile | None, File(
                    description="a zip of a pose detector's 2D keypoints of the same recording (OpenPose / "
                    "Pose2Sim <camera>_json folders, or one MMPose or MediaPipe JSON per camera; frame "
-                   "numbers = the recording's frames): they calibrate the rig in place of the postures "
-                   "measured on the silhouettes (docs/POSTURE.md); videos need sync=off")] = None,
+                   "numbers = the recording's frames, for videos each video's own, put on the common "
+                   "timeline as its frames are): they calibrate the rig in place of the postures measured "
+                   "on the silhouettes (docs/POSTURE.md)")] = None,
                ) -> JobOut:
     """Validate and stage the upload, queue the job; 4xx with the reason if the upload is bad."""
     job_id = uuid.uuid4().hex
@@ -69,9 +70,6 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
         staged = stage_upload([(f.filename or "", f.file) for f in files], job_dir, settings.upload_limits())
         keypoints_dir = None
         if keypoints is not None:
-            if staged.kind == "videos" and sync != "off":
-                raise UploadError(422, "keypoints with videos need sync=off: the keypoints' frame numbers are "
-                                       "each video's own, which sync=auto re-times")
             keypoints_dir = stage_keypoints(keypoints.file, job_dir, settings.upload_limits(), staged)
     except UploadError as exc:
         shutil.rmtree(job_dir, ignore_errors=True)
