@@ -37,7 +37,7 @@ from .hmm import posterior, viterbi
 from .pipeline import CameraTrack, EstimateConfig, estimate_walk
 
 __all__ = ["CameraClock", "SyncConfig", "SyncResult", "align_tracks", "camera_clock", "index_pairing_cost",
-           "sync_tracks", "synchronize", "timeline_frames"]
+           "sync_tracks", "synchronize", "timeline_frames", "tracks_on_timeline"]
 
 
 @dataclass(frozen=True)
@@ -450,13 +450,18 @@ def align_tracks(tracks: dict[str, CameraTrack], sync: SyncResult, *, fps: float
     Returns the aligned tracks and the timeline's times (s, reference clock).
     """
     frames, times = timeline_frames({c: len(t.silhouettes) for c, t in tracks.items()}, sync, fps=fps)
+    return tracks_on_timeline(tracks, frames), times
+
+
+def tracks_on_timeline(tracks: dict[str, CameraTrack], frames: dict[str, np.ndarray]) -> dict[str, CameraTrack]:
+    """Each camera of ``frames`` with its own frame ``frames[c][i]`` at frame ``i`` (none where -1)."""
     out = {}
     for name, k in frames.items():
         t = tracks[name]
         sils = [t.silhouettes[j] if j >= 0 else None for j in k]
         boxes = np.where((k >= 0)[:, None], np.asarray(t.boxes, float)[np.maximum(k, 0)], np.nan)
         out[name] = CameraTrack(sils, boxes, t.full_frame, t.image_size)
-    return out, times
+    return out
 
 
 def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: AppearanceModel, *,

@@ -250,8 +250,8 @@ def keypoints_on_timeline(kp: Keypoints, frames: dict[str, np.ndarray]) -> dict[
     own frame at each frame of the timeline (-1 where it has none;
     :func:`estimator.sync.timeline_frames`), as the keypoints are numbered by each video's
     own frames. Returns per matched camera (len(timeline), 13, 2), NaN where missed."""
-    if not frames:
-        raise KeypointError("the recording has no cameras")
+    if not frames or all((k < 0).all() for k in frames.values()):
+        raise KeypointError("no camera has a frame on the recording's timeline")
     own = keypoints_on(kp, list(frames), max(int(k.max(initial=-1)) + 1 for k in frames.values()))
     return {c: np.where((frames[c] >= 0)[:, None, None], j[np.maximum(frames[c], 0)], np.nan) for c, j in own.items()}
 

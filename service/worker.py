@@ -776,10 +776,11 @@ def sync_videos(tracks: dict[str, CameraTrack], rates: dict[str, float], model: 
         n = max(lengths.values(), default=0)
         return (pad_tracks(tracks), next(iter(rates.values()), 15.0), None,
                 {c: np.where(np.arange(n) < m, np.arange(n), -1) for c, m in lengths.items()})
-    from estimator.sync import sync_tracks, timeline_frames
+    from estimator.sync import sync_tracks, timeline_frames, tracks_on_timeline
 
-    aligned, rate, result = sync_tracks(tracks, rates, model)
-    return pad_tracks(aligned), rate, result.to_dict(), timeline_frames(lengths, result)[0]
+    _, rate, result = sync_tracks(tracks, rates, model)
+    frames, _ = timeline_frames(lengths, result)  # silhouettes and keypoints take the same frames
+    return pad_tracks(tracks_on_timeline(tracks, frames)), rate, result.to_dict(), frames
 
 
 def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any] | None = None

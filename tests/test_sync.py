@@ -265,7 +265,8 @@ def test_cameras_started_together_whose_clocks_disagree_stay_paired_by_index(sma
     trusting = SyncConfig(together_cadence=np.inf, together_margin=SyncConfig().min_margin)
     _, _, moved = sync_tracks(tracks, rates, small, config=trusting)
     assert max(abs(o) for o in moved.offsets_frames().values()) > 1  # the walk alone moves a camera
-    _, _, res = sync_tracks(tracks, rates, small)
+    # The equal-length rule's margin at the general one, so that only the cadence rule can keep the pairing.
+    _, _, res = sync_tracks(tracks, rates, small, config=SyncConfig(together_margin=SyncConfig().min_margin))
     assert all(o == 0.0 for o in res.offsets_s.values())
     assert "disagree on the cadence" in res.notes[-1], res.notes
 
@@ -279,7 +280,7 @@ def test_a_detectors_keypoints_follow_their_video_onto_the_timeline():
     sync = SyncResult("a", {"a": 0.0, "b": 0.4}, {"a": 15.0, "b": 30.0}, {"a": 0.0, "b": 0.0},
                       {"a": np.inf, "b": 1.0}, {"a": False, "b": False})
     frames, times = timeline_frames({"a": 30, "b": 60}, sync)
-    assert len(times) == 36 and times[0] == 0.0  # 0 .. 2.4 s at 15 fps (b ends at 0.4 + 59/30 s)
+    assert len(times) == 36 and times[0] == 0.0  # 0 .. 2.33 s at 15 fps (b ends at 0.4 + 59/30 s)
     assert frames["a"][:3].tolist() == [0, 1, 2] and frames["a"][30:].tolist() == [-1] * 6
     assert frames["b"][:6].tolist() == [-1] * 6 and frames["b"][6:9].tolist() == [0, 2, 4]
     # Each camera's keypoints carry their own frame number in x, so where they landed shows.
@@ -295,3 +296,32 @@ def test_a_detectors_keypoints_follow_their_video_onto_the_timeline():
               for c, n in (("a", 30), ("b", 60))}
     aligned, _ = align_tracks(tracks, sync)  # the silhouettes took the same frames
     assert [s is None for s in aligned["b"].silhouettes] == (frames["b"] < 0).tolist()
+
+
+def test_keypoints_of_videos_started_apart_land_on_the_frames_their_silhouettes_do(unsynced_videos, small):
+    """Three videos started 0, 1.3 and 0.6 s into a walk, at 15, 25 and 30 fps, synchronised from the walk
+    (``sync_videos``, as jobs and ``posecal estimate`` do): at every frame of the timeline each camera's
+    silhouette and its keypoints come from the same frame of its own video."""
+    from service.keypoints_io import Keypoints, keypoints_on_timeline
+    from service.worker import sync_videos, video_tracks
+
+    folder, starts = unsynced_videos
+    tracks, rates, _ = video_tracks(folder, warmup=None, report=lambda f, s: None)
+    aligned, fps, sync, frames = sync_videos(tracks, rates, small, "auto")
+    assert fps == pytest.approx(15.0) and set(frames) == set(tracks) == set(aligned)
+    for c, k in frames.items():
+        assert len(k) == len(aligned[c].silhouettes) and k.max() < len(tracks[c].silhouettes)
+        assert all(s is (tracks[c].silhouettes[j] if j >= 0 else None) for s, j in zip(aligned[c].silhouettes, k))
+    late = max(frames, key=lambda c: starts[int(c[1:])])  # c1, started 1.3 s after c0: nothing early on
+    assert (frames[late][:15] < 0).all() and frames[late][25] >= 0
+    # Keypoints numbered by each video's own frames, carrying that number in x.
+    n = max(len(t.silhouettes) for t in tracks.values())
+    names = sorted(tracks)
+    own = np.broadcast_to(np.arange(n, dtype=float)[None, :, None, None] * np.array([1.0, 0.0]), (3, n, 13, 2))
+    kp = Keypoints(names, own.copy(), np.ones((3, n, 13)), list(range(n)), {c: "BODY_25" for c in names}, "openpose")
+    on = keypoints_on_timeline(kp, frames)
+    for c, k in frames.items():
+        np.testing.assert_array_equal(on[c][k >= 0, 0, 0], k[k >= 0])
+        assert np.isnan(on[c][k < 0]).all()
+    with pytest.raises(ValueError, match="no camera has a frame"):
+        keypoints_on_timeline(kp, {c: np.full(4, -1) for c in names})
