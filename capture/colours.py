@@ -34,9 +34,10 @@ walker's model is reset when a new track starts (another person). It learns
 from the track's first three detections whatever they hold, and from any
 blob within :data:`STABLE` of the median area: a passer-by who adds less
 than that, or who stays joined for more than about half of the detections
-the median is taken over (``SegmentSettings.track_frames``), is learned as the walker's. Measured (docs/ROBUSTNESS.md): composite IoU
-and the downstream errors with and without, and vtest.avi's reference masks
-(real people, dark clothes like most passers-by) unchanged.
+the median is taken over (``SegmentSettings.track_frames``), is learned as
+the walker's. Measured (docs/ROBUSTNESS.md): composite IoU and the
+downstream errors with and without, and vtest.avi's reference masks (real
+people, dark clothes like most passers-by) unchanged.
 """
 
 from __future__ import annotations
@@ -119,13 +120,13 @@ class ColourSplit:
         """
         inside = crop > 0
         area = int(np.count_nonzero(inside))
-        if not area:
+        cut = self.learned >= self.frames and self.others is not None
+        learn = area <= STABLE * median_area
+        if not area or not (cut or learn):
             return crop
         bins = colour_bins(patch)
-        out = crop
-        if self.learned >= self.frames and self.others is not None:
-            out = self._cut(crop, inside, bins)
-        if area <= STABLE * median_area:
+        out = self._cut(crop, inside, bins) if cut else crop
+        if learn:
             self.walker = self._mean(self.walker, _histogram(bins[inside]))
             self.learned += 1
         return out

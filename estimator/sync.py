@@ -37,7 +37,7 @@ from .hmm import posterior, viterbi
 from .pipeline import CameraTrack, EstimateConfig, estimate_walk
 
 __all__ = ["CameraClock", "SyncConfig", "SyncResult", "align_tracks", "camera_clock", "index_pairing_cost",
-           "sync_tracks", "synchronize", "timeline_frames", "tracks_on_timeline"]
+           "sync_offsets", "sync_tracks", "synchronize", "timeline_frames", "timeline_rate", "tracks_on_timeline"]
 
 
 @dataclass(frozen=True)
@@ -467,9 +467,21 @@ def tracks_on_timeline(tracks: dict[str, CameraTrack], frames: dict[str, np.ndar
 def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: AppearanceModel, *,
                 config: SyncConfig | None = None, estimate: EstimateConfig | None = None
                 ) -> tuple[dict[str, CameraTrack], float, SyncResult]:
-    """Recorded cameras synchronised from the walk (:func:`camera_clock`, :func:`synchronize`)
-    and put on one timeline (:func:`align_tracks`): the tracks, the timeline's rate, the
-    offsets.
+    """Recorded cameras synchronised from the walk (:func:`sync_offsets`) and put on one
+    timeline (:func:`align_tracks`): the tracks, the timeline's rate, the offsets."""
+    result = sync_offsets(tracks, fps, model, config=config, estimate=estimate)
+    aligned, times = align_tracks(tracks, result)
+    return aligned, timeline_rate(times, fps), result
+
+
+def timeline_rate(times: np.ndarray, fps: dict[str, float]) -> float:
+    """The rate of a timeline of :func:`timeline_frames` (the slowest of ``fps`` for a single instant)."""
+    return float(1.0 / np.median(np.diff(times))) if len(times) > 1 else min(fps.values())
+
+
+def sync_offsets(tracks: dict[str, CameraTrack], fps: dict[str, float], model: AppearanceModel, *,
+                 config: SyncConfig | None = None, estimate: EstimateConfig | None = None) -> SyncResult:
+    """Each recorded camera's offset, from the walk (:func:`camera_clock`, :func:`synchronize`).
 
     With equal frame rates, when pairing the frames by index fits the walk about as well
     as the best offsets found (within ``config.min_margin``; ``config.together_margin`` when
@@ -522,8 +534,7 @@ def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: Ap
             result = _by_index(result, tracks, index_cost, [
                 f"{why}pairing frames by index fits the walk within {margin} of the best offsets: kept "
                 "(the cameras look started together)"])
-    aligned, times = align_tracks(tracks, result)
-    return aligned, float(1.0 / np.median(np.diff(times))) if len(times) > 1 else min(fps.values()), result
+    return result
 
 
 def _by_index(result: SyncResult, tracks: dict[str, CameraTrack], index_cost: float, notes: list[str]

@@ -765,7 +765,7 @@ def video_tracks(folder: Path, *, warmup: int | None, report, options: dict[str,
 def sync_videos(tracks: dict[str, CameraTrack], rates: dict[str, float], model: AppearanceModel, mode: str
                 ) -> tuple[dict[str, CameraTrack], float, dict[str, Any] | None, dict[str, np.ndarray]]:
     """Recorded videos on one timeline (``mode`` "auto": offsets from the walk,
-    :func:`estimator.sync.sync_tracks`; "off": frames paired by index, the first video's
+    :func:`estimator.sync.sync_offsets`; "off": frames paired by index, the first video's
     rate): the tracks (padded), the timeline's rate, the result's ``sync`` block and each
     camera's own frame at each frame of the timeline (-1 where it has none;
     :func:`estimator.sync.timeline_frames`), by which a detector's keypoints follow."""
@@ -776,11 +776,11 @@ def sync_videos(tracks: dict[str, CameraTrack], rates: dict[str, float], model: 
         n = max(lengths.values(), default=0)
         return (pad_tracks(tracks), next(iter(rates.values()), 15.0), None,
                 {c: np.where(np.arange(n) < m, np.arange(n), -1) for c, m in lengths.items()})
-    from estimator.sync import sync_tracks, timeline_frames, tracks_on_timeline
+    from estimator.sync import sync_offsets, timeline_frames, timeline_rate, tracks_on_timeline
 
-    _, rate, result = sync_tracks(tracks, rates, model)
-    frames, _ = timeline_frames(lengths, result)  # silhouettes and keypoints take the same frames
-    return pad_tracks(tracks_on_timeline(tracks, frames)), rate, result.to_dict(), frames
+    result = sync_offsets(tracks, rates, model)
+    frames, times = timeline_frames(lengths, result)  # silhouettes and keypoints take the same frames
+    return pad_tracks(tracks_on_timeline(tracks, frames)), timeline_rate(times, rates), result.to_dict(), frames
 
 
 def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any] | None = None
