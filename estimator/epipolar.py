@@ -131,7 +131,8 @@ def refine_from_starts(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         start = epipolar_start(tracks, image_sizes, focal_px=focal, principal_px=principal, config=epipolar)
         if start is not None:
             starts["epipolar"] = start
-    short = config if race_nfev is None or len(starts) == 1 else replace(config, max_nfev=race_nfev, reweight=0)
+    short = (config if race_nfev is None or len(starts) == 1
+             else replace(config, max_nfev=race_nfev, reweight=0, upright=0.0))
     found = {name: perspective_refine(tracks, image_sizes, rotations, scales, links, config=short, initial=start)
              for name, start in starts.items()}
     name = min(found, key=lambda k: found[k].rmse_px if np.isfinite(found[k].rmse_px) else np.inf)

@@ -34,10 +34,21 @@ import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
 from ._selfcal_core import triangulate
+from .selfcal import UPRIGHT_PRIORS, _angle_prior, cosine_gradients
 from .bundle import levenberg_marquardt
 from .pinhole import PinholeCameras
 
-__all__ = ["KEYPOINT_REWEIGHT", "PerspectiveConfig", "PerspectiveRig", "perspective_refine"]
+__all__ = ["KEYPOINT_REWEIGHT", "KEYPOINT_UPRIGHT", "UPRIGHT_FRAME_PRIORS", "WEAK_PERSPECTIVE", "PerspectiveConfig",
+           "PerspectiveRig", "perspective_refine"]
+
+
+WEAK_PERSPECTIVE = 0.4
+"""Free focal lengths are reported as poorly determined when no camera sees the walker's depth vary by
+this share of its distance (:meth:`PerspectiveRig.depth_spread`): 0.6-0.9 at 3 m (focal lengths within
+1 %), 0.15 at 15 m (3-12 % off), 0.03-0.04 at 40-60 m (6-32 % off), and 0.21-0.32 on the Pose2Sim demo's
+real keypoints (a person balancing in place 3-4.5 m away: 4-13 % off, posterior 1.3-2.3 %; 0.3 until
+session 19 let that pass). The posterior alone missed the far cases once the scene's scale was held (1-2 %
+for focal lengths 30 % off). The upright walker's priors are used below it (:class:`PerspectiveConfig`)."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +85,17 @@ class PerspectiveConfig:
         for mNBP postures: their errors are systematic, not sparse, and 2
         rounds took the tuning walks' rotations from 2.46 / 5.98 deg to
         2.52 / 6.40 (CMU) and from 3.79 / 9.02 to 4.83 / 9.86 (stylised).
+    upright, upright_spread : float
+        Strength of the upright walker's perpendicularities in every frame
+        (:data:`UPRIGHT_FRAME_PRIORS`; 0: off), used when the first adjustment
+        finds that no camera sees the walker's depth vary by ``upright_spread``
+        of its distance (:meth:`PerspectiveRig.depth_spread`; a walker about
+        10 m away or farther): each frame's ``cos`` of each pair's angle then
+        becomes a residual weighted ``upright * sigma / tol`` (``sigma`` the
+        pixel noise read as for ``reweight``), and the adjustment runs again.
+        The scaled-orthographic adjustment has the same priors on the frames'
+        means; here they hold the body's shape where the perspective is too
+        weak to (docs/SELFCAL.md, "Cameras 15 m away").
     """
 
     focal_px: float | tuple[float, ...] | None = None
@@ -84,6 +106,14 @@ class PerspectiveConfig:
     max_nfev: int = 100
     reweight: int = 0
     robust_scale: float = 2.5
+    upright: float = 0.0
+    upright_spread: float = WEAK_PERSPECTIVE
+
+
+UPRIGHT_FRAME_PRIORS = tuple((a, b, 3.0) for a, b, _ in UPRIGHT_PRIORS)
+"""The upright walker's perpendicularities (:data:`estimator.selfcal.UPRIGHT_PRIORS`) in each frame,
+each within 3 deg: the per-frame angles of the CMU walks are 90.1 +- 3.1, 88.3 +- 0.7 and 91.0 +- 3.2
+deg (16_15; 07_05: 91.0 +- 2.9, 88.1 +- 1.0, 89.0 +- 1.6)."""
 
 
 @dataclass
@@ -115,6 +145,9 @@ class PerspectiveRig:
     median_px : float
         Median reprojection distance over the observed joints: unlike
         ``rmse_px``, blind to the few gross errors reweighting set aside.
+    upright : bool
+        The upright walker's per-frame priors were used (:attr:`PerspectiveConfig.upright`: the
+        perspective was weak).
     """
 
     rotations: np.ndarray
@@ -126,21 +159,26 @@ class PerspectiveRig:
     focal_log_std: np.ndarray | None = None
     principal_px: np.ndarray | None = None
     median_px: float = float("nan")
+    upright: bool = False
 
     def depth_spread(self) -> np.ndarray:
         """Per camera, how far the joints' depths spread over the walk (5th to 95th percentile) over
         their median: the perspective the tracks show, without which focal length and distance
         trade off (about 0.8 for a walk 3 m away, 0.2 at 15 m, 0.04 at 60 m)."""
-        x = self.joints3d.reshape(-1, 3)
-        z = np.einsum("ca,nca->cn", self.rotations[:, 2], x[:, None, :] - self.centres[None])
-        z = np.where(np.isfinite(z), z, np.nan)
-        lo, mid, hi = np.nanpercentile(z, [5, 50, 95], axis=1)
-        return (hi - lo) / mid
+        return _depth_spread(self.rotations, self.centres, self.joints3d)
 
     def cameras(self, scale: float = 1.0) -> PinholeCameras:
         """These cameras as matrices (:class:`estimator.pinhole.PinholeCameras`), their centres
         times ``scale`` (e.g. metres per unit)."""
         return PinholeCameras.from_centres(self.focal_px, self.principal_px, self.rotations, self.centres * scale)
+
+
+def _depth_spread(rotations: np.ndarray, centres: np.ndarray, joints3d: np.ndarray) -> np.ndarray:
+    """:meth:`PerspectiveRig.depth_spread` of these cameras and joints."""
+    x = joints3d.reshape(-1, 3)
+    z = np.einsum("ca,nca->cn", rotations[:, 2], x[:, None, :] - centres[None])
+    lo, mid, hi = np.nanpercentile(np.where(np.isfinite(z), z, np.nan), [5, 50, 95], axis=1)
+    return (hi - lo) / mid
 
 
 def _project(x: np.ndarray, rotvec: np.ndarray, centre: np.ndarray, focal: np.ndarray,
@@ -212,6 +250,12 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     if rotation_prior is not None:
         prior_rot = np.asarray(rotation_prior[0], float)[1:]
         prior_w = float(rotation_prior[1])
+    a_up, b_up, per_tol = _angle_prior(UPRIGHT_FRAME_PRIORS, 1.0)  # per_tol: 1 / tolerance (radians)
+    n_up = t * len(per_tol) if config.upright > 0 else 0
+    up_w = np.zeros(len(per_tol))  # set once the first adjustment has read the noise
+
+    def _upright_cosines(x):
+        return cosine_gradients(np.einsum("kj,tjd->tkd", a_up, x), np.einsum("kj,tjd->tkd", b_up, x))
 
     def unpack(p):
         rv = np.concatenate([np.zeros((1, 3)), p[:o_c].reshape(-1, 3)])
@@ -234,6 +278,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
             res.append(prior_w * _rotation_gap(rv[1:], prior_rot).ravel())
         if len(ln):
             res.append([GAUGE_WEIGHT * (lk.mean() / scale0 - 1.0)])
+        if n_up:
+            res.append((up_w * _upright_cosines(x)[0]).ravel())
         return np.concatenate(res)
 
     n_obs = len(obs_c)
@@ -265,6 +311,12 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         jac_rows.append(np.full(len(ln), n_res))
         jac_cols.append(o_l + np.arange(len(ln)))
         n_res += 1
+    if n_up:  # frame t's prior k touches that frame's joints in either vector
+        kk_up, jj_up = np.nonzero((a_up != 0) | (b_up != 0))
+        tt_up = np.repeat(np.arange(t), len(kk_up))
+        jac_rows.append(np.repeat(n_res + tt_up * len(per_tol) + np.tile(kk_up, t), 3))
+        jac_cols.append((o_x + 3 * (tt_up * j + np.tile(jj_up, t)))[:, None] + np.arange(3))
+        n_res += n_up
     jac_rows = np.concatenate(jac_rows)
     jac_cols = np.concatenate([c.ravel() for c in jac_cols])
     shape = (n_res, o_l + len(ln))
@@ -297,15 +349,26 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
             vals.append((prior_w * np.linalg.inv(_left_jacobian(gap)) @ _left_jacobian(rv[1:])).ravel())
         if len(ln):
             vals.append(np.full(len(ln), GAUGE_WEIGHT / (len(ln) * scale0)))
+        if n_up:
+            _, ga, gb = _upright_cosines(x)  # (T, K, 3) each
+            vals.append((up_w[kk_up, None] * (a_up[kk_up, jj_up, None] * ga[:, kk_up]
+                                              + b_up[kk_up, jj_up, None] * gb[:, kk_up])).ravel())
         return scipy.sparse.csr_matrix((np.concatenate(vals), (jac_rows, jac_cols)), shape=shape)
 
     sol = levenberg_marquardt(residuals, jacobian, p0, block_start=o_x, block_size=3 * j, n_blocks=t,
                               max_nfev=config.max_nfev)
     base = w_obs.copy()
-    for _ in range(config.reweight):
+    upright = False
+    if n_up:  # only where the perspective is weak
+        rv, ce, _, x, _ = unpack(sol.x)
+        upright = np.nanmax(_depth_spread(Rotation.from_rotvec(rv).as_matrix(), ce, x)) < config.upright_spread
+    for k in range(max(config.reweight, 1 if upright else 0)):
         dist = np.linalg.norm(gap(*unpack(sol.x)[:4]), axis=-1)
-        scale = max(config.robust_scale * np.median(dist) / 1.1774, 1e-6)  # 2D Gaussian: median 1.1774 sigma
-        w_obs[:] = base * np.repeat(1.0 / np.sqrt(1.0 + (dist / scale) ** 2), 2)  # Cauchy IRLS
+        noise = max(np.median(dist) / 1.1774, 1e-6)  # 2D Gaussian: median 1.1774 sigma
+        if k < config.reweight:
+            w_obs[:] = base * np.repeat(1.0 / np.sqrt(1.0 + (dist / (config.robust_scale * noise)) ** 2), 2)  # Cauchy
+        if upright:
+            up_w[:] = config.upright * noise * per_tol
         sol = levenberg_marquardt(residuals, jacobian, sol.x, block_start=o_x, block_size=3 * j, n_blocks=t,
                                   max_nfev=config.max_nfev)
     rv, ce, fo, x, _ = unpack(sol.x)
@@ -319,7 +382,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     # weights are not a noise level (with them it said 1-2 % for focal lengths 30-160 % off at 60 m).
     data = np.concatenate([np.arange(y_obs.size), 2 * n_obs + t * len(ln) + np.arange(n_f)])
     log_std = _focal_log_std(sol.jac[data], sigma, o_f, n_f) if free_focal else None
-    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal, median)
+    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal, median, bool(upright))
 
 
 KEYPOINT_REWEIGHT = 2
@@ -328,6 +391,13 @@ KEYPOINT_REWEIGHT = 2
 joint on the wrong limb); on the issue's noise (1-3 % of the walker's height, 5 % outliers, 2 % swaps;
 10 rigs 2.5-4 m away) two rounds took the camera pairs from 0.99 / 3.30 deg (median / p90) to 0.59 /
 2.61, at 15 m from 3.4 / 12.8 to 1.5 / 8.1 (docs/SELFCAL.md)."""
+
+
+KEYPOINT_UPRIGHT = 1.0
+"""Strength of the upright walker's per-frame priors (:attr:`PerspectiveConfig.upright`) for a pose
+detector's keypoints (``posecal selfcal``), used where the perspective is weak: on the issue's noise at 15 m
+(20 rigs of seed 4, not used to choose) the camera pairs went from 1.41 / 6.20 deg (median / p90) to 1.07 /
+3.96; at 2.5-4 m they are off (docs/SELFCAL.md, "Cameras 15 m away")."""
 
 
 GAUGE_WEIGHT = 1e4

@@ -1112,14 +1112,15 @@ Not for a walker who carries something or holds the arms away from the body.
 
 def _cosines(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cosine between the frame means ``va = mean_t sum_j a_ij x_tj`` and ``vb``, and its gradients."""
-    va = np.einsum("nj,tjd->nd", a, x) / x.shape[0]
-    vb = np.einsum("nj,tjd->nd", b, x) / x.shape[0]
-    na = np.maximum(np.linalg.norm(va, axis=1), 1e-12)
-    nb = np.maximum(np.linalg.norm(vb, axis=1), 1e-12)
-    c = np.sum(va * vb, axis=1) / (na * nb)
-    ga = vb / (na * nb)[:, None] - c[:, None] * va / (na**2)[:, None]
-    gb = va / (na * nb)[:, None] - c[:, None] * vb / (nb**2)[:, None]
-    return c, ga, gb
+    return cosine_gradients(np.einsum("nj,tjd->nd", a, x) / x.shape[0], np.einsum("nj,tjd->nd", b, x) / x.shape[0])
+
+
+def cosine_gradients(va: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cosine between vectors ``va`` and ``vb`` (..., 3), and its gradients with respect to each."""
+    na = np.maximum(np.linalg.norm(va, axis=-1), 1e-12)[..., None]
+    nb = np.maximum(np.linalg.norm(vb, axis=-1), 1e-12)[..., None]
+    c = np.sum(va * vb, axis=-1, keepdims=True) / (na * nb)
+    return c[..., 0], vb / (na * nb) - c * va / na**2, va / (na * nb) - c * vb / nb**2
 
 
 def _angle_prior(priors, sigma: float, strength: float = 1.0):

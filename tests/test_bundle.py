@@ -4,7 +4,7 @@
   minimum that scipy's solver reaches, on a problem with shared and blocked
   parameters;
 - the pinhole adjustment's analytic Jacobian equals finite differences
-  (free and known focal lengths, weights, the rotation prior);
+  (free and known focal lengths, weights, the rotation prior, the upright priors);
 - Cauchy reweighting resists gross outliers that plain least squares follows;
 - the rotation prior pulls cameras towards it in proportion to its weight;
 - the scene keeps its scale (scaling it changes no reprojection but shrinks the bone residuals).
@@ -79,7 +79,7 @@ def _walk(n_frames: int = 8, seed: int = 0):
 
 
 @pytest.mark.parametrize("focal", [None, 800.0])
-@pytest.mark.parametrize("extras", ["none", "weights", "prior"])
+@pytest.mark.parametrize("extras", ["none", "weights", "prior", "upright"])
 def test_pinhole_jacobian_matches_finite_differences(monkeypatch, focal, extras):
     y, rots, rng = _walk()
     y = y + rng.normal(0, 2.0, y.shape)
@@ -97,7 +97,8 @@ def test_pinhole_jacobian_matches_finite_differences(monkeypatch, focal, extras)
         kwargs["rotation_prior"] = (np.stack([Rotation.from_euler("y", a, degrees=True).as_matrix()
                                               for a in (0, 45, -60)]), 300.0)
     perspective_refine(y, np.tile([640.0, 480.0], (3, 1)), rots, np.ones(3), list(RIGID_LINKS),
-                       config=PerspectiveConfig(focal_px=focal), **kwargs)
+                       config=PerspectiveConfig(focal_px=focal, upright=1.0 if extras == "upright" else 0.0,
+                                                upright_spread=np.inf), **kwargs)
     p = seen["x0"] + rng.normal(0, 0.05, seen["x0"].size)
     analytic = seen["jac"](p).toarray()
     numeric = approx_derivative(seen["fun"], p, method="3-point")

@@ -102,6 +102,8 @@ def test_real_rig_from_real_keypoints_with_the_image_size(tmp_path):
     assert np.all(np.abs(est / focal - 1) < 0.25), est  # free focal lengths: loose on a near-still person
     assert np.abs(est / focal - 1).max() > 0.05  # measured 4-13 % off, so the note is due:
     assert any("little perspective" in n for n in doc["notes"])
+    # ... and the weak perspective turns on the upright priors (a person balancing is upright too)
+    assert doc["pinhole_upright"] is True and any("held its body upright" in n for n in doc["notes"])
 
 
 def test_pose2sims_own_calibration_file_gives_the_intrinsics(tmp_path):

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 from estimator.keypoints import SKELETONS
 from estimator.epipolar import refine_from_starts
-from estimator.perspective import KEYPOINT_REWEIGHT, PerspectiveConfig
+from estimator.perspective import KEYPOINT_REWEIGHT, KEYPOINT_UPRIGHT, WEAK_PERSPECTIVE, PerspectiveConfig
 from estimator.pinhole import floor_frame, image_height, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
@@ -411,7 +411,7 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
             sizes = np.tile(np.array(size, float), (len(cameras), 1))
         else:
             sizes = None if found is None else np.array([found[c][0] for c in cameras], float)
-        return sizes, PerspectiveConfig(focal_px=focal, reweight=KEYPOINT_REWEIGHT)
+        return sizes, PerspectiveConfig(focal_px=focal, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT)
     intrinsics = _by_camera(intrinsics, cameras)
     missing = [c for c in cameras if c not in intrinsics]
     if missing:
@@ -421,7 +421,7 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
     sizes = np.array([intrinsics[c][1] for c in cameras], float)
     return sizes, PerspectiveConfig(focal_px=tuple(float(f) for f in (mats[:, 0, 0] + mats[:, 1, 1]) / 2),
                                     principal_px=tuple((float(u), float(v)) for u, v in mats[:, :2, 2]),
-                                    reweight=KEYPOINT_REWEIGHT)
+                                    reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT)
 
 
 def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], sizes: np.ndarray,
@@ -445,11 +445,15 @@ def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], siz
                reprojection_rms_px=round(pin.rmse_px, 3),
                reprojection_median_px=round(pin.median_px, 3),
                pinhole_start=start,
+               pinhole_upright=pin.upright,
                scaled_orthographic={name: {"rotation": doc["cameras"][name]["rotation"],
                                            "scale": doc["cameras"][name]["scale"]} for name in cameras[1:]},
                reference_focal_px=float(pin.focal_px[0]),
                intrinsics="given" if config.focal_px is not None else "estimated",
-               notes=doc["notes"] + _focal_notes(pin, cameras) + fit,
+               notes=doc["notes"] + _focal_notes(pin, cameras) + fit + (
+                   ["the walker shows little perspective: the pinhole adjustment held its body upright in every "
+                    "frame (trunk across the hips and shoulders, upper arms across the shoulders)"]
+                   if pin.upright else []),
                reliable=not fit)
     cams = {}
     for c, name in enumerate(cameras[1:], 1):
@@ -467,15 +471,6 @@ FOCAL_LOG_STD = 0.03
 """A free focal length whose posterior log standard deviation exceeds this (about 3 %) is reported. The
 Laplace posterior is optimistic where the focal length is weakly determined (a walker 40 m away, 3 px of
 noise: 3 % posterior, 10-25 % actual error; docs/SELFCAL.md), hence the low threshold."""
-
-
-WEAK_PERSPECTIVE = 0.4
-"""Free focal lengths are reported as poorly determined when no camera sees the walker's depth vary by
-this share of its distance (:meth:`PerspectiveRig.depth_spread`): 0.6-0.9 at 3 m (focal lengths within
-1 %), 0.15 at 15 m (3-12 % off), 0.03-0.04 at 40-60 m (6-32 % off), and 0.21-0.32 on the Pose2Sim demo's
-real keypoints (a person balancing in place 3-4.5 m away: 4-13 % off, posterior 1.3-2.3 %; 0.3 until
-session 19 let that pass). The posterior alone missed the far cases once the scene's scale was held (1-2 %
-for focal lengths 30 % off)."""
 
 
 FIT_SHARE = 0.05
