@@ -21,7 +21,10 @@ log-normal prior around its start (``focal_sigma``: a walker 10 m away shows
 little perspective, so focal length and distance trade off), the start puts
 the walker at the depth where camera 0's start focal length gives the
 orthographic scale, and the bone lengths are free per link and shared over
-frames.
+frames. Where the walker shows too little perspective to hold its body's
+shape, the upright walker's perpendicularities can hold it, frame by frame
+(``PerspectiveConfig.upright``; Wang–Leow's scaled-orthographic adjustment
+has them on the frames' means, :data:`estimator.selfcal.UPRIGHT_PRIORS`).
 """
 
 from __future__ import annotations
@@ -48,7 +51,8 @@ this share of its distance (:meth:`PerspectiveRig.depth_spread`): 0.6-0.9 at 3 m
 1 %), 0.15 at 15 m (3-12 % off), 0.03-0.04 at 40-60 m (6-32 % off), and 0.21-0.32 on the Pose2Sim demo's
 real keypoints (a person balancing in place 3-4.5 m away: 4-13 % off, posterior 1.3-2.3 %; 0.3 until
 session 19 let that pass). The posterior alone missed the far cases once the scene's scale was held (1-2 %
-for focal lengths 30 % off). The upright walker's priors are used below it (:class:`PerspectiveConfig`)."""
+for focal lengths 30 % off). Below it the upright walker's priors hold the body's shape, where they are
+asked for (:attr:`PerspectiveConfig.upright`; ``posecal selfcal`` does, :data:`KEYPOINT_UPRIGHT`)."""
 
 
 @dataclass(frozen=True)
@@ -89,13 +93,17 @@ class PerspectiveConfig:
         Strength of the upright walker's perpendicularities in every frame
         (:data:`UPRIGHT_FRAME_PRIORS`; 0: off), used when the first adjustment
         finds that no camera sees the walker's depth vary by ``upright_spread``
-        of its distance (:meth:`PerspectiveRig.depth_spread`; a walker about
-        10 m away or farther): each frame's ``cos`` of each pair's angle then
-        becomes a residual weighted ``upright * sigma / tol`` (``sigma`` the
-        pixel noise read as for ``reweight``), and the adjustment runs again.
-        The scaled-orthographic adjustment has the same priors on the frames'
-        means; here they hold the body's shape where the perspective is too
-        weak to (docs/SELFCAL.md, "Cameras 15 m away").
+        of its distance (:meth:`PerspectiveRig.depth_spread`: a walker 15 m
+        away, or a person nearly still 3-4.5 m away; not a walk 3 m away):
+        each frame's ``cos`` of each pair's angle then becomes a residual
+        weighted ``upright * sigma / tol`` (``sigma`` the pixel noise, from the
+        median reprojection distance as 2D Gaussian), in the reweighting
+        rounds, or in one more adjustment when there are none. (The depth
+        spread is read from the first adjustment; the result's
+        :meth:`PerspectiveRig.depth_spread`, from the last, can fall on the
+        other side of the threshold.) The scaled-orthographic adjustment has
+        the same priors on the frames' means; here they hold the body's shape
+        where the perspective is too weak to (docs/SELFCAL.md, "15 m").
     """
 
     focal_px: float | tuple[float, ...] | None = None
@@ -397,7 +405,8 @@ KEYPOINT_UPRIGHT = 1.0
 """Strength of the upright walker's per-frame priors (:attr:`PerspectiveConfig.upright`) for a pose
 detector's keypoints (``posecal selfcal``), used where the perspective is weak: on the issue's noise at 15 m
 (20 rigs of seed 4, not used to choose) the camera pairs went from 1.41 / 6.20 deg (median / p90) to 1.07 /
-3.96; at 2.5-4 m they are off (docs/SELFCAL.md, "Cameras 15 m away")."""
+3.96; a walk 2.5-4 m away is not held by them (docs/SELFCAL.md, "15 m"). Not for mNBP's postures, whose
+errors are systematic (the rig from silhouettes lost with them: docs/POSTURE.md)."""
 
 
 GAUGE_WEIGHT = 1e4
