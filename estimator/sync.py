@@ -36,7 +36,7 @@ from .appearance import AppearanceModel
 from .hmm import posterior, viterbi
 from .pipeline import CameraTrack, EstimateConfig, estimate_walk
 
-__all__ = ["CameraClock", "SyncConfig", "SyncResult", "align_tracks", "camera_clock", "index_pairing_cost",
+__all__ = ["CameraClock", "SyncConfig", "SyncResult", "align_tracks", "camera_clock", "index_frames", "index_pairing_cost",
            "sync_offsets", "sync_tracks", "synchronize", "timeline_frames", "timeline_rate", "tracks_on_timeline"]
 
 
@@ -466,12 +466,22 @@ def tracks_on_timeline(tracks: dict[str, CameraTrack], frames: dict[str, np.ndar
 
 def sync_tracks(tracks: dict[str, CameraTrack], fps: dict[str, float], model: AppearanceModel, *,
                 config: SyncConfig | None = None, estimate: EstimateConfig | None = None
-                ) -> tuple[dict[str, CameraTrack], float, SyncResult]:
+                ) -> tuple[dict[str, CameraTrack], float, SyncResult, dict[str, np.ndarray]]:
     """Recorded cameras synchronised from the walk (:func:`sync_offsets`) and put on one
-    timeline (:func:`align_tracks`): the tracks, the timeline's rate, the offsets."""
+    timeline: the tracks, the timeline's rate, the offsets and each camera's own frame at each
+    frame of the timeline (:func:`timeline_frames`; what else is numbered by each camera's
+    frames, a detector's keypoints, follows them)."""
     result = sync_offsets(tracks, fps, model, config=config, estimate=estimate)
-    aligned, times = align_tracks(tracks, result)
-    return aligned, timeline_rate(times, fps), result
+    frames, times = timeline_frames({c: len(t.silhouettes) for c, t in tracks.items()}, result)
+    return tracks_on_timeline(tracks, frames), timeline_rate(times, fps), result, frames
+
+
+def index_frames(lengths: dict[str, int]) -> dict[str, np.ndarray]:
+    """Each camera's own frame at each frame of a timeline that pairs the frames by index (as
+    :func:`timeline_frames` gives them): frame ``i`` is every camera's ``i``, -1 past a camera's
+    last of ``lengths``."""
+    n = np.arange(max(lengths.values(), default=0))
+    return {c: np.where(n < m, n, -1) for c, m in lengths.items()}
 
 
 def timeline_rate(times: np.ndarray, fps: dict[str, float]) -> float:

@@ -50,6 +50,7 @@ from estimator.pipeline import (CameraObservation, CameraTrack, PhaseRefinement,
                                 tracks_from_sequence)
 from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
+from estimator.sync import index_frames, sync_tracks
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
 from .intake import UploadError, list_videos, stage_upload
@@ -604,7 +605,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             seq = read_sequence(input_dir)
             store.report(job_id, 0.3, "building tracks")
             tracks = tracks_from_sequence(seq)
-            timeline = {c: np.arange(seq.n_frames) for c in seq.cameras}
+            timeline = index_frames({c: seq.n_frames for c in seq.cameras})
             image_size = {c: tuple(seq.image_size) for c in seq.cameras}
             fps = seq.fps
             truth = seq.truth
@@ -765,22 +766,17 @@ def video_tracks(folder: Path, *, warmup: int | None, report, options: dict[str,
 def sync_videos(tracks: dict[str, CameraTrack], rates: dict[str, float], model: AppearanceModel, mode: str
                 ) -> tuple[dict[str, CameraTrack], float, dict[str, Any] | None, dict[str, np.ndarray]]:
     """Recorded videos on one timeline (``mode`` "auto": offsets from the walk,
-    :func:`estimator.sync.sync_offsets`; "off": frames paired by index, the first video's
+    :func:`estimator.sync.sync_tracks`; "off": frames paired by index, the first video's
     rate): the tracks (padded), the timeline's rate, the result's ``sync`` block and each
     camera's own frame at each frame of the timeline (-1 where it has none;
     :func:`estimator.sync.timeline_frames`), by which a detector's keypoints follow."""
     if mode not in ("auto", "off"):
         raise ValueError(f"sync must be 'auto' or 'off', got {mode!r}")
-    lengths = {c: len(t.silhouettes) for c, t in tracks.items()}
     if mode == "off" or len(tracks) < 2:
-        n = max(lengths.values(), default=0)
         return (pad_tracks(tracks), next(iter(rates.values()), 15.0), None,
-                {c: np.where(np.arange(n) < m, np.arange(n), -1) for c, m in lengths.items()})
-    from estimator.sync import sync_offsets, timeline_frames, timeline_rate, tracks_on_timeline
-
-    result = sync_offsets(tracks, rates, model)
-    frames, times = timeline_frames(lengths, result)  # silhouettes and keypoints take the same frames
-    return pad_tracks(tracks_on_timeline(tracks, frames)), timeline_rate(times, rates), result.to_dict(), frames
+                index_frames({c: len(t.silhouettes) for c, t in tracks.items()}))
+    aligned, rate, result, frames = sync_tracks(tracks, rates, model)
+    return pad_tracks(aligned), rate, result.to_dict(), frames
 
 
 def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any] | None = None

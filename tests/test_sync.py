@@ -233,15 +233,15 @@ def test_a_short_recording_of_a_rig_started_together_stays_paired_by_index(small
                                              motion=motion))
     rates = {c: 15.0 for c in tracks}
     before = SyncConfig(together_margin=SyncConfig().min_margin)  # the rule before
-    _, _, old = sync_tracks(tracks, rates, small, config=before)
+    _, _, old, _ = sync_tracks(tracks, rates, small, config=before)
     assert max(abs(o) for o in old.offsets_frames().values()) > 4
-    _, _, res = sync_tracks(tracks, rates, small)
+    _, _, res, _ = sync_tracks(tracks, rates, small)
     assert all(o == 0.0 for o in res.offsets_s.values())
     assert "same frame rate and length" in res.notes[-1]
     late = {c: CameraTrack(t.silhouettes[4:] if c == "c1" else t.silhouettes[:41],
                            t.boxes[4:] if c == "c1" else t.boxes[:41], t.full_frame, t.image_size)
             for c, t in tracks.items()}
-    _, _, res = sync_tracks(late, rates, small)
+    _, _, res, _ = sync_tracks(late, rates, small)
     # Not imposed: the walk's own answer (the small model's is half a cycle off, -4.9 frames, its own
     # ambiguity on a 2.7 s walk; the shipped model finds 4 +- 0.5 on such clips, docs/SYNC.md).
     assert abs(res.offsets_frames()["c1"]) > 3 and not any("kept" in n for n in res.notes)
@@ -263,10 +263,10 @@ def test_cameras_started_together_whose_clocks_disagree_stay_paired_by_index(sma
               for c, t in full.items()}
     rates = {c: 15.0 for c in tracks}
     trusting = SyncConfig(together_cadence=np.inf, together_margin=SyncConfig().min_margin)
-    _, _, moved = sync_tracks(tracks, rates, small, config=trusting)
+    _, _, moved, _ = sync_tracks(tracks, rates, small, config=trusting)
     assert max(abs(o) for o in moved.offsets_frames().values()) > 1  # the walk alone moves a camera
     # The equal-length rule's margin at the general one, so that only the cadence rule can keep the pairing.
-    _, _, res = sync_tracks(tracks, rates, small, config=SyncConfig(together_margin=SyncConfig().min_margin))
+    _, _, res, _ = sync_tracks(tracks, rates, small, config=SyncConfig(together_margin=SyncConfig().min_margin))
     assert all(o == 0.0 for o in res.offsets_s.values())
     assert "disagree on the cadence" in res.notes[-1], res.notes
 
@@ -325,3 +325,10 @@ def test_keypoints_of_videos_started_apart_land_on_the_frames_their_silhouettes_
         assert np.isnan(on[c][k < 0]).all()
     with pytest.raises(ValueError, match="no camera has a frame"):
         keypoints_on_timeline(kp, {c: np.full(4, -1) for c in names})
+
+
+def test_index_frames_pair_by_index_and_mark_a_shorter_camera_past_its_end():
+    from estimator.sync import index_frames
+
+    frames = index_frames({"a": 3, "b": 5})
+    assert frames["a"].tolist() == [0, 1, 2, -1, -1] and frames["b"].tolist() == [0, 1, 2, 3, 4]

@@ -76,6 +76,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from estimator.pipeline import tracks_from_sequence
     from estimator.sequence import SequenceError, read_sequence
+    from estimator.sync import index_frames
     from estimator.mnbp import MNBPConfig
     from estimator.rig import RigConfig
     from estimator.windows import segment_walk
@@ -111,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
                 tracks, info, decoding, timeline = _video_tracks(args, videos, model, lambda f: progress(0.5 * f))
             else:
                 tracks = tracks_from_sequence(sequence)
-                timeline = {c: np.arange(sequence.n_frames) for c in tracks}
+                timeline = index_frames({c: sequence.n_frames for c in tracks})
             per_camera = None if keypoints is None else _keypoints_on(keypoints, timeline)
             walk = segment_walk(tracks, model, length=args.window, hop=args.hop,
                                 posture=MNBPConfig() if args.posture == "mnbp" and keypoints is None else None,
