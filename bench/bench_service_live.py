@@ -11,10 +11,15 @@ time), subscribes to ``posecal/<rig>/estimate``, and reports:
 - the service's own figure (last frame received -> estimate published);
 - the live rig (``GET /v1/rigs/<rig>/calibration``): its source, frames, the
   windows it lags, and the time per window of its low-priority posture process
-  (``--no-live-rig`` to run without it).
+  (``--no-live-rig`` to run without it); with ``--keypoints SHARE`` every
+  frame carries the renders' joints with a pose detector's errors
+  (:func:`estimator.damage.detector_keypoints`: Gaussian noise of SHARE of the
+  walker's image height, 2 % of the joints displaced by 10-20 % of it, 5 %
+  missed), as agents with a detector send them, and the rig is calibrated
+  from those.
 
 Usage: ``python bench/bench_service_live.py [--cameras 4] [--fps 15] [--seconds 60]
-[--model PATH] [--rerun SINK]``; exit code 0 when the targets are met.
+[--model PATH] [--rerun SINK] [--keypoints SHARE]``; exit code 0 when the targets are met.
 """
 
 from __future__ import annotations
@@ -32,8 +37,9 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np
 import zenoh
 
-from capture.wire import Box, SilhouetteMessage, encode, estimate_key, silhouette_key
+from capture.wire import Box, SilhouetteMessage, encode, estimate_key, keypoints_for_frame, silhouette_key
 from capture.zconfig import build_config
+from estimator.damage import detector_keypoints
 from estimator.pipeline import crop_to_box
 from estimator.synth import SynthSpec, synthesize
 
@@ -49,7 +55,10 @@ def views(cameras: int) -> list[tuple[float, float]]:
     return [(float(a), 10.0 + 5 * (k % 3)) for k, a in enumerate(az)]
 
 
-def render(cameras: int, frames: int, seed: int) -> tuple[list[str], list[list[tuple]], tuple[int, int]]:
+def render(cameras: int, frames: int, seed: int
+           ) -> tuple[list[str], list[list[tuple]], tuple[int, int], np.ndarray]:
+    """Camera names, per camera and frame the crop and its box, the image size, and the true joints
+    (C, frames, 13, 2)."""
     az, el = zip(*views(cameras))
     seq = synthesize(SynthSpec(n_cameras=cameras, n_frames=frames, seed=seed, azimuths=az, elevations=el))
     crops = []
@@ -60,7 +69,8 @@ def render(cameras: int, frames: int, seed: int) -> tuple[list[str], list[list[t
             row.append((np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0)) if c is None
                        else (np.ascontiguousarray(c[0]), Box(*(int(v) for v in c[1]))))
         crops.append(row)
-    return seq.cameras, crops, tuple(seq.image_size)
+    joints = np.array([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras], float)
+    return seq.cameras, crops, tuple(seq.image_size), joints
 
 
 def main() -> int:
@@ -76,11 +86,16 @@ def main() -> int:
     ap.add_argument("--rerun", help="the service's Rerun sink, e.g. save:/tmp/bench.rrd (default: off)")
     ap.add_argument("--json", help="write the figures here")
     ap.add_argument("--no-live-rig", action="store_true", help="serve without the live rig's postures")
+    ap.add_argument("--keypoints", type=float, metavar="SHARE",
+                    help="send the true joints with a detector's errors (noise of SHARE of the walker's height, "
+                         "e.g. 0.02) with every frame")
     args = ap.parse_args()
 
     load_before = os.getloadavg()[0]
     t = time.perf_counter()
-    cams, crops, size = render(args.cameras, args.loop_frames, seed=5)
+    cams, crops, size, joints = render(args.cameras, args.loop_frames, seed=5)
+    if args.keypoints is not None:
+        joints = detector_keypoints(joints, np.random.default_rng(0), noise_share=args.keypoints)
     print(f"rendered {len(cams)} x {args.loop_frames} silhouettes in {time.perf_counter() - t:.1f} s")
     workdir = Path(tempfile.mkdtemp(prefix="posecal-bench-live-"))
     extra = (["--job-workers", "0"] + (["--rerun", args.rerun] if args.rerun else [])
@@ -106,11 +121,12 @@ def main() -> int:
             elif wait < -0.5 / args.fps:
                 behind += 1
             now = time.time_ns()
-            for pub, cam, row in zip(pubs, cams, crops):
+            for c, (pub, cam, row) in enumerate(zip(pubs, cams, crops)):
                 mask, box = row[k % len(row)]
-                pub.put(encode(SilhouetteMessage(rig=RIG, camera=cam, frame_index=k, capture_ns=now,
-                                                 box=box, image_size=size, epoch_ns=epoch, seq=k,
-                                                 mask=mask, sync="index", publish_ns=now)))
+                pub.put(encode(SilhouetteMessage(
+                    rig=RIG, camera=cam, frame_index=k, capture_ns=now, box=box, image_size=size, epoch_ns=epoch,
+                    seq=k, mask=mask, sync="index", publish_ns=now,
+                    keypoints=None if args.keypoints is None else keypoints_for_frame(joints[c, k % len(row)], size))))
             sent_ns[k] = time.time_ns()
         time.sleep(3.0)
         summary = svc.client.get(f"/v1/rigs/{RIG}").json()
@@ -124,14 +140,14 @@ def main() -> int:
     w = summary["windows"]
     fig = {
         "cameras": len(cams), "fps": args.fps, "seconds": args.seconds, "frames_per_camera": n,
-        "publisher_behind_frames": behind, "rerun": args.rerun,
+        "publisher_behind_frames": behind, "rerun": args.rerun, "keypoints_noise_share": args.keypoints,
         "windows": w, "frames": summary["frames"], "estimates_received": len(results),
         "latency_ms_publish_to_estimate": _pct(ext), "latency_ms_service": _pct(svc_lat),
         "estimate_ms": _pct(est_ms),
         "frames_in": sum(c["frames"] for c in summary["cameras"].values()),
         "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "live_rig": None if args.no_live_rig else {
-            "calibration": {k: cal.json()[k] for k in ("source", "frames", "windows", "lag_windows")}
+            "calibration": {k: cal.json()[k] for k in ("source", "postures", "frames", "windows", "lag_windows")}
             if cal.status_code == 200 else cal.json()["detail"],
             "rotation_error_deg": _rig_errors(cal.json(), cams, views(args.cameras))
             if cal.status_code == 200 else None,

@@ -25,7 +25,7 @@ import re
 import threading
 import time
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -39,7 +39,8 @@ from .receiver import ValidatingSubscriber
 from .scene import iou
 from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
 from .sources import Frame, FrameSource, make_source, paced
-from .wire import FeedbackMessage, Quality, SilhouetteMessage, encode, feedback_key, silhouette_key
+from .wire import (FeedbackMessage, Quality, SilhouetteMessage, encode, feedback_key, keypoints_for_frame,
+                   silhouette_key)
 
 __all__ = ["AgentSettings", "AgentStats", "CaptureView", "main"]
 
@@ -300,10 +301,14 @@ def _show(view: CaptureView, camera: str, frame: Frame, seg: Segmentation,
 
 
 def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | None = None,
-         stop: threading.Event | None = None, view: CaptureView | None = None) -> AgentStats:
+         stop: threading.Event | None = None, view: CaptureView | None = None,
+         keypoints: Mapping[int, np.ndarray] | None = None) -> AgentStats:
     """Run one agent until the source ends, ``max_frames``, ``stop`` or a signal.
 
     ``source`` overrides ``settings.source`` (benchmarks pass in-memory ones).
+    ``keypoints``: a pose detector's 13 joints (13, 2) per frame index, sent with
+    that frame's silhouette (``SilhouetteMessage.keypoints``; ``posecal capture
+    --keypoints`` reads them from a detector's files).
     ``view`` receives every ``settings.rerun_every``-th segmented frame, after it
     was published (the caller opens and closes it, as it does the Zenoh config).
     Raises :class:`~capture.sources.SourceError` if the source cannot be opened.
@@ -375,7 +380,9 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 epoch_ns=stats.epoch_ns, seq=seq,
                 mask=seg.mask, sync=sync, publish_ns=time.time_ns(),
                 n_candidates=int(seg.n_candidates),
-                quality=stats.quality() if seq % settings.quality_every == 0 else None)
+                quality=stats.quality() if seq % settings.quality_every == 0 else None,
+                keypoints=None if keypoints is None else keypoints_for_frame(keypoints.get(frame.index),
+                                                                             seg.image_size))
             seq += 1
             try:
                 publisher.put(encode(msg, png_compression=settings.png_compression))

@@ -46,6 +46,7 @@ __all__ = [
     "encode",
     "estimate_key",
     "feedback_key",
+    "keypoints_for_frame",
     "parse_key",
     "silhouette_key",
 ]
@@ -62,6 +63,7 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _MAX_CANDIDATES = 1 << 16
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _ROOT = "posecal"
+N_JOINTS = 13  # estimator.joints.N_JOINTS, not imported: the wire stays light for any subscriber
 
 Sync = Literal["index", "time"]
 T = TypeVar("T")
@@ -197,6 +199,47 @@ def _crop_fields(rig: str, camera: str, frame_index: int, box: Box,
         raise WireError(f"mask shape {mask.shape} does not match box size {(box.h, box.w)}")
 
 
+def _near_frame(points: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """Per joint: placed (no NaN) and within an image's size of the frame (a detector puts a joint
+    just outside it at times; not across the room)."""
+    size = np.asarray(image_size, float)
+    with np.errstate(invalid="ignore"):
+        return np.all(np.abs(points - size / 2) <= 1.5 * size, axis=1)
+
+
+def _check_keypoints(points: np.ndarray, image_size: tuple[int, int]) -> None:
+    """Joints of a detector: (13, 2) float64, NaN rows for missed joints, the others finite and near
+    the frame (:func:`_near_frame`)."""
+    if not isinstance(points, np.ndarray) or points.shape != (N_JOINTS, 2) or points.dtype != np.float64:
+        raise WireError(f"keypoints must be a float64 array of shape ({N_JOINTS}, 2), got "
+                        f"{getattr(points, 'dtype', type(points).__name__)} {getattr(points, 'shape', '')}")
+    missed = np.isnan(points).all(axis=1)
+    if not np.all(missed | _near_frame(points, image_size)):
+        raise WireError(f"keypoints must be NaN pairs or finite pixels within the image's size of the "
+                        f"{image_size} frame")
+
+
+def keypoints_for_frame(points: np.ndarray | None, image_size: tuple[int, int]) -> np.ndarray | None:
+    """A detector's (13, 2) joints as :class:`SilhouetteMessage` takes them: joints that are NaN or far
+    outside the frame are missed; None when none is left."""
+    if points is None:
+        return None
+    points = np.asarray(points, np.float64).reshape(N_JOINTS, 2)
+    near = _near_frame(points, image_size)
+    return np.where(near[:, None], points, np.nan) if near.any() else None
+
+
+def _keypoints(header: dict[str, Any], name: str) -> np.ndarray:
+    """``[[x, y] | null] * 13`` -> (13, 2) float, NaN where null."""
+    value = header.get(name)
+    if not isinstance(value, list) or len(value) != N_JOINTS or any(
+            v is not None and (not isinstance(v, list) or len(v) != 2
+                               or any(type(c) not in (int, float) for c in v)) for v in value):
+        raise WireError(f"header field {name!r} must be a list of {N_JOINTS} [x, y] pairs or nulls, "
+                        f"got {value!r:.80}")
+    return np.array([[np.nan, np.nan] if v is None else v for v in value], float)
+
+
 @dataclass(frozen=True, slots=True)
 class Quality:
     """A camera's segmentation quality over its agent's recent frames (``AgentStats``).
@@ -240,7 +283,11 @@ class SilhouetteMessage:
     :class:`Quality` over its recent frames, sent only every few messages
     (``AgentSettings.quality_every``): its medians over hundreds of frames move
     slowly, so computing them per frame would cost the latency path for
-    nothing, and a receiver keeps the latest.
+    nothing, and a receiver keeps the latest. ``keypoints`` are a pose
+    detector's joints in this frame, ``(13, 2)`` full-frame pixels in posecal's
+    joint order (:data:`estimator.joints.JOINT_NAMES`), NaN where missed (JSON:
+    ``null`` per joint): the service's live rig calibrates from them instead of
+    measuring postures on the silhouettes (docs/SERVICE.md, "The live rig").
     """
 
     KIND: ClassVar[int] = 1
@@ -258,9 +305,12 @@ class SilhouetteMessage:
     publish_ns: int = 0
     n_candidates: int | None = None
     quality: Quality | None = None
+    keypoints: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
+        if self.keypoints is not None:
+            _check_keypoints(self.keypoints, self.image_size)
         if self.n_candidates is not None and (type(self.n_candidates) is not int
                                               or not 0 <= self.n_candidates <= _MAX_CANDIDATES):
             raise WireError(f"n_candidates must be an integer in [0, {_MAX_CANDIDATES}], "
@@ -329,6 +379,8 @@ def _header_value(value: Any) -> Any:
         return dataclasses.astuple(value)
     if dataclasses.is_dataclass(value):
         return {k: v for k, v in dataclasses.asdict(value).items() if v is not None}
+    if isinstance(value, np.ndarray):  # keypoints: a pair per joint, null where missed
+        return [None if np.isnan(p).any() else [round(float(c), 2) for c in p] for p in value]
     return value
 
 
@@ -435,6 +487,7 @@ def decode(payload: bytes | bytearray | memoryview, *,
                                  sync=_str(header, "sync"),  # type: ignore[arg-type]
                                  publish_ns=_int(header, "publish_ns"),
                                  n_candidates=_optional(header, "n_candidates", _int),
-                                 quality=_optional(header, "quality", _quality))
+                                 quality=_optional(header, "quality", _quality),
+                                 keypoints=_optional(header, "keypoints", _keypoints))
     return FeedbackMessage(**common, issued_ns=_int(header, "issued_ns"),
                            epoch_ns=_optional(header, "epoch_ns", _int) or 0)

@@ -382,6 +382,8 @@ def refine_on_tangents(focal_px: np.ndarray, principal_px: np.ndarray, rotations
         base = tangents(x[None])[0]
         for cam in range(n_cam):
             cols, sel = np.flatnonzero(owner == cam), (pairs == cam).any(axis=1)
+            if not sel.any():  # a camera in no pair with tangents: its priors alone hold it
+                continue
             diff = (tangents(moved[cols], sel) - base[sel]) / step  # (k, P', T, 4)
             jac[:n_tan].reshape(len(pairs), -1, len(x))[np.ix_(sel, np.arange(base[0].size), cols)] = \
                 diff.reshape(len(cols), sel.sum(), -1).transpose(1, 2, 0)

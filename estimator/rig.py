@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .camera import world_to_camera_rotation
+from .epipolar import refine_from_starts
 from .frontier import FrontierConfig, outlines, refine_on_tangents
 from .gait import load_gait
 from ._selfcal_core import geodesic_deg
@@ -35,7 +36,7 @@ from .joints import JOINT_INDEX, N_JOINTS
 from .mnbp import MNBPConfig, measure_postures, posture_sequences
 from .mnbp3d import MNBP3DConfig, posture_sequence3d
 from .pipeline import WalkEstimate, concat_estimates, take_frames
-from .perspective import KEYPOINT_REWEIGHT, PerspectiveConfig, PerspectiveRig, perspective_refine
+from .perspective import KEYPOINT_REWEIGHT, KEYPOINT_UPRIGHT, PerspectiveConfig, PerspectiveRig, perspective_refine
 from .pinhole import project, triangulate
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
@@ -96,6 +97,17 @@ class RigConfig:
         The pinhole result is refused (the scaled-orthographic rig stands, with
         a note) when its reprojection error exceeds this fraction of the
         walker's image height.
+    pinhole_epipolar_start : bool
+        Also start the pinhole adjustment from the epipolar geometry of the
+        best-seen camera pair (:func:`estimator.epipolar.refine_from_starts`,
+        as ``posecal selfcal`` does) and keep the start that reprojects
+        better; only without a viewpoint prior (``pinhole_viewpoint_weight``
+        0: a detector's keypoints, :meth:`for_keypoints`) and with three
+        cameras or more. Two views keep the twofold ambiguity of their
+        relative pose, and under a detector's noise the wrong basin can
+        reproject as well: there the start fused with the viewpoints
+        decides (on 24 walks with 2-3 % noise, 2 of 9 two-camera walks
+        went 0.7-4 -> 22-27 deg with it; one 3-camera walk 35 -> 2.7).
     pinhole_focal_widths : (float, float)
         ... or when a focal length lies outside this many image widths (a far
         camera's focal length is loosely determined, 10-20 widths for a true
@@ -180,6 +192,7 @@ class RigConfig:
     pinhole: PerspectiveConfig = PerspectiveConfig()
     pinhole_max_rms: float = 0.04
     pinhole_viewpoint_weight: float = 0.01
+    pinhole_epipolar_start: bool = False
     pinhole_focal_widths: tuple[float, float] = (0.3, 50.0)
     max_frames: int = 60
     start_frames: int = 30
@@ -211,9 +224,19 @@ class RigConfig:
         towards the viewpoints' rig (its prior is for the mNBP postures' systematic errors, which
         keypoints do not share), no 3D mNBP rounds and no epipolar tangents (both correct the mNBP
         postures); measured on a test walk: 0.20 / 0.51 deg, with the tangents 1.99 / 1.47, with the
-        silhouettes' settings 1.26 / 1.16 (docs/POSTURE.md)."""
-        return cls(**{"pinhole": PerspectiveConfig(reweight=KEYPOINT_REWEIGHT), "pinhole_viewpoint_weight": 0.0,
-                      "rounds": 1, "tangents": None, **kwargs})
+        silhouettes' settings 1.26 / 1.16 (docs/POSTURE.md). The upright walker's priors where the
+        perspective is weak and the epipolar start with three cameras or more, as ``posecal selfcal``
+        (:attr:`pinhole_epipolar_start`), and no cross-check against the viewpoints' rig: keypoints
+        calibrate better than the viewpoints tell, and a camera that sees the walker across a wide
+        angle of view has viewpoints 50-70 deg from its rotation (``bench/bench_service_live.py``,
+        whose 300-frame walk crosses 100 deg views), where the check refused right rigs."""
+        return cls(**{**cls().keypoint_settings(), **kwargs})
+
+    def keypoint_settings(self) -> dict:
+        """The fields :meth:`for_keypoints` sets, to apply to another configuration with ``replace``."""
+        return {"pinhole": replace(self.pinhole, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT),
+                "pinhole_viewpoint_weight": 0.0, "pinhole_epipolar_start": True, "max_disagreement_deg": 0.0,
+                "rounds": 1, "tangents": None}
 
 
 @dataclass
@@ -573,9 +596,13 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
     if not all(n in tr and tr[n].full_frame and tr[n].image_size is not None for n in names):
         return None, "no pinhole cameras: the silhouettes are crops without a full frame"
     sizes = np.array([tr[n].image_size for n in names], float)
+    prior = _viewpoint_prior(estimate, names, views, config)
     try:
-        pin = perspective_refine(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole,
-                                 rotation_prior=_viewpoint_prior(estimate, names, views, config))
+        if config.pinhole_epipolar_start and prior is None and len(names) >= 3:
+            pin, _ = refine_from_starts(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole)
+        else:
+            pin = perspective_refine(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole,
+                                     rotation_prior=prior)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return None, f"the pinhole adjustment failed ({exc})"
     why_not = _insane(pin, estimate, names, config)
@@ -697,6 +724,12 @@ class RigAccumulator:
     :func:`calibrate_rig` on the last ``config.max_frames`` of them joined in
     time (:func:`estimator.pipeline.concat_estimates`). :meth:`reset` when a
     camera moved.
+
+    A window that comes with a detector's keypoints (two cameras or more)
+    adds every new frame instead, with nothing to measure, and the rig is
+    calibrated from the keypoints (:meth:`RigConfig.keypoint_settings`); the
+    postures kept before are dropped, and from then on windows without
+    keypoints add nothing until :meth:`reset`.
     """
 
     config: RigConfig = field(default_factory=RigConfig)  # calibrated with consecutive=False, whatever it says
@@ -704,23 +737,46 @@ class RigAccumulator:
     frames_per_window: int = 2
     _parts: list[WalkEstimate] = field(default_factory=list, repr=False)
     _indices: list[np.ndarray] = field(default_factory=list, repr=False)  # each part's frame indices
+    _keypoints: list[dict[str, np.ndarray]] | None = field(default=None, repr=False)  # per part, once detected
     _last_index: int = -1
     windows: int = 0
 
-    def add(self, estimate: WalkEstimate, first_index: int) -> int:
-        """Measure postures on new frames of a window starting at frame ``first_index``; how many."""
+    @property
+    def from_keypoints(self) -> bool:
+        """Whether the rig is calibrated from a detector's keypoints (rather than mNBP postures)."""
+        return self._keypoints is not None
+
+    def add(self, estimate: WalkEstimate, first_index: int,
+            keypoints: dict[str, np.ndarray] | None = None) -> int:
+        """Add the new frames of a window starting at frame ``first_index``: their measured postures,
+        or with ``keypoints`` (camera -> (T, 13, 2) pixels of the window's frames, NaN where missed)
+        the detector's joints; how many frames."""
         n = len(estimate.phase)
+        detected = keypoints is not None and sum(
+            bool((np.isfinite(np.asarray(k, float)).all(axis=-1).sum(axis=-1) >= 4).any())
+            for c, k in keypoints.items() if c in estimate.cameras) >= 2
+        if detected and not self.from_keypoints:  # the keypoints replace the postures measured so far
+            self.reset()
+            self._keypoints = []
         new = np.flatnonzero(first_index + np.arange(n) > self._last_index)
-        if not len(new) or self.frames_per_window < 1:
+        if not len(new) or (self.from_keypoints and not detected) or (not detected and self.frames_per_window < 1):
             return 0
-        pick = np.unique(new[np.linspace(0, len(new) - 1, min(self.frames_per_window, len(new))).round().astype(int)])
-        self._parts.append(measure_postures(take_frames(estimate, pick), self.posture))
+        if detected:  # every new frame: there is nothing to measure
+            pick = new
+            self._parts.append(take_frames(estimate, pick))
+            self._keypoints.append({c: np.asarray(k, float)[pick] for c, k in keypoints.items()})
+        else:
+            pick = np.unique(new[np.linspace(0, len(new) - 1,
+                                             min(self.frames_per_window, len(new))).round().astype(int)])
+            self._parts.append(measure_postures(take_frames(estimate, pick), self.posture))
         self._indices.append(first_index + pick)
         self._last_index = first_index + n - 1
         self.windows += 1
         while self.n_frames - len(self._parts[0].phase) >= self.config.max_frames:
             self._parts.pop(0)
             self._indices.pop(0)
+            if self._keypoints:
+                self._keypoints.pop(0)
         return len(pick)
 
     @property
@@ -737,7 +793,13 @@ class RigAccumulator:
         """The rig over the frames kept (the viewpoints' rig, with a note, while they are too few)."""
         if not self._parts:
             raise ValueError("no window added yet")
-        return calibrate_rig(concat_estimates(self._parts), replace(self.config, consecutive=False))
+        joined = concat_estimates(self._parts)
+        if not self.from_keypoints:
+            return calibrate_rig(joined, replace(self.config, consecutive=False))
+        kp = np.stack([np.concatenate([k.get(c, np.full((len(p.phase), N_JOINTS, 2), np.nan))
+                                       for p, k in zip(self._parts, self._keypoints)]) for c in joined.cameras])
+        return calibrate_rig(joined, replace(self.config, consecutive=False, **self.config.keypoint_settings()),
+                             keypoints=kp)
 
     def newest_posture(self, rig: Rig) -> tuple[int, np.ndarray] | None:
         """The newest frame of :meth:`calibrate`'s ``rig`` with the whole person's posture: its
@@ -753,6 +815,7 @@ class RigAccumulator:
         """Forget every frame (a camera moved: the rig is another one)."""
         self._parts.clear()
         self._indices.clear()
+        self._keypoints = None
         self._last_index, self.windows = -1, 0
 
 

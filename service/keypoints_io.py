@@ -33,7 +33,7 @@ import numpy as np
 from estimator.joints import N_JOINTS
 from estimator.keypoints import SKELETONS, detect_skeleton, keypoints_to_joints, track_person
 
-__all__ = ["KeypointError", "Keypoints", "camera_key", "is_tracks_document", "keypoints_on", "keypoints_on_timeline",
+__all__ = ["KeypointError", "Keypoints", "camera_key", "camera_keypoints", "is_tracks_document", "keypoints_on", "keypoints_on_timeline",
            "match_cameras", "read_keypoints", "video_sizes"]
 
 
@@ -219,6 +219,23 @@ def match_cameras(available: Iterable[str], wanted: Sequence[str]) -> dict[str, 
         elif len(by_key.get(key, [])) == 1 and keys.count(key) == 1:
             out[name] = by_key[key][0]
     return out
+
+
+def camera_keypoints(kp: Keypoints, camera: str) -> dict[int, np.ndarray]:
+    """One camera's 13 joints (13, 2) per frame number (frames where it saw the person), the camera
+    matched by name (:func:`match_cameras`): what a capture agent sends with its frames.
+
+    Raises
+    ------
+    KeypointError
+        No camera of the keypoints is ``camera``.
+    """
+    match = match_cameras(kp.cameras, [camera])
+    if camera not in match:
+        raise KeypointError(f"no camera {camera!r} among the keypoints' cameras {kp.cameras}")
+    tracks = kp.tracks[kp.cameras.index(match[camera])]
+    seen = np.isfinite(tracks).all(axis=2).any(axis=1)
+    return {int(f): tracks[t] for t, f in enumerate(kp.frames) if seen[t]}
 
 
 def keypoints_on(kp: Keypoints, cameras: Sequence[str], n_frames: int) -> dict[str, np.ndarray]:

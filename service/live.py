@@ -63,6 +63,7 @@ from prometheus_client import Counter
 from capture.receiver import Received, SilhouetteReceiver
 from capture.wire import Box, FeedbackMessage, Quality, SilhouetteMessage, encode, estimate_key, feedback_key
 from capture.refine import track_from_segmentations
+from estimator.joints import N_JOINTS
 from estimator.pipeline import CameraTrack
 from estimator.windows import ViewpointTrack
 
@@ -347,6 +348,17 @@ def insert_by_seq(recent: collections.deque, result: dict[str, Any]) -> None:
         recent.popleft()
         i -= 1
     recent.insert(i, result)
+
+
+def window_keypoints(frames: list[FrameSet]) -> dict[str, np.ndarray] | None:
+    """The keypoints the agents sent with a window's frames: camera -> (T, 13, 2), NaN where a frame
+    has none; None when no camera sent any."""
+    out = {}
+    for cam in sorted(set().union(*(fs.parts for fs in frames))):
+        sent = [None if (m := fs.parts.get(cam)) is None else m.keypoints for fs in frames]
+        if any(k is not None for k in sent):
+            out[cam] = np.stack([np.full((N_JOINTS, 2), np.nan) if k is None else k for k in sent])
+    return out or None
 
 
 def _crowd_notes(frames: list[FrameSet]) -> dict[str, str]:
@@ -853,7 +865,8 @@ class LiveService:
             calibrate = (acc.windows + 1) % s.live_rig_every == 0 or rig.calibration is None
             generation = rig.rig_generation
         t0 = time.perf_counter()
-        done = self._result(self.rig_pool.submit(update_rig, acc, est, w.indices[0], calibrate), 120)
+        done = self._result(self.rig_pool.submit(update_rig, acc, est, w.indices[0], calibrate,
+                                                 window_keypoints(w.frames)), 120)
         if done is None:
             return
         acc, cal, cameras = done

@@ -368,7 +368,11 @@ class LiveCalibration(BaseModel):
     rig: str = Field(description="the rig's name")
     source: Literal["self-calibration", "viewpoints"] = Field(
         description="viewpoints: too few postures yet, the rig is the viewpoints' (notes say why)")
-    frames: int = Field(description="frames with measured postures it was calibrated on")
+    frames: int = Field(description="frames with measured postures (or keypoints) it was calibrated on")
+    postures: Literal["mnbp", "keypoints"] = Field(
+        "mnbp", description="what it was calibrated on: postures measured on the silhouettes (mNBP, a few "
+                            "frames per window) or the keypoints of a pose detector that the agents send with "
+                            "the silhouettes (every frame)")
     windows: int = Field(description="windows that gave postures since the start or the last camera move")
     window_seq: int = Field(description="the window after which it was calibrated")
     last_index: int = Field(description="that window's last frame index")

@@ -558,13 +558,14 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
             for cam, ps in priors.items()}
 
 
-def update_rig(acc: RigAccumulator, est: WalkEstimate, first_index: int, calibrate: bool
-               ) -> tuple[RigAccumulator, dict | None, dict | None]:
-    """Add a live window's postures to a rig's accumulator and, if asked, calibrate it (in a
-    worker): ``(accumulator, calibration or None, pinhole cameras for Rerun or None)``, the latter
-    two with the newest frame's posture of the person (``person``); the accumulator travels to the
-    worker and back, so that the service process holds the state and the worker none."""
-    acc.add(est, first_index)
+def update_rig(acc: RigAccumulator, est: WalkEstimate, first_index: int, calibrate: bool,
+               keypoints: dict[str, np.ndarray] | None = None) -> tuple[RigAccumulator, dict | None, dict | None]:
+    """Add a live window's postures (or the agents' ``keypoints``, :meth:`RigAccumulator.add`) to a
+    rig's accumulator and, if asked, calibrate it (in a worker): ``(accumulator, calibration or None,
+    pinhole cameras for Rerun or None)``, the latter two with the newest frame's posture of the
+    person (``person``); the accumulator travels to the worker and back, so that the service process
+    holds the state and the worker none."""
+    acc.add(est, first_index, keypoints)
     if not calibrate:
         return acc, None, None
     rig = acc.calibrate()
@@ -574,6 +575,7 @@ def update_rig(acc: RigAccumulator, est: WalkEstimate, first_index: int, calibra
     if arrays is not None and newest is not None:
         arrays["person"] = newest
     return acc, json_safe({"source": rig.source, "frames": acc.n_frames, "windows": acc.windows,
+                           "postures": "keypoints" if acc.from_keypoints else "mnbp",
                            "calibration": rig.to_dict(), "body": rig.body_dict(), "person": person,
                            "notes": rig.notes}), arrays
 

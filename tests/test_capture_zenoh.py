@@ -406,3 +406,33 @@ def test_capture_cli_background_flag_and_rerun_view(endpoint, video, tmp_path, c
         walker = truth[index] > 0  # the frame shows the walker there, the background model does not
         diff = np.abs(raw[index].astype(int) - background[index]).max(axis=2)
         assert diff[walker].mean() > 40 and diff[~walker].mean() < 15  # measured 76-94 / 6.5-8.2
+
+
+def test_capture_cli_sends_a_detectors_keypoints_with_the_frames(endpoint, video, tmp_path, capsys):
+    """``posecal capture --keypoints DIR``: the camera's keypoints (an OpenPose folder as Pose2Sim lays
+    them out, read as ``posecal selfcal`` reads them) travel with the frames they belong to, on posecal's
+    13 joints; frames without any carry none. A folder without this camera is refused (exit 2)."""
+    from service.cli import main as cli_main
+    from test_keypoints import write_openpose
+
+    path, _ = video
+    rng = np.random.default_rng(0)
+    joints = rng.uniform(20, 100, (2, 40, 13, 2))  # frames 0-39 of c0 and c1
+    joints[0, :, 4] = np.nan  # c0 never sees its left elbow
+    joints[0, 10] = np.nan  # nor anything in frame 10
+    write_openpose(tmp_path / "pose", ["c0", "c1"], joints)
+    with zenoh.open(build_config(listen=[endpoint])) as session, \
+            SilhouetteReceiver(session, "lab", "c0") as receiver:
+        assert cli_main(["capture", "--rig", "lab", "--camera", "c0", "--source", str(path), "--fps", "240",
+                         "--warmup", "20", "--connect", endpoint, "--keypoints", str(tmp_path / "pose")]) == 0
+        got = {r.message.frame_index: r.message.keypoints for r in collect(receiver, SPEC.frames, timeout=5)}
+    assert len(got) >= 30 and min(got) <= 39 < max(got)
+    for index, kp in got.items():
+        if index < 40 and index != 10:
+            assert kp is not None and np.isnan(kp[4]).all(), index
+            np.testing.assert_allclose(np.delete(kp, 4, axis=0), np.delete(joints[0, index], 4, axis=0), atol=0.01)
+        else:
+            assert kp is None, index
+    assert cli_main(["capture", "--camera", "side", "--source", str(path), "--keypoints", str(tmp_path / "pose"),
+                     "--connect", endpoint]) == 2
+    assert "no camera 'side' among the keypoints' cameras ['c0', 'c1']" in capsys.readouterr().err

@@ -146,6 +146,18 @@ def test_too_few_frames_with_tangents_give_none(rendered):
     assert refine_on_tangents(focal, principal, rotations, centres, few, FrontierConfig(min_frames=8)) is None
 
 
+def test_a_camera_in_no_pair_with_tangents_is_held_not_fatal(rendered, pinhole):
+    """Camera 2's outlines are all lost (a segmenter that never found the walker there): the pair (0, 1)
+    still refines, camera 2 stays where its priors hold it (the Jacobian once failed on its empty pairs)."""
+    shapes = list(rendered[0])
+    rotations = rendered[1]
+    shapes[2] = type(shapes[2])(shapes[2].vertices, np.zeros_like(shapes[2].valid), shapes[2].loose)
+    found = refine_on_tangents(pinhole.focal_px, pinhole.principal_px, pinhole.rotations, pinhole.centres, shapes)
+    assert found is not None and found.pairs == [(0, 1)]
+    assert geodesic_deg(found.rotations[1], rotations[1]) < geodesic_deg(pinhole.rotations[1], rotations[1])
+    assert geodesic_deg(found.rotations[2], pinhole.rotations[2]) < 0.5
+
+
 def test_a_refinement_left_without_tangents_reports_null_not_nan():
     """When the adjusted cameras leave no outline pair to measure, the final residual is infinite, and the
     result's summary says null (a NaN there once stopped `posecal estimate` from writing JSON)."""

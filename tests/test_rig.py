@@ -426,6 +426,33 @@ def test_a_detectors_keypoints_calibrate_the_rig_in_place_of_the_postures(walk):
         calibrate_rig(est, RigConfig.for_keypoints(), keypoints=kp[:, :5])
 
 
+def test_the_live_rig_takes_a_detectors_keypoints_with_every_frame(walk):
+    """The live rig's accumulator: windows whose frames come with a detector's keypoints add every new
+    frame (no posture measured) and calibrate from them, within a degree and a half of the truth; they
+    replace postures measured before, and a window without keypoints afterwards adds nothing."""
+    from estimator.pipeline import take_frames
+    from estimator.rig import RigAccumulator
+
+    seq, est, _ = walk
+    kp = _detector_keypoints(seq, np.random.default_rng(1))
+    window = {c: kp[i] for i, c in enumerate(seq.cameras)}
+    acc = RigAccumulator(RigConfig(min_frames=8), frames_per_window=2)
+    assert acc.add(take_frames(est, np.arange(0, 8)), 0) == 2 and not acc.from_keypoints  # mNBP postures
+    one = {"c0": window["c0"]}  # one camera's keypoints cannot calibrate: postures as before
+    assert acc.add(take_frames(est, np.arange(4, 12)), 4, {c: k[4:12] for c, k in one.items()}) == 2
+    added = [acc.add(take_frames(est, np.arange(a, a + 8)), a, {c: k[a:a + 8] for c, k in window.items()})
+             for a in (8, 12, 16)]
+    assert acc.from_keypoints and added == [8, 4, 4] and acc.n_frames == 16  # the postures before were dropped
+    assert np.array_equal(acc.frame_indices, np.arange(8, 24))
+    assert acc.add(take_frames(est, np.arange(16, 24)), 16) == 0  # no keypoints: nothing added
+    rig = acc.calibrate()
+    assert rig.source == "self-calibration" and any("detector's keypoints" in n for n in rig.notes), rig.notes
+    errors = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], _true_rig(seq)[1:])]
+    assert max(errors) < 1.5, errors
+    acc.reset()
+    assert not acc.from_keypoints and acc.n_frames == 0
+
+
 def test_posecal_estimate_takes_a_detectors_keypoints(walk, small_model_path, tmp_path, capsys):
     """``posecal estimate SEQ --keypoints DIR``: the keypoints as OpenPose writes them (BODY_25, one file per
     frame, frames numbered as the recording's) give the result's rig; bad keypoints exit 2."""

@@ -169,3 +169,48 @@ def test_non_finite_quality_is_rejected(token):
         decode(struct.pack(">4sBBI", b"PCAL", WIRE_VERSION, 1, len(head)) + head + png)
     with pytest.raises(WireError, match="stability must be a number"):
         Quality(0.5, 1.0, stability=float(token.replace("Infinity", "inf")))
+
+
+# ------------------------------------------------------------ a detector's keypoints (issue 18)
+
+
+def _keypoints() -> np.ndarray:
+    points = np.column_stack([np.linspace(100, 112, 13), np.linspace(50, 80, 13)])
+    points[4] = np.nan  # a missed joint
+    return points
+
+
+def test_keypoints_round_trip_as_pairs_and_nulls():
+    msg = _silhouette(keypoints=_keypoints())
+    header, _ = _header_and_png(msg)
+    assert len(header["keypoints"]) == 13 and header["keypoints"][4] is None and header["keypoints"][0] == [100, 50]
+    out = decode(encode(msg))
+    np.testing.assert_allclose(out.keypoints, _keypoints(), atol=0.005)  # to a hundredth of a pixel
+    assert decode(encode(_silhouette())).keypoints is None  # not sent, not there
+
+
+def test_keypoints_for_frame_leaves_out_joints_far_outside_it():
+    from capture.wire import keypoints_for_frame
+
+    points = _keypoints()
+    points[0] = (5000.0, 50.0)  # a detector's stray joint across the room
+    kept = keypoints_for_frame(points, (640, 480))
+    assert np.isnan(kept[0]).all() and np.isnan(kept[4]).all() and np.array_equal(kept[1:4], points[1:4])
+    assert keypoints_for_frame(np.full((13, 2), np.nan), (640, 480)) is None
+    assert keypoints_for_frame(None, (640, 480)) is None
+    with pytest.raises(WireError, match="within the image's size"):
+        _silhouette(keypoints=points)
+
+
+@pytest.mark.parametrize("value, reason", [
+    ([[1, 2]] * 12, "must be a list of 13"),
+    ([[1, 2, 3]] + [[1, 2]] * 12, "must be a list of 13"),
+    ([["1", 2]] + [[1, 2]] * 12, "must be a list of 13"),
+    ([[True, 2]] + [[1, 2]] * 12, "must be a list of 13"),
+    ({"x": 1}, "must be a list of 13"),
+    ([[1e6, 2]] + [[1, 2]] * 12, "within the image's size"),
+])
+def test_bad_keypoints_are_rejected_with_a_reason(value, reason):
+    header, png = _header_and_png()
+    with pytest.raises(WireError, match=reason):
+        decode(_envelope({**header, "keypoints": value}, png))

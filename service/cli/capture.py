@@ -48,6 +48,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "connect[:URL] (default: off)")
     p.add_argument("--rerun-every", type=positive_int, metavar="K",
                    help="log every K-th frame to Rerun (default: 10)")
+    p.add_argument("--keypoints", metavar="PATH",
+                   help="a pose detector's 2D keypoints of the same recording, sent with each frame's "
+                        "silhouette so that the service calibrates the live rig from them (OpenPose / "
+                        "Pose2Sim folders, MMPose or MediaPipe files, as posecal selfcal reads them; "
+                        "this camera's by --camera; frame numbers = the source's frame indices)")
     add_zenoh_arguments(p)
     p.set_defaults(func=run_capture)
 
@@ -110,6 +115,23 @@ def _view(spec: str | None):
     return view
 
 
+def _keypoints(path: str | None, camera: str):
+    """``--keypoints``: this camera's joints per frame (:func:`service.keypoints_io.camera_keypoints`)."""
+    if path is None:
+        return None
+    from pathlib import Path
+
+    from service.keypoints_io import KeypointError, camera_keypoints, read_keypoints
+
+    try:
+        found = camera_keypoints(read_keypoints([Path(path)]), camera)
+    except KeypointError as exc:
+        raise CliError(f"--keypoints: {exc}") from None
+    log.info("keypoints of %s on %d frames (%d-%d) from %s", camera, len(found), min(found, default=0),
+             max(found, default=0), path)
+    return found
+
+
 def run_capture(args: argparse.Namespace) -> int:
     import zenoh
 
@@ -118,9 +140,10 @@ def run_capture(args: argparse.Namespace) -> int:
 
     settings = _settings(args)
     conf = _config(args)
+    keypoints = _keypoints(args.keypoints, settings.camera)
     view = _view(settings.rerun)
     try:
-        agent.main(conf, settings, view=view)
+        agent.main(conf, settings, view=view, keypoints=keypoints)
     except SourceError as exc:
         raise CliError(str(exc)) from None
     except zenoh.ZError as exc:  # the configuration parsed: the session could not be run
