@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Camera", "viewpoint_direction", "world_to_camera_rotation"]
+__all__ = ["Camera", "aimed_rotation", "viewpoint_direction", "world_to_camera_rotation"]
 
 
 def viewpoint_direction(azimuth_deg: np.ndarray | float, elevation_deg: np.ndarray | float) -> np.ndarray:
@@ -32,6 +32,39 @@ def world_to_camera_rotation(azimuth_deg: float, elevation_deg: float) -> np.nda
     r = np.cross(f, [0.0, 0.0, 1.0])
     r /= np.linalg.norm(r)
     return np.stack([r, np.cross(f, r), f])
+
+
+def aimed_rotation(azimuth_deg: float, elevation_deg: float, offset_px: np.ndarray, focal_px: float) -> np.ndarray:
+    """The rotation (rows u, v, viewing direction) of a camera without roll that sees the walker from
+    (azimuth, elevation) at ``offset_px`` = (du, dv) from its principal point.
+
+    :func:`world_to_camera_rotation` is the camera that looks straight at the
+    walker; a real camera sees the walker off its axis by ``atan(du / f)`` and
+    more, which the walker-relative viewpoint of Izo–Grimson does not know. With
+    the camera's x axis horizontal and the walker's ray ``w`` (world, towards the
+    walker; azimuth ``a``, elevation ``b``) seen at ``d`` = (du, dv, f) / |.|
+    (camera), the axis's azimuth is ``a + asin(d_x / cos b)`` (``d_x`` is the
+    ray's component along the horizontal x axis) and its elevation solves
+    ``cos e cos b cos(az - a) + sin e sin b = d_z``; of the two roots the one
+    whose v axis meets ``d_y`` is taken.
+    """
+    d = np.array([offset_px[0] / focal_px, offset_px[1] / focal_px, 1.0])
+    d /= np.linalg.norm(d)
+    w = -viewpoint_direction(azimuth_deg, elevation_deg)
+    a, b = np.arctan2(w[1], w[0]), np.arcsin(np.clip(w[2], -1.0, 1.0))
+    az = a + np.arcsin(np.clip(d[0] / max(np.cos(b), 1e-9), -1.0, 1.0))
+    c, s = np.cos(b) * np.cos(az - a), np.sin(b)
+    gamma, spread = np.arctan2(s, c), np.arccos(np.clip(d[2] / np.hypot(c, s), -1.0, 1.0))
+    best, rot = np.inf, None
+    for el in (gamma - spread, gamma + spread):
+        f = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        x = np.cross(f, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        candidate = np.stack([x, np.cross(f, x), f])
+        miss = float(np.linalg.norm(candidate @ w - d))
+        if miss < best:
+            best, rot = miss, candidate
+    return rot
 
 
 @dataclass(frozen=True)
