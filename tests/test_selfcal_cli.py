@@ -108,6 +108,11 @@ def test_pinhole_cameras_with_the_image_size(tmp_path, capsys):
         assert np.linalg.norm(cam["centre_m"]) == pytest.approx(baseline, rel=0.1)
     assert res["method"].endswith("+pinhole") and res["reprojection_rms_px"] < 0.1
     assert set(res["scaled_orthographic"]) == {"c1", "c2"}
+    assert not any(n.startswith("two cameras") for n in res["notes"])
+    pair = write(tmp_path, as_doc(y[:2], names=seq.cameras[:2]), name="pair.json")
+    assert main(["selfcal", str(pair), "--out", str(out), "--image-size", "640,480"]) == 0
+    assert any(n.startswith("two cameras: the rotation between two views") for n in json.loads(out.read_text())["notes"])
+    assert "posecal selfcal: warning: two cameras" in capsys.readouterr().err
     for bad, message in ((["--image-size", "640x480"], "W,H"),
                          (["--image-size", "640,480", "--method", "closed-form"], "refined path")):
         assert main(["selfcal", str(path), *bad]) == 2

@@ -265,6 +265,8 @@ def run(args: argparse.Namespace) -> int:
             _export(args, pin, k, tracks, keypoints, cameras, sizes, rig)
     if sizes is None and keypoints is not None:
         out["notes"].append(NO_IMAGE_SIZE)
+    if len(cameras) == 2:
+        out["notes"].append(TWO_CAMERAS)
     for note in out["notes"]:
         print(f"posecal selfcal: warning: {note}", file=sys.stderr)
     for frame, index in zip(out["frames"], used):  # indices into the input's frames
@@ -390,6 +392,13 @@ NO_IMAGE_SIZE = ("no --image-size: the cameras are scaled orthographic, which pe
                  "videos' frame size (--image-size W,H) for pinhole cameras (on the Pose2Sim demo's keypoints: camera "
                  "pairs 13.1 deg off without it, 1.6 with it)")
 """The note of a keypoint calibration without the image size (docs/SELFCAL.md, "Real keypoints")."""
+
+TWO_CAMERAS = ("two cameras: the rotation between two views of a person is weakly determined (on synthetic walks "
+               "4-15 m away with 1-3 % keypoint noise, two-camera rigs from keypoints alone were 4.6-23.9 deg off in "
+               "the median of a draw, three or four cameras 0.4-1.9 deg; the Pose2Sim demo's pairs at 2-4 m 4.9 deg); "
+               "add a camera, or calibrate from the videos with these keypoints (posecal estimate VIDEOS --keypoints "
+               "DIR), whose viewpoints settle it (2.4-6.7 deg)")
+"""The note of a two-camera calibration (docs/SELFCAL.md, "Not done": two cameras from keypoints alone)."""
 
 
 def _by_camera(tables: dict[str, Any], cameras: list[str]) -> dict[str, Any]:
