@@ -134,7 +134,8 @@ class Traffic:
     """Publish ``rigs`` x the rendered cameras at ``fps`` through ``router`` and record the estimates."""
 
     def __init__(self, router: str, rigs: list[str], *, fps: float, frames: int = 40, seed: int = 7) -> None:
-        cams, crops, size = render(2, frames, seed)
+        scene = render(2, frames, seed)
+        cams, crops, size = scene.cameras, scene.crops, scene.size
         self.rigs, self.fps, self.size = rigs, fps, size
         self.crops = dict(zip(cams, crops))
         self.estimates: list[Estimate] = []

@@ -30,6 +30,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -55,10 +56,18 @@ def views(cameras: int) -> list[tuple[float, float]]:
     return [(float(a), 10.0 + 5 * (k % 3)) for k, a in enumerate(az)]
 
 
-def render(cameras: int, frames: int, seed: int
-           ) -> tuple[list[str], list[list[tuple]], tuple[int, int], np.ndarray]:
-    """Camera names, per camera and frame the crop and its box, the image size, and the true joints
-    (C, frames, 13, 2)."""
+@dataclass(frozen=True)
+class Rendered:
+    """The bench cameras' silhouettes as agents send them."""
+
+    cameras: list[str]
+    crops: list[list[tuple]]  # per camera and frame: the crop (uint8) and its Box
+    size: tuple[int, int]
+    joints: np.ndarray  # (C, frames, 13, 2): the renders' true joints
+
+
+def render(cameras: int, frames: int, seed: int) -> Rendered:
+    """The synthetic walk of :func:`views`' cameras, cropped as agents crop."""
     az, el = zip(*views(cameras))
     seq = synthesize(SynthSpec(n_cameras=cameras, n_frames=frames, seed=seed, azimuths=az, elevations=el))
     crops = []
@@ -70,7 +79,7 @@ def render(cameras: int, frames: int, seed: int
                        else (np.ascontiguousarray(c[0]), Box(*(int(v) for v in c[1]))))
         crops.append(row)
     joints = np.array([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras], float)
-    return seq.cameras, crops, tuple(seq.image_size), joints
+    return Rendered(seq.cameras, crops, tuple(seq.image_size), joints)
 
 
 def main() -> int:
@@ -93,7 +102,8 @@ def main() -> int:
 
     load_before = os.getloadavg()[0]
     t = time.perf_counter()
-    cams, crops, size, joints = render(args.cameras, args.loop_frames, seed=5)
+    scene = render(args.cameras, args.loop_frames, seed=5)
+    cams, crops, size, joints = scene.cameras, scene.crops, scene.size, scene.joints
     if args.keypoints is not None:
         joints = detector_keypoints(joints, np.random.default_rng(0), noise_share=args.keypoints)
     print(f"rendered {len(cams)} x {args.loop_frames} silhouettes in {time.perf_counter() - t:.1f} s")

@@ -344,7 +344,8 @@ def main() -> int:
     length, hop = 20, 10  # the service's defaults (posecal serve without --window/--hop)
 
     t = time.perf_counter()
-    cams, crops, size = render(args.agents, args.loop_frames, seed=5)
+    scene = render(args.agents, args.loop_frames, seed=5)
+    cams, crops, size = scene.cameras, scene.crops, scene.size
     workdir = Path(tempfile.mkdtemp(prefix="posecal-soak-"))
     crops_path = workdir / "crops.pkl"
     save_crops(crops_path, dict(zip(cams, crops)), size)

@@ -39,8 +39,8 @@ from .receiver import ValidatingSubscriber
 from .scene import iou
 from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
 from .sources import Frame, FrameSource, make_source, paced
-from .wire import (FeedbackMessage, Quality, SilhouetteMessage, encode, feedback_key, keypoints_for_frame,
-                   silhouette_key)
+from .wire import (N_JOINTS, FeedbackMessage, Quality, SilhouetteMessage, encode, feedback_key,
+                   keypoints_for_frame, silhouette_key)
 
 __all__ = ["AgentSettings", "AgentStats", "CaptureView", "main"]
 
@@ -314,6 +314,9 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
     Raises :class:`~capture.sources.SourceError` if the source cannot be opened.
     """
     stop = stop or threading.Event()
+    if keypoints is not None and (bad := [k for k, v in keypoints.items() if np.shape(v) != (N_JOINTS, 2)]):
+        raise ValueError(f"keypoints must be ({N_JOINTS}, 2) per frame (posecal's joints), frames {bad[:3]} "
+                         f"are {np.shape(keypoints[bad[0]])}")
     if settings.opencv_threads is not None:
         cv2.setNumThreads(settings.opencv_threads)
     stats = AgentStats(epoch_ns=time.time_ns())

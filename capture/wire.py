@@ -64,6 +64,7 @@ _MAX_CANDIDATES = 1 << 16
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _ROOT = "posecal"
 N_JOINTS = 13  # estimator.joints.N_JOINTS, not imported: the wire stays light for any subscriber
+_MAX_PIXEL = 1e6  # a keypoint coordinate beyond it is not one (and a 400-digit integer is no float)
 
 Sync = Literal["index", "time"]
 T = TypeVar("T")
@@ -234,10 +235,12 @@ def _keypoints(header: dict[str, Any], name: str) -> np.ndarray:
     value = header.get(name)
     if not isinstance(value, list) or len(value) != N_JOINTS or any(
             v is not None and (not isinstance(v, list) or len(v) != 2
-                               or any(type(c) not in (int, float) for c in v)) for v in value):
-        raise WireError(f"header field {name!r} must be a list of {N_JOINTS} [x, y] pairs or nulls, "
+                               or any(type(c) not in (int, float) or not abs(c) <= _MAX_PIXEL for c in v))
+            for v in value):
+        raise WireError(f"header field {name!r} must be a list of {N_JOINTS} [x, y] pairs of numbers or nulls, "
                         f"got {value!r:.80}")
-    return np.array([[np.nan, np.nan] if v is None else v for v in value], float)
+    points = np.array([[np.nan, np.nan] if v is None else v for v in value], float)
+    return None if np.isnan(points).all() else points
 
 
 @dataclass(frozen=True, slots=True)
@@ -311,6 +314,9 @@ class SilhouetteMessage:
         _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
         if self.keypoints is not None:
             _check_keypoints(self.keypoints, self.image_size)
+            frozen = np.array(self.keypoints)  # a copy nobody can change into a non-JSON number later
+            frozen.flags.writeable = False
+            object.__setattr__(self, "keypoints", frozen)
         if self.n_candidates is not None and (type(self.n_candidates) is not int
                                               or not 0 <= self.n_candidates <= _MAX_CANDIDATES):
             raise WireError(f"n_candidates must be an integer in [0, {_MAX_CANDIDATES}], "

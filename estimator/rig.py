@@ -603,6 +603,11 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
         rig.notes.append(f"{1 + len(changes)} rounds of posture and calibration (Wang-Leow §5: 3D mNBP over all "
                          "views, then the pinhole adjustment again); largest camera turn per round after the first: "
                          + (", ".join(f"{c:.2f} deg" for c in changes) or "none (the 3D round failed)"))
+    if keypoints is not None and len(use) == 2:
+        rig.notes.append("two cameras from a detector's keypoints: the rotation between two views of a person is "
+                         "weakly determined; the silhouettes' viewpoints started the adjustment (2.4-6.7 deg in the "
+                         "median of a draw of synthetic walks 4-15 m away, three or four cameras 0.4-1.9; "
+                         "docs/POSTURE.md); a third camera settles it")
     left_out = [n for c, n in enumerate(names) if c not in use]
     if left_out:
         rig.notes.append(f"not in the rig (postures on fewer than {config.min_frames} frames): {', '.join(left_out)}")
@@ -773,18 +778,22 @@ class RigAccumulator:
         return self._keypoints is not None
 
     def add(self, estimate: WalkEstimate, first_index: int,
-            keypoints: dict[str, np.ndarray] | None = None) -> int:
+            keypoints: dict[str, np.ndarray] | None = None, *, indices: np.ndarray | None = None) -> int:
         """Add the new frames of a window starting at frame ``first_index``: their measured postures,
         or with ``keypoints`` (camera -> (T, 13, 2) pixels of the window's frames, NaN where missed)
-        the detector's joints; how many frames."""
+        the detector's joints; how many frames. ``indices``: the window's frame indices when they
+        are not consecutive (a live window across a gap in the stream)."""
         n = len(estimate.phase)
+        index = first_index + np.arange(n) if indices is None else np.asarray(indices, int)
+        if index.shape != (n,):
+            raise ValueError(f"indices must give the window's {n} frames, got shape {index.shape}")
         detected = keypoints is not None and sum(
             bool((np.isfinite(np.asarray(k, float)).all(axis=-1).sum(axis=-1) >= 4).any())
             for c, k in keypoints.items() if c in estimate.cameras) >= 2
         if detected and not self.from_keypoints:  # the keypoints replace the postures measured so far
             self.reset()
             self._keypoints = []
-        new = np.flatnonzero(first_index + np.arange(n) > self._last_index)
+        new = np.flatnonzero(index > self._last_index)
         if not len(new) or (self.from_keypoints and not detected) or (not detected and self.frames_per_window < 1):
             return 0
         if detected:  # every new frame: there is nothing to measure
@@ -795,8 +804,8 @@ class RigAccumulator:
             pick = np.unique(new[np.linspace(0, len(new) - 1,
                                              min(self.frames_per_window, len(new))).round().astype(int)])
             self._parts.append(measure_postures(take_frames(estimate, pick), self.posture))
-        self._indices.append(first_index + pick)
-        self._last_index = first_index + n - 1
+        self._indices.append(index[pick])
+        self._last_index = int(index.max())
         self.windows += 1
         while self.n_frames - len(self._parts[0].phase) >= self.config.max_frames:
             self._parts.pop(0)

@@ -865,7 +865,7 @@ class LiveService:
             calibrate = (acc.windows + 1) % s.live_rig_every == 0 or rig.calibration is None
             generation = rig.rig_generation
         t0 = time.perf_counter()
-        done = self._result(self.rig_pool.submit(update_rig, acc, est, w.indices[0], calibrate,
+        done = self._result(self.rig_pool.submit(update_rig, acc, est, w.indices, calibrate,
                                                  window_keypoints(w.frames)), 120)
         if done is None:
             return

@@ -558,14 +558,14 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
             for cam, ps in priors.items()}
 
 
-def update_rig(acc: RigAccumulator, est: WalkEstimate, first_index: int, calibrate: bool,
+def update_rig(acc: RigAccumulator, est: WalkEstimate, indices: list[int], calibrate: bool,
                keypoints: dict[str, np.ndarray] | None = None) -> tuple[RigAccumulator, dict | None, dict | None]:
     """Add a live window's postures (or the agents' ``keypoints``, :meth:`RigAccumulator.add`) to a
     rig's accumulator and, if asked, calibrate it (in a worker): ``(accumulator, calibration or None,
     pinhole cameras for Rerun or None)``, the latter two with the newest frame's posture of the
     person (``person``); the accumulator travels to the worker and back, so that the service process
-    holds the state and the worker none."""
-    acc.add(est, first_index, keypoints)
+    holds the state and the worker none. ``indices``: the window's frame indices."""
+    acc.add(est, indices[0], keypoints, indices=np.asarray(indices))
     if not calibrate:
         return acc, None, None
     rig = acc.calibrate()

@@ -436,3 +436,6 @@ def test_capture_cli_sends_a_detectors_keypoints_with_the_frames(endpoint, video
     assert cli_main(["capture", "--camera", "side", "--source", str(path), "--keypoints", str(tmp_path / "pose"),
                      "--connect", endpoint]) == 2
     assert "no camera 'side' among the keypoints' cameras ['c0', 'c1']" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"keypoints must be \(13, 2\) per frame .* frames \[3\] are \(17, 2\)"):
+        agent.main(build_config(connect=[endpoint]), agent.AgentSettings(source=str(path)),
+                   keypoints={2: joints[0, 2], 3: np.zeros((17, 2))})  # COCO's 17, not posecal's 13

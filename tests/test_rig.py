@@ -451,6 +451,10 @@ def test_a_detectors_keypoints_calibrate_the_rig_in_place_of_the_postures(walk):
     kp = _detector_keypoints(seq, np.random.default_rng(0))
     rig = calibrate_rig(est, RigConfig.for_keypoints(height_m=1.8), keypoints=kp)
     assert rig.source == "self-calibration" and rig.focal_px is not None
+    assert not any(n.startswith("two cameras") for n in rig.notes)
+    pair = replace(est, cameras={c: est.cameras[c] for c in ("c0", "c1")})
+    assert any(n.startswith("two cameras from a detector's keypoints") for n in
+               calibrate_rig(pair, RigConfig.for_keypoints(), keypoints=kp[:2]).notes)
     errors = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], _true_rig(seq)[1:])]
     views = [geodesic_deg(a, b) for a, b in zip(viewpoint_rotations(est)[1:], _true_rig(seq)[1:])]
     assert max(errors) < 1.5 and max(errors) < max(views) - 2.0, (errors, views)
@@ -481,13 +485,19 @@ def test_the_live_rig_takes_a_detectors_keypoints_with_every_frame(walk):
              for a in (8, 12, 16)]
     assert acc.from_keypoints and added == [8, 4, 4] and acc.n_frames == 16  # the postures before were dropped
     assert np.array_equal(acc.frame_indices, np.arange(8, 24))
-    assert acc.add(take_frames(est, np.arange(16, 24)), 16) == 0  # no keypoints: nothing added
+    assert acc.add(take_frames(est, np.arange(16, 24)), 20) == 0  # new frames (24-27) but no keypoints: none added
     rig = acc.calibrate()
     assert rig.source == "self-calibration" and any("detector's keypoints" in n for n in rig.notes), rig.notes
     errors = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], _true_rig(seq)[1:])]
     assert max(errors) < 1.5, errors
     acc.reset()
     assert not acc.from_keypoints and acc.n_frames == 0
+    # A live window across a gap in the stream (frames 8-11 lost): its frames are its own indices.
+    gapped = RigAccumulator(RigConfig(min_frames=8))
+    gap = np.r_[0:8, 12:24]
+    assert gapped.add(take_frames(est, np.arange(0, 20)), 0, {c: k[:20] for c, k in window.items()}, indices=gap) == 20
+    assert gapped.add(take_frames(est, np.arange(4, 24)), 14, {c: k[4:24] for c, k in window.items()}) == 10
+    assert np.array_equal(gapped.frame_indices, np.r_[0:8, 12:34])
 
 
 def test_posecal_estimate_takes_a_detectors_keypoints(walk, small_model_path, tmp_path, capsys):

@@ -187,6 +187,13 @@ def test_keypoints_round_trip_as_pairs_and_nulls():
     out = decode(encode(msg))
     np.testing.assert_allclose(out.keypoints, _keypoints(), atol=0.005)  # to a hundredth of a pixel
     assert decode(encode(_silhouette())).keypoints is None  # not sent, not there
+    header, png = _header_and_png()
+    assert decode(_envelope({**header, "keypoints": [None] * 13}, png)).keypoints is None  # none placed
+    given = _keypoints()
+    msg = _silhouette(keypoints=given)
+    given[0] = np.inf  # the caller's array changes afterwards: the message's copy does not
+    assert np.isfinite(msg.keypoints[0]).all() and not msg.keypoints.flags.writeable
+    json.loads(encode(msg)[10:10 + struct.unpack(">I", encode(msg)[6:10])[0]])  # strict JSON still
 
 
 def test_keypoints_for_frame_leaves_out_joints_far_outside_it():
@@ -208,9 +215,20 @@ def test_keypoints_for_frame_leaves_out_joints_far_outside_it():
     ([["1", 2]] + [[1, 2]] * 12, "must be a list of 13"),
     ([[True, 2]] + [[1, 2]] * 12, "must be a list of 13"),
     ({"x": 1}, "must be a list of 13"),
-    ([[1e6, 2]] + [[1, 2]] * 12, "within the image's size"),
+    ([[1e5, 2]] + [[1, 2]] * 12, "within the image's size"),
+    ([[10 ** 400, 2]] + [[1, 2]] * 12, "must be a list of 13"),  # no OverflowError: a WireError
+    ([[1e300, 2]] + [[1, 2]] * 12, "must be a list of 13"),
 ])
 def test_bad_keypoints_are_rejected_with_a_reason(value, reason):
     header, png = _header_and_png()
     with pytest.raises(WireError, match=reason):
         decode(_envelope({**header, "keypoints": value}, png))
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity"])
+def test_non_finite_keypoints_are_rejected(token):
+    """json.loads reads NaN and Infinity; a keypoint is a finite pixel or null."""
+    header, png = _header_and_png()
+    head = json.dumps({**header, "keypoints": [[1.5, 2.0]] * 13}).replace("1.5", token, 1).encode()
+    with pytest.raises(WireError, match="keypoints"):
+        decode(struct.pack(">4sBBI", b"PCAL", WIRE_VERSION, 1, len(head)) + head + png)
