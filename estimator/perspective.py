@@ -403,7 +403,8 @@ joint on the wrong limb); on the issue's noise (1-3 % of the walker's height, 5 
 
 KEYPOINT_UPRIGHT = 1.0
 """Strength of the upright walker's per-frame priors (:attr:`PerspectiveConfig.upright`) for a pose
-detector's keypoints (``posecal selfcal``), used where the perspective is weak: on the issue's noise at 15 m
+detector's keypoints (``posecal selfcal``, and :meth:`estimator.rig.RigConfig.for_keypoints` since session
+26), used where the perspective is weak: on the issue's noise at 15 m
 (20 rigs of seed 4, not used to choose) the camera pairs went from 1.41 / 6.20 deg (median / p90) to 1.07 /
 3.96; a walk 2.5-4 m away is not held by them (docs/SELFCAL.md, "15 m"). Not for mNBP's postures, whose
 errors are systematic (the rig from silhouettes lost with them: docs/POSTURE.md)."""

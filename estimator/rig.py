@@ -42,8 +42,8 @@ from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
 
 __all__ = ["Rig", "RigAccumulator", "RigConfig", "SEGMENTS", "aligned_error", "attach_rig", "calibrate_rig",
-           "person_frame", "rotations_from_viewpoints", "segment_lengths", "similarity_aligned", "smoothed",
-           "stature_scale", "viewpoint_rotations"]
+           "keypoint_frames", "person_frame", "rotations_from_viewpoints", "segment_lengths", "similarity_aligned",
+           "smoothed", "stature_scale", "viewpoint_rotations"]
 
 _J = JOINT_INDEX
 SEGMENTS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
@@ -373,6 +373,8 @@ def viewpoint_rotations(estimate: WalkEstimate, focal_widths: float | None = Non
     their noise (docs/POSTURE.md, "The viewpoints' rig, aimed").
     """
     views = [(c.viewpoint.azimuth_deg, c.viewpoint.elevation_deg) for c in estimate.cameras.values()]
+    if focal_widths is None:
+        return rotations_from_viewpoints(views)
     tracks = estimate.tracks or {}
     rots = []
     for name, (az, el) in zip(estimate.cameras, views):
@@ -380,7 +382,7 @@ def viewpoint_rotations(estimate: WalkEstimate, focal_widths: float | None = Non
         seen = None if t is None or not t.full_frame or t.image_size is None else np.isfinite(t.boxes).all(axis=1)
         if not (np.isfinite(az) and np.isfinite(el)):
             rots.append(np.full((3, 3), np.nan))
-        elif focal_widths is None or seen is None or not seen.any():
+        elif seen is None or not seen.any():
             rots.append(world_to_camera_rotation(az, el))
         else:
             centre = np.mean(t.boxes[seen, :2] + t.boxes[seen, 2:] / 2, axis=0)
@@ -476,6 +478,12 @@ def person_frame(joints3d: np.ndarray) -> np.ndarray:
     return out - np.nanmean(out, axis=1, keepdims=True)
 
 
+def keypoint_frames(tracks: np.ndarray) -> np.ndarray:
+    """Of a detector's keypoints (..., T, 13, 2), NaN where missed: the frames that count for
+    calibration, where at least 4 joints are placed (..., T)."""
+    return np.isfinite(tracks).all(axis=-1).sum(axis=-1) >= 4
+
+
 def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
                   keypoints: np.ndarray | None = None) -> Rig:
     """The rig, the person's posture and body from an estimate's ``joints2d`` (this stage's entry).
@@ -486,7 +494,7 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
     viewpoints' rig is returned. Or ``keypoints``, (C, T, 13, 2) full-frame
     pixels of a detector's joints in the estimate's cameras and frames (NaN
     where missed; :meth:`RigConfig.for_keypoints`), calibrate it in their place:
-    a frame counts for a camera where it sees 4 joints or more. Cameras with
+    a frame counts for a camera where it sees 4 joints or more (:func:`keypoint_frames`). Cameras with
     postures on fewer than ``min_frames`` frames are left out (rotation
     ``None`` in the result). Never raises for the data: every fallback is the
     viewpoints' rig, or the scaled-orthographic one, with a note.
@@ -508,7 +516,7 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
         if tracks.shape != (len(names), len(estimate.phase), N_JOINTS, 2):
             raise ValueError(f"keypoints must have shape {(len(names), len(estimate.phase), N_JOINTS, 2)} "
                              f"(cameras, frames, joints, 2), got {tracks.shape}")
-        posed = np.isfinite(tracks).all(axis=3).sum(axis=2) >= 4
+        posed = keypoint_frames(tracks)
     use = np.flatnonzero(posed.sum(axis=1) >= config.min_frames)
     seen = posed[use].sum(axis=0) >= 2
     if len(use) < 2 or seen.sum() < config.min_frames:
@@ -787,9 +795,8 @@ class RigAccumulator:
         index = first_index + np.arange(n) if indices is None else np.asarray(indices, int)
         if index.shape != (n,):
             raise ValueError(f"indices must give the window's {n} frames, got shape {index.shape}")
-        detected = keypoints is not None and sum(
-            bool((np.isfinite(np.asarray(k, float)).all(axis=-1).sum(axis=-1) >= 4).any())
-            for c, k in keypoints.items() if c in estimate.cameras) >= 2
+        detected = keypoints is not None and sum(bool(keypoint_frames(np.asarray(k, float)).any())
+                                                 for c, k in keypoints.items() if c in estimate.cameras) >= 2
         if detected and not self.from_keypoints:  # the keypoints replace the postures measured so far
             self.reset()
             self._keypoints = []
