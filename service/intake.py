@@ -356,9 +356,10 @@ def _prop(cap, prop: int) -> int:
     return int(value) if math.isfinite(value) and value > 0 else 0
 
 
-def probe_video(path: Path, shown: str, limits: UploadLimits) -> tuple[tuple[int, int], int]:
+def probe_video(path: Path, shown: str, limits: UploadLimits | None) -> tuple[tuple[int, int], int]:
     """``((width, height), frame count)`` of a video from its container's header, checked
-    against ``limits`` before a frame is decoded; then its first frame must decode.
+    against ``limits`` (None: no limits, ``posecal estimate``'s own files) before a frame is
+    decoded; then its first frame must decode.
 
     A count of 0 means the container does not give one (the job then decodes at
     most ``limits.max_frames``).
@@ -371,10 +372,10 @@ def probe_video(path: Path, shown: str, limits: UploadLimits) -> tuple[tuple[int
             raise UploadError(422, f"video {shown!r} cannot be decoded (no stream OpenCV can open)")
         width, height = _prop(cap, cv2.CAP_PROP_FRAME_WIDTH), _prop(cap, cv2.CAP_PROP_FRAME_HEIGHT)
         count = _prop(cap, cv2.CAP_PROP_FRAME_COUNT)
-        why = limits.image_refusal(width, height)
+        why = None if limits is None else limits.image_refusal(width, height)
         if why is not None:
             raise UploadError(413, f"video {shown!r}: its header says frames of {why}")
-        if count > limits.max_frames:
+        if limits is not None and count > limits.max_frames:
             raise UploadError(413, f"video {shown!r}: its header counts {count} frames, more than the "
                                    f"limit of {limits.max_frames} per camera")
         ok, frame = cap.read()
@@ -385,7 +386,7 @@ def probe_video(path: Path, shown: str, limits: UploadLimits) -> tuple[tuple[int
     if not ok or frame is None:
         raise UploadError(422, f"video {shown!r} cannot be decoded")
     size = (frame.shape[1], frame.shape[0])
-    why = limits.image_refusal(*size)
+    why = None if limits is None else limits.image_refusal(*size)
     if why is not None:  # a header without a size, or a wrong one
         raise UploadError(413, f"video {shown!r}: frames of {why}")
     return size, count

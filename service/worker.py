@@ -747,14 +747,13 @@ def video_tracks(folder: Path, *, warmup: int | None, report, options: dict[str,
     default for the shortest video's announced frame count."""
     from capture.refine import track_from_segmentations
     from capture.segment import default_warmup
-    from capture.sources import VideoFileSource
 
     options = dict(options or {})
     counts = options.get("header_frames")
     if counts is None:
         counts = {}
         for path in list_videos(folder).values():
-            with VideoFileSource(path) as source:
+            with _open_video(path) as source:
                 counts[path.stem] = source.frame_count() or 0
         options["header_frames"] = counts
     warmup = warmup or default_warmup(int(min(counts.values(), default=0)))
@@ -781,6 +780,22 @@ def sync_videos(tracks: dict[str, CameraTrack], rates: dict[str, float], model: 
     return pad_tracks(aligned), rate, result.to_dict(), frames
 
 
+class DamagedVideo(ValueError):
+    """A video of the input that cannot be opened or decodes too little: bad input (a job fails
+    naming it, ``posecal estimate`` exits 2), not a computation that failed."""
+
+
+def _open_video(path: Path):
+    """``path`` as a :class:`capture.sources.VideoFileSource`; :class:`DamagedVideo` naming it when
+    it cannot be opened."""
+    from capture.sources import SourceError, VideoFileSource
+
+    try:
+        return VideoFileSource(path)
+    except SourceError as exc:
+        raise DamagedVideo(f"video {path.name}: {exc}") from None
+
+
 def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any] | None = None
                     ) -> tuple[dict[str, list], dict, float, dict[str, dict[str, int]]]:
     """Background subtraction (:func:`capture.refine.segment`) over each ``<camera>.<ext>`` video.
@@ -790,11 +805,10 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     None when the container does not say). At most ``options["max_frames"]``
     frames are decoded per video (a header can lie); a video that decodes fewer
     frames than its header counts and fewer than one window (``options["windows"]["length"]``)
-    is refused (ValueError naming it) rather than estimated from what is left.
+    is refused (:class:`DamagedVideo` naming it) rather than estimated from what is left.
     """
     from capture.refine import segment
     from capture.segment import SegmentSettings
-    from capture.sources import VideoFileSource
 
     options = options or {}
     max_frames = int(options.get("max_frames") or 0) or None
@@ -804,18 +818,18 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     settings = SegmentSettings(warmup_frames=warmup)
     segmentations, sizes, decoding, fps = {}, {}, {}, 0.0
     for i, path in enumerate(videos):
-        with VideoFileSource(path) as source:
+        with _open_video(path) as source:
             fps = fps or source.fps or 0.0
             sizes[path.stem] = source.size
             header = int(header_frames.get(path.stem) or source.frame_count() or 0)
             frames = itertools.islice((frame.image for frame in source), max_frames)
             segs = segment(frames, settings)
         if not segs:
-            raise ValueError(f"video {path.name} has no decodable frames")
+            raise DamagedVideo(f"video {path.name} has no decodable frames")
         decoding[path.stem] = {"decoded_frames": len(segs), "header_frames": header,
                                "fps": round(float(source.fps or 0.0), 4) or None}
         if header and len(segs) < header and len(segs) < min_frames:
-            raise ValueError(f"video {path.name}: only {len(segs)} of the {header} frames its header "
+            raise DamagedVideo(f"video {path.name}: only {len(segs)} of the {header} frames its header "
                              f"counts decode, fewer than one window ({min_frames} frames): truncated "
                              "or damaged")
         segmentations[path.stem] = segs

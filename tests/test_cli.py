@@ -87,6 +87,15 @@ def test_estimate_reads_a_folder_of_videos(small_model_path, tmp_path, capsys):
     empty.mkdir()
     assert main(["estimate", str(empty), "--model", small_model_path]) == 2  # neither videos nor a sequence
     assert "empty" in capsys.readouterr().err
+    # A damaged video is bad input (exit 2, named), refused before the other cameras are segmented
+    (folder / "c2.avi").write_bytes(b"")
+    assert main(["estimate", str(folder), "--model", small_model_path, "--posture", "model"]) == 2
+    assert "'c2.avi' cannot be decoded" in capsys.readouterr().err
+    data = (folder / "c1.avi").read_bytes()
+    (folder / "c2.avi").write_bytes(data[:len(data) // 8])  # a truncated copy: its header counts 36 frames
+    assert main(["estimate", str(folder), "--model", small_model_path, "--posture", "model", "--warmup", "10"]) == 2
+    err = capsys.readouterr().err
+    assert "video c2.avi: only" in err and "of the 36 frames its header counts decode" in err, err
 
 
 def test_serve_refuses_to_listen_beyond_loopback_without_tokens(tmp_path, capsys):

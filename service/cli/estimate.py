@@ -185,23 +185,32 @@ def _export(result: dict, exports: dict[str, tuple[Path, str]]) -> None:
 
 def _videos(path: str) -> list[Path]:
     """The videos of a folder of one video per camera ([] for a sequence folder or anything else)."""
-    from service.intake import list_videos
+    from service.intake import UploadError, list_videos, probe_video
 
     folder = Path(path)
     if not folder.is_dir() or (folder / "rig.json").exists():
         return []
-    return list(list_videos(folder).values())
+    videos = list(list_videos(folder).values())
+    for video in videos:  # each must open and decode a frame: refused now, not after the others' segmentation
+        try:
+            probe_video(video, video.name, None)
+        except UploadError as exc:
+            raise CliError(f"{path}: {exc}") from None
+    return videos
 
 
 def _video_tracks(args: argparse.Namespace, videos: list[Path], model, progress):
     """Each video's silhouettes (background subtraction, as REST jobs do) as camera tracks on one
     timeline (``--sync``), the input's ``sequence`` summary (with the ``sync`` block), each
     camera's decoded/announced frame counts and its own frame at each frame of the timeline."""
-    from service.worker import sync_videos, video_tracks
+    from service.worker import DamagedVideo, sync_videos, video_tracks
 
-    tracks, rates, info = video_tracks(Path(args.sequence), warmup=args.warmup,
-                                       report=lambda f, _: progress(0.9 * f),
-                                       options={"windows": {"length": args.window}})
+    try:
+        tracks, rates, info = video_tracks(Path(args.sequence), warmup=args.warmup,
+                                           report=lambda f, _: progress(0.9 * f),
+                                           options={"windows": {"length": args.window}})
+    except DamagedVideo as exc:
+        raise CliError(f"{args.sequence}: {exc}") from None
     try:
         tracks, fps, sync, timeline = sync_videos(tracks, rates, model, args.sync)
     except ValueError as exc:  # a camera without the walker
