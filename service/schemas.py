@@ -306,6 +306,17 @@ class SyncOut(_Open):
     notes: list[str]
 
 
+class FeedbackOut(_Open):
+    """Videos: each video segmented again with the model rendered from the first estimate as a
+    foreground prior, and estimated again (docs/FORMATS.md, "feedback")."""
+
+    done: bool = Field(description="the result is the second estimate's")
+    priors: int | None = Field(None, description="frames given a prior (cameras whose estimate passed the trust "
+                                                 "test)")
+    changed_pixels: int | None = Field(None, description="silhouette pixels the second pass changed")
+    note: str
+
+
 class Result(_ResultBase):
     """A batch result: ``posecal estimate`` and ``GET /v1/jobs/{id}/result`` (docs/FORMATS.md, Result)."""
 
@@ -319,6 +330,8 @@ class Result(_ResultBase):
     truth_cameras: dict[str, WindowViewpoint] | None = None
     refined: dict[str, Any] | None = None
     sync: SyncOut | None = Field(None, description="videos: each camera's time offset, found from the walk")
+    feedback: FeedbackOut | None = Field(None, description="videos: the second segmentation with the model's "
+                                                           "feedback (Izo-Grimson §7.1), when asked (default)")
 
 
 class LiveWindow(_Open):

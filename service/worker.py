@@ -622,6 +622,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             segmentations, image_size, decoding = info["segmentations"], info["sizes"], info["decoding"]
             store.report(job_id, 0.45, "synchronising the videos")
             tracks, fps, sync, timeline = sync_videos(tracks, rates, _get_model(), options.get("sync", "auto"))
+            first = {"segmentations": segmentations, "warmup": warmup, "fps": fps, "shifted": sync_shifted(sync)}
             truth = None
         else:
             raise ValueError(f"unknown job kind {kind!r}")
@@ -635,11 +636,26 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         if options.get("keypoints_dir"):  # a detector's keypoints calibrate the rig (checked when staged)
             keypoints = keypoints_on_timeline(read_keypoints([Path(options["keypoints_dir"])]), timeline)
             posture, rig = None, RigConfig.for_keypoints(height_m=rig.height_m)
-        walk = segment_walk(tracks, model, **options.get("windows", {}), posture=posture, rig=rig,
-                            keypoints=keypoints,
-                            progress=lambda f: store.report(job_id, 0.5 + 0.4 * f, "estimating"))
+        feedback = kind == "videos" and options.get("feedback", "on") == "on"
+        span = 0.2 if feedback else 0.4  # of the progress, per estimate
+
+        def estimate(estimated: dict[str, CameraTrack], start: float) -> SegmentedWalk:
+            nonlocal tracks
+            tracks = estimated  # the tracks of the walk returned (Rerun's bundles)
+            return segment_walk(estimated, model, **options.get("windows", {}), posture=posture, rig=rig,
+                                keypoints=keypoints,
+                                progress=lambda f: store.report(job_id, start + span * f, "estimating"))
+
+        walk = estimate(tracks, 0.5)
+        refined, fed = None, None
+        if feedback:
+            store.report(job_id, 0.7, "segmenting again with the model's feedback (§7.1)")
+            walk, fed, refined = feedback_pass(Path(input_dir), model, walk, first, lambda t: estimate(t, 0.7))
         store.report(job_id, 0.9, "writing result")
         result = json_safe(walk.to_result())
+        if fed is not None:
+            result["feedback"] = fed
+            result["notes"].append(fed["note"])
         result["fps"] = fps
         if kind == "videos" and sync is not None:
             result["sync"] = sync
@@ -649,14 +665,14 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             result["truth_cameras"] = {
                 c: {k: v for k, v in t.items() if k in ("azimuth_deg", "elevation_deg")}
                 for c, t in truth["cameras"].items()}
-        refined = None
-        if options.get("refine") and kind == "videos" and _shifted(sync):
+        if options.get("refine") and kind == "videos" and sync_shifted(sync):
             result["notes"].append("refine: not done on videos paired by their offsets (sync); the videos' "
                                    "own frames are what the second pass segments")
         elif options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
-            refined = (_refine_sequence(seq, model, walk) if kind == "sequence" else
-                       _refine_videos(Path(input_dir), model, fps, walk, segmentations, warmup))
+            if refined is None:  # else the feedback pass's, from which the result was estimated
+                refined = (_refine_sequence(seq, model, walk) if kind == "sequence" else
+                           _refine_videos(Path(input_dir), model, fps, walk, segmentations, warmup))
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
             shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
@@ -688,7 +704,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         raise
 
 
-def _shifted(sync: dict[str, Any] | None) -> bool:
+def sync_shifted(sync: dict[str, Any] | None) -> bool:
     """Whether synchronisation paired the videos' frames other than by index."""
     if sync is None:
         return False
@@ -712,6 +728,33 @@ def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: S
     videos = list_videos(folder)
     return refine_videos(videos, model, renderer=_get_renderer(), warmup=warmup, fps=fps,
                          raw=segmentations, estimate=estimate)
+
+
+def feedback_pass(folder: Path, model: AppearanceModel, walk: SegmentedWalk, first: dict[str, Any],
+                  estimate: Callable[[dict[str, CameraTrack]], SegmentedWalk]) -> tuple[SegmentedWalk, dict, Any]:
+    """Izo–Grimson §7.1 on recorded videos: each video segmented again with the model rendered
+    from ``walk`` (the first estimate) as a foreground prior (:func:`_refine_videos`; cameras
+    whose estimate fails the trust test get none), then estimated again by ``estimate``.
+
+    ``first`` holds the first pass: ``segmentations``, ``warmup``, ``fps`` and ``shifted``
+    (:func:`sync_shifted`: frames paired other than by index, where the second pass, which
+    segments each video's own frames, is not done). Returns the walk (the first one when
+    nothing was done), the result's ``feedback`` block (``done``, ``priors``,
+    ``changed_pixels``, ``note``) and the :class:`capture.refine.RefinedSequence` (None when
+    not done). Measured on walkers composited into real footage (docs/ROBUSTNESS.md).
+    """
+    if first["shifted"]:
+        return walk, {"done": False, "note": "feedback: not done on videos paired by their offsets (sync); "
+                                             "the videos' own frames are what the second pass segments"}, None
+    refined = _refine_videos(folder, model, first["fps"], walk, first["segmentations"], first["warmup"])
+    block = {"done": refined.n_priors > 0, "priors": refined.n_priors, "changed_pixels": refined.changed_pixels}
+    if not block["done"]:
+        return walk, {**block, "note": "feedback: no camera's estimate passed the trust test; the first "
+                                       "estimate stands"}, refined
+    walk = estimate(pad_tracks(tracks_from_sequence(refined.sequence)))
+    return walk, {**block, "note": f"silhouettes segmented again with the model's feedback (Izo-Grimson §7.1; "
+                                   f"{refined.n_priors} priors, {refined.changed_pixels} pixels changed), then "
+                                   "estimated again"}, refined
 
 
 def feedback_views(refined) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]]:

@@ -83,6 +83,16 @@ def test_estimate_reads_a_folder_of_videos(small_model_path, tmp_path, capsys):
     assert len(walking) >= 20
     for cam, az in (("c0", 60.0), ("c1", 150.0)):
         assert abs((result["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 25, result["cameras"]
+    # The default segments the videos again with the model's feedback (§7.1) and estimates again
+    fed = result["feedback"]
+    assert fed["done"] and fed["priors"] >= 20 and fed["changed_pixels"] > 0, fed
+    assert fed["note"] in result["notes"] and "estimated again" in fed["note"]
+    off = tmp_path / "off.json"
+    assert main(["estimate", str(folder), "--out", str(off), "--model", small_model_path, "--posture", "model",
+                 "--warmup", "10", "--feedback", "off"]) == 0
+    first = json.loads(off.read_text())
+    assert "feedback" not in first and not any("feedback" in n for n in first["notes"])
+    assert first["frames"] != result["frames"]  # the second estimate is of other silhouettes
     empty = tmp_path / "empty"
     empty.mkdir()
     assert main(["estimate", str(empty), "--model", small_model_path]) == 2  # neither videos nor a sequence

@@ -30,7 +30,7 @@ def test_videos_of_a_synchronised_rig_over_a_real_scene(small_model_path, tmp_pa
     the cameras stay paired by index (the walk alone fits half a cycle off about as well: before the
     equal-length rule c1 went 9.5 frames off), and each camera's viewpoint and the phase are near the truth
     despite the real background and passers-by (when written: azimuth 0.7 and 3.9 deg, every phase
-    within 0.1)."""
+    within 0.1), after the default feedback pass."""
     motion = read_motion(composite.MOCAP / "16_15.bvh")
     spec = SynthSpec(n_cameras=2, n_frames=45, fps=15.0, seed=3, azimuths=(60.0, 150.0), elevations=(10.0, 20.0),
                      distance=8.0, image_size=composite.SIZE)
@@ -45,6 +45,8 @@ def test_videos_of_a_synchronised_rig_over_a_real_scene(small_model_path, tmp_pa
     # 0.45 frame off, near that bound.
     offsets = [c["offset_frames"] for c in result["sync"]["cameras"].values()]
     assert max(offsets) - min(offsets) < 0.5, result["sync"]
+    # The default feedback pass (§7.1): segmented again with the model's priors, estimated again
+    assert result["feedback"]["done"] and result["feedback"]["priors"] > 0, result["feedback"]
     errors = composite.score(result, seq)
     assert np.all(np.isfinite(errors["azimuth"])) and max(errors["azimuth"]) < 12.0, errors["azimuth"]
     assert len(errors["phase"]) >= 40  # of the 45 frames

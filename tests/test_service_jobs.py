@@ -98,9 +98,12 @@ def _check_video_job(srv: ServerThread, tmp_path: Path) -> None:
     assert len(walking) >= 20  # the walker was segmented in both videos
     for cam, az in zip(("c0", "c1"), TRUTH):  # 320x240 MJPG segments like 640x480
         assert abs((result["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 25, result["cameras"]
-    # Silhouettes refined with model feedback (§7.1): background-subtracted again with priors.
+    # Silhouettes refined with model feedback (§7.1): background-subtracted again with priors, and
+    # (the default feedback=on) the result estimated from them; refine=true serves that same pass.
     assert result["refined"]["silhouettes"] == f"/v1/jobs/{done['id']}/silhouettes"
     assert result["refined"]["priors"] > 0
+    assert result["feedback"]["done"] and result["feedback"]["priors"] == result["refined"]["priors"]
+    assert result["feedback"]["changed_pixels"] == result["refined"]["changed_pixels"]
     refined = _read_zip_sequence(srv.client.get(result["refined"]["silhouettes"]), tmp_path / "refined")
     assert refined.cameras == ["c0", "c1"] and refined.n_frames == 36
     assert sum(s is not None for s in refined.silhouettes["c0"]) >= 20
@@ -108,7 +111,8 @@ def _check_video_job(srv: ServerThread, tmp_path: Path) -> None:
 
 def test_a_video_job_takes_a_detectors_keypoints_numbered_by_each_video(tmp_path):
     """Videos with keypoints in each video's own frame numbers and the default sync=auto: the keypoints
-    go onto the job's timeline with their video's frames and calibrate its rig (within 3 deg)."""
+    go onto the job's timeline with their video's frames and calibrate its rig (within 3 deg); with
+    feedback=off the result is the first estimate's."""
     import numpy as np
 
     from estimator._selfcal_core import geodesic_deg
@@ -116,13 +120,14 @@ def test_a_video_job_takes_a_detectors_keypoints_numbered_by_each_video(tmp_path
 
     files = _videos(tmp_path, 42, pose=tmp_path / "pose")
     with ServerThread(make_settings(tmp_path / "srv")) as srv:
-        r = srv.client.post("/v1/jobs", data={"warmup": "10"}, files=[
+        r = srv.client.post("/v1/jobs", data={"warmup": "10", "feedback": "off"}, files=[
             *files, ("keypoints", ("pose.zip", _zip_of(tmp_path / "pose"), "application/zip"))])
         assert r.status_code == 202, r.text
         done = _done(srv, r.json()["id"], timeout=60)
         assert done["state"] == "done", done
         result = srv.client.get(f"/v1/jobs/{done['id']}/result").json()
     assert "sync" in result and any("detector's keypoints" in n for n in result["notes"]), result["notes"]
+    assert "feedback" not in result  # feedback=off: the first estimate
     assert result["rig"]["source"] == "self-calibration"
     truth = rotations_from_viewpoints([(az, 10.0) for az in TRUTH])
     assert geodesic_deg(np.array(result["rig"]["cameras"]["c1"]["rotation"]), truth[1] @ truth[0].T) < 3.0
@@ -259,6 +264,9 @@ def test_bad_uploads_get_clear_4xx_and_disturb_nothing(tmp_path, seq_dir, good_z
         r = srv.client.post("/v1/jobs", files={"files": ("walk.zip", good_zip, "application/zip")},
                             data={"height_m": "17.5"})
         assert r.status_code == 422 and "height_m" in r.text
+        r = srv.client.post("/v1/jobs", files={"files": ("walk.zip", good_zip, "application/zip")},
+                            data={"feedback": "maybe"})
+        assert r.status_code == 422 and "feedback" in r.text
         for path in ("/v1/jobs/nope", "/v1/jobs/nope/result"):
             assert srv.client.get(path).status_code == 404
         assert srv.client.post("/v1/jobs/nope/cancel").status_code == 404

@@ -45,6 +45,10 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
                refine: Annotated[bool, Form(description="also refine the silhouettes with model "
                                             "feedback (§7.1); download them from "
                                             "/v1/jobs/{id}/silhouettes")] = False,
+               feedback: Annotated[Literal["on", "off"], Form(
+                   description="videos: 'on' segments each video again with the model rendered from the first "
+                   "estimate as a foreground prior (Izo-Grimson §7.1) and estimates again (about twice the "
+                   "time; the result's feedback block); 'off' keeps the first estimate")] = "on",
                posture: Annotated[Literal["mnbp", "model"], Form(
                    description="frames[].joints2d: 'mnbp' = the person's 2D posture measured on "
                    "each silhouette (Wang-Leow §3; model_joints2d keeps the model's placement); "
@@ -80,7 +84,8 @@ def submit_job(response: Response, store: StoreDep, runner: RunnerDep, settings:
         raise
     options: dict[str, Any] = {"cameras": staged.cameras, "n_frames": staged.n_frames,
                                "windows": settings.segment_options(), "posture": posture,
-                               "height_m": height_m, "max_frames": settings.max_frames, "sync": sync}
+                               "height_m": height_m, "max_frames": settings.max_frames, "sync": sync,
+                               "feedback": feedback}
     if staged.frame_counts:
         options["header_frames"] = staged.frame_counts
     if warmup is not None:
