@@ -346,11 +346,16 @@ def plot(path: Path, rows: dict[str, dict[str, list[float]]]) -> None:
             ("joints2d", "2D joint error / image height"), ("phase", "phase error (cycles)")]
     fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 3.4))
     for ax, (key, label) in zip(axes, keys):
-        for name, data in rows.items():
+        right = 0.0
+        for (name, data), style in zip(rows.items(), ("-", "--", ":", "-.")):
             v = np.sort(np.asarray(data.get(key, []), float))
             v = v[np.isfinite(v)]
             if v.size:
-                ax.plot(v, np.arange(1, v.size + 1) / v.size, label=name)
+                ax.plot(v, np.arange(1, v.size + 1) / v.size, style, label=name)
+                right = max(right, float(np.percentile(v, 97)))
+        if right > 0:  # the few gross errors (a camera on the wrong side) would squash the rest
+            ax.set_xlim(0, 1.2 * right)
+            label += " (to p97)"
         ax.set_xlabel(label)
         ax.set_ylabel("fraction")
         ax.grid(alpha=0.3)

@@ -746,7 +746,10 @@ def feedback_pass(folder: Path, model: AppearanceModel, walk: SegmentedWalk, fir
     if first["shifted"]:
         return walk, {"done": False, "note": "feedback: not done on videos paired by their offsets (sync); "
                                              "the videos' own frames are what the second pass segments"}, None
-    refined = _refine_videos(folder, model, first["fps"], walk, first["segmentations"], first["warmup"])
+    try:
+        refined = _refine_videos(folder, model, first["fps"], walk, first["segmentations"], first["warmup"])
+    except ValueError as exc:  # e.g. a camera whose video holds no walker at all: the first estimate stands
+        return walk, {"done": False, "note": f"feedback: not done ({exc}); the first estimate stands"}, None
     block = {"done": refined.n_priors > 0, "priors": refined.n_priors, "changed_pixels": refined.changed_pixels}
     if not block["done"]:
         return walk, {**block, "note": "feedback: no camera's estimate passed the trust test; the first "
