@@ -324,37 +324,51 @@ def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
                            dict(seq.silhouettes), priors)
 
 
-def video_frames(path: str | os.PathLike) -> Callable[[], Iterator[np.ndarray]]:
-    """A function that reopens the video and yields its BGR frames (one pass each call).
+def video_frames(path: str | os.PathLike, max_frames: int | None = None) -> Callable[[], Iterator[np.ndarray]]:
+    """A function that reopens the video and yields its BGR frames (one pass each call; at most
+    ``max_frames``, None: all).
 
     Raises ValueError (:class:`~capture.sources.SourceError`) if it cannot be opened.
     """
     def frames() -> Iterator[np.ndarray]:
         with VideoFileSource(path) as source:
-            for frame in source:
-                yield frame.image
+            yield from itertools.islice((frame.image for frame in source), max_frames)
     return frames
+
+
+def _full(s: Segmentation | None) -> np.ndarray | None:
+    return None if s is None or s.box.empty else s.full_mask()
+
+
+def changed_pixels(raw: list[Segmentation | None], refined: list[Segmentation | None]) -> int:
+    """Pixels that differ between two passes' silhouettes, over the frames where both found the
+    walker (one full frame at a time)."""
+    return sum(_changed([_full(a)], [_full(b)]) for a, b in zip(raw, refined))
+
+
+def refined_sequence(result: RefineResult, fps: float, truth: dict | None = None) -> RefinedSequence:
+    """Both passes of :func:`refine_cameras` as a :class:`RefinedSequence`: the refined
+    silhouettes as full frames (what a job with ``refine=true`` serves)."""
+    cameras = list(result.refined)
+    sils = {c: [_full(s) for s in result.refined[c]] for c in cameras}
+    changed = sum(changed_pixels(result.raw[c], result.refined[c]) for c in cameras)
+    size = next(iter(result.image_sizes.values()))
+    seq = Sequence(fps=fps, cameras=cameras, image_size=size, silhouettes=sils, truth=truth)
+    return RefinedSequence(seq, result.estimate, sum(len(v) for v in result.priors.values()),
+                           changed, result.raw, result.priors)
 
 
 def refine_videos(videos: dict[str, str | os.PathLike], model: AppearanceModel, *, renderer,
                   warmup: int, fps: float, config: PriorConfig | None = None,
                   truth: dict | None = None, raw: dict[str, list[Segmentation | None]] | None = None,
-                  estimate: WalkEstimate | SegmentedWalk | None = None) -> RefinedSequence:
+                  estimate: WalkEstimate | SegmentedWalk | None = None,
+                  max_frames: int | None = None) -> RefinedSequence:
     """One video per camera, background-subtracted twice (:func:`refine_cameras`; the
-    first pass and the estimate are reused when given).
+    first pass and the estimate are reused when given; at most ``max_frames`` per video).
 
     Raises ValueError if a video cannot be read or nothing can be estimated.
     """
-    result = refine_cameras({c: video_frames(p) for c, p in videos.items()}, model,
+    result = refine_cameras({c: video_frames(p, max_frames) for c, p in videos.items()}, model,
                             renderer=renderer, settings=SegmentSettings(warmup_frames=warmup),
                             config=config, raw=raw, estimate=estimate)
-
-    def full(segs: list[Segmentation | None]) -> list[np.ndarray | None]:
-        return [None if s is None or s.box.empty else s.full_mask() for s in segs]
-
-    sils = {c: full(segs) for c, segs in result.refined.items()}
-    changed = sum(_changed(full(result.raw[c]), sils[c]) for c in sils)
-    size = next(iter(result.image_sizes.values()))
-    seq = Sequence(fps=fps, cameras=list(videos), image_size=size, silhouettes=sils, truth=truth)
-    return RefinedSequence(seq, result.estimate, sum(len(v) for v in result.priors.values()),
-                           changed, result.raw, result.priors)
+    return refined_sequence(result, fps, truth)

@@ -622,7 +622,8 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             segmentations, image_size, decoding = info["segmentations"], info["sizes"], info["decoding"]
             store.report(job_id, 0.45, "synchronising the videos")
             tracks, fps, sync, timeline = sync_videos(tracks, rates, _get_model(), options.get("sync", "auto"))
-            first = {"segmentations": segmentations, "warmup": warmup, "fps": fps, "shifted": sync_shifted(sync)}
+            first = {"segmentations": segmentations, "warmup": warmup, "fps": fps, "shifted": sync_shifted(sync),
+                     "max_frames": int(options.get("max_frames") or 0) or None}
             truth = None
         else:
             raise ValueError(f"unknown job kind {kind!r}")
@@ -636,8 +637,10 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         if options.get("keypoints_dir"):  # a detector's keypoints calibrate the rig (checked when staged)
             keypoints = keypoints_on_timeline(read_keypoints([Path(options["keypoints_dir"])]), timeline)
             posture, rig = None, RigConfig.for_keypoints(height_m=rig.height_m)
-        feedback = kind == "videos" and options.get("feedback", "on") == "on"
-        span = 0.2 if feedback else 0.4  # of the progress, per estimate
+        # the feedback pass re-segments for the viewpoints, postures and rig; a detector's keypoints give
+        # the last two in its place
+        feedback = kind == "videos" and options.get("feedback", "on") == "on" and keypoints is None
+        span = 0.15 if feedback else 0.4  # of the progress, per estimate (with feedback: 0.5, 0.65-0.75, 0.75)
 
         def estimate(estimated: dict[str, CameraTrack], start: float) -> SegmentedWalk:
             nonlocal tracks
@@ -647,10 +650,10 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
                                 progress=lambda f: store.report(job_id, start + span * f, "estimating"))
 
         walk = estimate(tracks, 0.5)
-        refined, fed = None, None
+        passes, fed = None, None
         if feedback:
-            store.report(job_id, 0.7, "segmenting again with the model's feedback (§7.1)")
-            walk, fed, refined = feedback_pass(Path(input_dir), model, walk, first, lambda t: estimate(t, 0.7))
+            store.report(job_id, 0.65, "segmenting again with the model's feedback (§7.1)")
+            walk, fed, passes = feedback_pass(Path(input_dir), model, walk, first, lambda t: estimate(t, 0.75))
         store.report(job_id, 0.9, "writing result")
         result = json_safe(walk.to_result())
         if fed is not None:
@@ -665,14 +668,22 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             result["truth_cameras"] = {
                 c: {k: v for k, v in t.items() if k in ("azimuth_deg", "elevation_deg")}
                 for c, t in truth["cameras"].items()}
+        refined = None
         if options.get("refine") and kind == "videos" and sync_shifted(sync):
             result["notes"].append("refine: not done on videos paired by their offsets (sync); the videos' "
                                    "own frames are what the second pass segments")
+        elif options.get("refine") and fed is not None and passes is None:
+            result["notes"].append(f"refine: not done, as the feedback pass: {fed['note']}")
         elif options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
-            if refined is None:  # else the feedback pass's, from which the result was estimated
+            if passes is not None:  # the feedback pass's, from which the result was estimated
+                from capture.refine import refined_sequence
+
+                refined = refined_sequence(passes, fps)
+            else:
                 refined = (_refine_sequence(seq, model, walk) if kind == "sequence" else
-                           _refine_videos(Path(input_dir), model, fps, walk, segmentations, warmup))
+                           _refine_videos(Path(input_dir), model, fps, walk, segmentations, warmup,
+                                          first["max_frames"]))
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
             shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
@@ -720,44 +731,59 @@ def _refine_sequence(seq: Sequence, model: AppearanceModel, estimate: SegmentedW
 
 
 def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: SegmentedWalk,
-                   segmentations: dict, warmup: int):
+                   segmentations: dict, warmup: int, max_frames: int | None):
     """The videos segmented once more, with priors from the job's ``estimate``; the job's
-    own segmentations are the first pass (``capture.refine.refine_videos``)."""
+    own segmentations are the first pass (``capture.refine.refine_videos``; at most
+    ``max_frames`` per video, as the first pass decoded)."""
     from capture.refine import refine_videos
 
     videos = list_videos(folder)
     return refine_videos(videos, model, renderer=_get_renderer(), warmup=warmup, fps=fps,
-                         raw=segmentations, estimate=estimate)
+                         raw=segmentations, estimate=estimate, max_frames=max_frames)
 
 
 def feedback_pass(folder: Path, model: AppearanceModel, walk: SegmentedWalk, first: dict[str, Any],
                   estimate: Callable[[dict[str, CameraTrack]], SegmentedWalk]) -> tuple[SegmentedWalk, dict, Any]:
     """Izo–Grimson §7.1 on recorded videos: each video segmented again with the model rendered
-    from ``walk`` (the first estimate) as a foreground prior (:func:`_refine_videos`; cameras
-    whose estimate fails the trust test get none), then estimated again by ``estimate``.
+    from ``walk`` (the first estimate) as a foreground prior (:func:`capture.refine.refine_cameras`;
+    cameras whose estimate fails the trust test get none), then estimated again by ``estimate``.
 
-    ``first`` holds the first pass: ``segmentations``, ``warmup``, ``fps`` and ``shifted``
-    (:func:`sync_shifted`: frames paired other than by index, where the second pass, which
-    segments each video's own frames, is not done). Returns the walk (the first one when
-    nothing was done), the result's ``feedback`` block (``done``, ``priors``,
-    ``changed_pixels``, ``note``) and the :class:`capture.refine.RefinedSequence` (None when
-    not done). Measured on walkers composited into real footage (docs/ROBUSTNESS.md).
+    ``first`` holds the first pass: ``segmentations``, ``warmup``, ``fps``, ``max_frames``
+    (per video; None: all) and ``shifted`` (:func:`sync_shifted`: frames paired other than by
+    index, where the second pass, which segments each video's own frames, is not done).
+    Returns the walk (the first one whenever the pass or the second estimate cannot be done:
+    it never fails what the first estimate gave), the result's ``feedback`` block (``done``,
+    ``priors``, ``changed_pixels``, ``note``) and the :class:`capture.refine.RefineResult`
+    (None when not segmented again). Measured on walkers composited into real footage
+    (docs/ROBUSTNESS.md).
     """
+    from capture.refine import changed_pixels, refine_cameras, track_from_segmentations, video_frames
+    from capture.segment import SegmentSettings
+
     if first["shifted"]:
         return walk, {"done": False, "note": "feedback: not done on videos paired by their offsets (sync); "
                                              "the videos' own frames are what the second pass segments"}, None
+    videos = list_videos(folder)
     try:
-        refined = _refine_videos(folder, model, first["fps"], walk, first["segmentations"], first["warmup"])
-    except ValueError as exc:  # e.g. a camera whose video holds no walker at all: the first estimate stands
+        passes = refine_cameras({c: video_frames(p, first.get("max_frames")) for c, p in videos.items()}, model,
+                                renderer=_get_renderer(), settings=SegmentSettings(warmup_frames=first["warmup"]),
+                                raw=first["segmentations"], estimate=walk)
+    except ValueError as exc:  # e.g. a camera whose video holds no walker at all
         return walk, {"done": False, "note": f"feedback: not done ({exc}); the first estimate stands"}, None
-    block = {"done": refined.n_priors > 0, "priors": refined.n_priors, "changed_pixels": refined.changed_pixels}
-    if not block["done"]:
+    priors = sum(len(v) for v in passes.priors.values())
+    block = {"done": False, "priors": priors,
+             "changed_pixels": sum(changed_pixels(passes.raw[c], passes.refined[c]) for c in passes.refined)}
+    if priors == 0:
         return walk, {**block, "note": "feedback: no camera's estimate passed the trust test; the first "
-                                       "estimate stands"}, refined
-    walk = estimate(pad_tracks(tracks_from_sequence(refined.sequence)))
-    return walk, {**block, "note": f"silhouettes segmented again with the model's feedback (Izo-Grimson §7.1; "
-                                   f"{refined.n_priors} priors, {refined.changed_pixels} pixels changed), then "
-                                   "estimated again"}, refined
+                                       "estimate stands"}, passes
+    try:  # crops as the first pass's (cameras of any size keep their full frame)
+        second = estimate(pad_tracks({c: track_from_segmentations(s) for c, s in passes.refined.items()}))
+    except ValueError as exc:
+        return walk, {**block, "note": f"feedback: the second estimate failed ({exc}); the first estimate "
+                                       "stands"}, passes
+    return second, {**block, "done": True,
+                    "note": f"silhouettes segmented again with the model's feedback (Izo-Grimson §7.1; {priors} "
+                            f"priors, {block['changed_pixels']} pixels changed), then estimated again"}, passes
 
 
 def feedback_views(refined) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]]:

@@ -303,3 +303,8 @@ def test_cli_refine_videos(small_model_path, tmp_path):
     assert refined.cameras == ["c0"] and refined.image_size == (320, 240)
     assert sum(s is not None for s in refined.silhouettes["c0"]) >= 20
     assert json.loads((out / "refine.json").read_text())["input"] == "video"
+    # A job's second pass decodes no more frames per video than its first (its max_frames)
+    from capture.refine import video_frames
+
+    assert sum(1 for _ in video_frames(seq / "c0.avi", 7)()) == 7
+    assert sum(1 for _ in video_frames(seq / "c0.avi")()) == 46

@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "first estimate as a foreground prior (Izo-Grimson §7.1; cameras whose estimate is not "
                         "trusted get none) and estimates again: about twice the time, rig rotations 7.1 -> 6.2 "
                         "deg median on walkers composited into real footage (docs/ROBUSTNESS.md); 'off' keeps "
-                        "the first estimate")
+                        "the first estimate. Not with --keypoints")
     p.add_argument("--out", default="-", help="result JSON to write (default: standard output, the summary "
                                               "then goes to standard error)")
     p.add_argument("--model", help="appearance model file (default: the cached default model)")
@@ -114,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
             bar.update(100 * fraction - bar.n)
 
         try:
-            feedback = videos and args.feedback == "on"
+            # a detector's keypoints give the postures and the rig in place of the silhouettes
+            feedback = videos and args.feedback == "on" and keypoints is None
             # progress: segmentation, estimate, then with feedback the second segmentation and estimate
             spans = [0.0, 0.3, 0.55, 0.7, 1.0] if feedback else [0.0, 0.5, 1.0, 1.0, 1.0] if videos else [0.0] * 5
             if videos:
@@ -247,7 +248,7 @@ def _video_tracks(args: argparse.Namespace, videos: list[Path], model, progress)
     summary = {"fps": fps, "image_size": list(size), "frames": frames, "videos": [p.name for p in videos],
                "warmup": info["warmup"], **({"sync": sync} if sync is not None else {})}
     first = {"segmentations": info["segmentations"], "warmup": info["warmup"], "fps": fps,
-             "shifted": sync_shifted(sync)}
+             "shifted": sync_shifted(sync), "max_frames": None}
     return tracks, summary, info["decoding"], timeline, first
 
 
