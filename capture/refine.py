@@ -172,6 +172,7 @@ def refine_cameras(
     trim_reach: float | None = 0.1,
     raw: dict[str, list[Segmentation | None]] | None = None,
     estimate: WalkEstimate | SegmentedWalk | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> RefineResult:
     """Segment, estimate, render priors, segment again with them.
 
@@ -194,6 +195,8 @@ def refine_cameras(
         The first pass's segmentations (per camera, as :func:`segment` returns
         them) and the walk estimated from them, when the caller has them already
         (a job that estimated from the same videos): neither is made again.
+    progress : callable, optional
+        Called with the fraction of the cameras segmented a second time, after each.
 
     Raises
     ------
@@ -213,8 +216,11 @@ def refine_cameras(
     priors = priors_for_window(estimate, tracks, sizes, renderer=renderer, config=config or FEEDBACK)
     if prior_transform is not None:
         priors = {name: [prior_transform(p) for p in ps] for name, ps in priors.items()}
-    refined = {name: second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach)
-               for name, make in frames.items()}
+    refined = {}
+    for k, (name, make) in enumerate(frames.items()):
+        refined[name] = second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach)
+        if progress is not None:
+            progress((k + 1) / len(frames))
     return RefineResult(raw, refined, estimate, priors, sizes)
 
 

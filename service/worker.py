@@ -653,7 +653,10 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         passes, fed = None, None
         if feedback:
             store.report(job_id, 0.65, "segmenting again with the model's feedback (§7.1)")
-            walk, fed, passes = feedback_pass(Path(input_dir), model, walk, first, lambda t: estimate(t, 0.75))
+            walk, fed, passes = feedback_pass(
+                Path(input_dir), model, walk, first, lambda t: estimate(t, 0.75),
+                progress=lambda f: store.report(job_id, 0.65 + 0.1 * f, "segmenting again with the model's "
+                                                                        "feedback (§7.1)"))
         store.report(job_id, 0.9, "writing result")
         result = json_safe(walk.to_result())
         if fed is not None:
@@ -743,7 +746,8 @@ def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: S
 
 
 def feedback_pass(folder: Path, model: AppearanceModel, walk: SegmentedWalk, first: dict[str, Any],
-                  estimate: Callable[[dict[str, CameraTrack]], SegmentedWalk]) -> tuple[SegmentedWalk, dict, Any]:
+                  estimate: Callable[[dict[str, CameraTrack]], SegmentedWalk],
+                  progress: Callable[[float], None] | None = None) -> tuple[SegmentedWalk, dict, Any]:
     """Izo–Grimson §7.1 on recorded videos: each video segmented again with the model rendered
     from ``walk`` (the first estimate) as a foreground prior (:func:`capture.refine.refine_cameras`;
     cameras whose estimate fails the trust test get none), then estimated again by ``estimate``.
@@ -754,8 +758,8 @@ def feedback_pass(folder: Path, model: AppearanceModel, walk: SegmentedWalk, fir
     Returns the walk (the first one whenever the pass or the second estimate cannot be done:
     it never fails what the first estimate gave), the result's ``feedback`` block (``done``,
     ``priors``, ``changed_pixels``, ``note``) and the :class:`capture.refine.RefineResult`
-    (None when not segmented again). Measured on walkers composited into real footage
-    (docs/ROBUSTNESS.md).
+    (None when not segmented again). ``progress`` gets the fraction of the videos segmented
+    again. Measured on walkers composited into real footage (docs/ROBUSTNESS.md).
     """
     from capture.refine import changed_pixels, refine_cameras, track_from_segmentations, video_frames
     from capture.segment import SegmentSettings
@@ -767,7 +771,7 @@ def feedback_pass(folder: Path, model: AppearanceModel, walk: SegmentedWalk, fir
     try:
         passes = refine_cameras({c: video_frames(p, first.get("max_frames")) for c, p in videos.items()}, model,
                                 renderer=_get_renderer(), settings=SegmentSettings(warmup_frames=first["warmup"]),
-                                raw=first["segmentations"], estimate=walk)
+                                raw=first["segmentations"], estimate=walk, progress=progress)
     except ValueError as exc:  # e.g. a camera whose video holds no walker at all
         return walk, {"done": False, "note": f"feedback: not done ({exc}); the first estimate stands"}, None
     priors = sum(len(v) for v in passes.priors.values())

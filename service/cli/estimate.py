@@ -138,7 +138,8 @@ def run(args: argparse.Namespace) -> int:
                 from service.worker import feedback_pass
 
                 walk, fed, _ = feedback_pass(Path(args.sequence), model, walk, first,
-                                             lambda tracks: estimate(tracks, spans[3], spans[4]))
+                                             lambda tracks: estimate(tracks, spans[3], spans[4]),
+                                             progress=lambda f: progress(spans[2] + (spans[3] - spans[2]) * f))
                 progress(1.0)
         except ValueError as exc:  # input that reads but cannot be estimated (e.g. no walker)
             raise CliFailure(f"{args.sequence}: {exc}") from None
