@@ -622,8 +622,8 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             segmentations, image_size, decoding = info["segmentations"], info["sizes"], info["decoding"]
             store.report(job_id, 0.45, "synchronising the videos")
             tracks, fps, sync, timeline = sync_videos(tracks, rates, _get_model(), options.get("sync", "auto"))
-            first = {"segmentations": segmentations, "warmup": warmup, "fps": fps, "shifted": sync_shifted(sync),
-                     "max_frames": int(options.get("max_frames") or 0) or None}
+            first = FirstPass(Path(input_dir), segmentations, warmup, sync_shifted(sync),
+                              int(options.get("max_frames") or 0) or None)
             truth = None
         else:
             raise ValueError(f"unknown job kind {kind!r}")
@@ -654,7 +654,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
         if feedback:
             store.report(job_id, 0.65, "segmenting again with the model's feedback (§7.1)")
             walk, fed, passes = feedback_pass(
-                Path(input_dir), model, walk, first, lambda t: estimate(t, 0.75),
+                first, model, walk, lambda t: estimate(t, 0.75),
                 progress=lambda f: store.report(job_id, 0.65 + 0.1 * f, "segmenting again with the model's "
                                                                         "feedback (§7.1)"))
         store.report(job_id, 0.9, "writing result")
@@ -679,14 +679,12 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
             result["notes"].append(f"refine: not done, as the feedback pass: {fed['note']}")
         elif options.get("refine"):
             store.report(job_id, 0.92, "refining silhouettes (model feedback)")
-            if passes is not None:  # the feedback pass's, from which the result was estimated
+            if kind == "sequence":
+                refined = _refine_sequence(seq, model, walk)
+            else:  # the feedback pass's, from which the result was estimated, or one made now
                 from capture.refine import refined_sequence
 
-                refined = refined_sequence(passes, fps)
-            else:
-                refined = (_refine_sequence(seq, model, walk) if kind == "sequence" else
-                           _refine_videos(Path(input_dir), model, fps, walk, segmentations, warmup,
-                                          first["max_frames"]))
+                refined = refined_sequence(passes if passes is not None else _second_pass(first, model, walk), fps)
             out = Path(options["refined_dir"])
             write_sequence(out / "silhouettes", refined.sequence)
             shutil.make_archive(str(out / "silhouettes"), "zip", out / "silhouettes")
@@ -733,45 +731,50 @@ def _refine_sequence(seq: Sequence, model: AppearanceModel, estimate: SegmentedW
     return refine_sequence(seq, model, renderer=_get_renderer(), estimate=estimate)
 
 
-def _refine_videos(folder: Path, model: AppearanceModel, fps: float, estimate: SegmentedWalk,
-                   segmentations: dict, warmup: int, max_frames: int | None):
-    """The videos segmented once more, with priors from the job's ``estimate``; the job's
-    own segmentations are the first pass (``capture.refine.refine_videos``; at most
-    ``max_frames`` per video, as the first pass decoded)."""
-    from capture.refine import refine_videos
+@dataclass(frozen=True)
+class FirstPass:
+    """What the feedback pass needs of a recording's first segmentation (:func:`feedback_pass`)."""
 
-    videos = list_videos(folder)
-    return refine_videos(videos, model, renderer=_get_renderer(), warmup=warmup, fps=fps,
-                         raw=segmentations, estimate=estimate, max_frames=max_frames)
+    folder: Path  # the videos, one per camera
+    segmentations: dict[str, list]  # per camera, as :func:`capture.refine.segment` returned them
+    warmup: int
+    shifted: bool = False  # frames paired other than by index (:func:`sync_shifted`)
+    max_frames: int | None = None  # per video, as the first pass decoded (None: all)
 
 
-def feedback_pass(folder: Path, model: AppearanceModel, walk: SegmentedWalk, first: dict[str, Any],
+def _second_pass(first: FirstPass, model: AppearanceModel, walk: SegmentedWalk,
+                 progress: Callable[[float], None] | None = None):
+    """The videos segmented once more, with priors rendered from ``walk``; ``first`` is the first
+    pass (:func:`capture.refine.refine_cameras`; a :class:`capture.refine.RefineResult`)."""
+    from capture.refine import refine_cameras, video_frames
+    from capture.segment import SegmentSettings
+
+    return refine_cameras({c: video_frames(p, first.max_frames) for c, p in list_videos(first.folder).items()},
+                          model, renderer=_get_renderer(), settings=SegmentSettings(warmup_frames=first.warmup),
+                          raw=first.segmentations, estimate=walk, progress=progress)
+
+
+def feedback_pass(first: FirstPass, model: AppearanceModel, walk: SegmentedWalk,
                   estimate: Callable[[dict[str, CameraTrack]], SegmentedWalk],
                   progress: Callable[[float], None] | None = None) -> tuple[SegmentedWalk, dict, Any]:
     """Izo–Grimson §7.1 on recorded videos: each video segmented again with the model rendered
-    from ``walk`` (the first estimate) as a foreground prior (:func:`capture.refine.refine_cameras`;
-    cameras whose estimate fails the trust test get none), then estimated again by ``estimate``.
+    from ``walk`` (the first estimate) as a foreground prior (:func:`_second_pass`; cameras
+    whose estimate fails the trust test get none), then estimated again by ``estimate``.
 
-    ``first`` holds the first pass: ``segmentations``, ``warmup``, ``fps``, ``max_frames``
-    (per video; None: all) and ``shifted`` (:func:`sync_shifted`: frames paired other than by
-    index, where the second pass, which segments each video's own frames, is not done).
+    Not done where ``first.shifted`` (the second pass segments each video's own frames).
     Returns the walk (the first one whenever the pass or the second estimate cannot be done:
     it never fails what the first estimate gave), the result's ``feedback`` block (``done``,
     ``priors``, ``changed_pixels``, ``note``) and the :class:`capture.refine.RefineResult`
     (None when not segmented again). ``progress`` gets the fraction of the videos segmented
     again. Measured on walkers composited into real footage (docs/ROBUSTNESS.md).
     """
-    from capture.refine import changed_pixels, refine_cameras, track_from_segmentations, video_frames
-    from capture.segment import SegmentSettings
+    from capture.refine import changed_pixels, track_from_segmentations
 
-    if first["shifted"]:
+    if first.shifted:
         return walk, {"done": False, "note": "feedback: not done on videos paired by their offsets (sync); "
                                              "the videos' own frames are what the second pass segments"}, None
-    videos = list_videos(folder)
     try:
-        passes = refine_cameras({c: video_frames(p, first.get("max_frames")) for c, p in videos.items()}, model,
-                                renderer=_get_renderer(), settings=SegmentSettings(warmup_frames=first["warmup"]),
-                                raw=first["segmentations"], estimate=walk, progress=progress)
+        passes = _second_pass(first, model, walk, progress)
     except ValueError as exc:  # e.g. a camera whose video holds no walker at all
         return walk, {"done": False, "note": f"feedback: not done ({exc}); the first estimate stands"}, None
     priors = sum(len(v) for v in passes.priors.values())

@@ -112,7 +112,8 @@ def _check_video_job(srv: ServerThread, tmp_path: Path) -> None:
 def test_a_video_job_takes_a_detectors_keypoints_numbered_by_each_video(tmp_path):
     """Videos with keypoints in each video's own frame numbers and the default sync=auto: the keypoints
     go onto the job's timeline with their video's frames and calibrate its rig (within 3 deg); the
-    silhouettes are not segmented a second time (the feedback pass serves the postures and the rig)."""
+    estimate is not made again from refined silhouettes (the feedback pass serves the postures and the
+    rig), but refine=true still gets them."""
     import numpy as np
 
     from estimator._selfcal_core import geodesic_deg
@@ -120,7 +121,7 @@ def test_a_video_job_takes_a_detectors_keypoints_numbered_by_each_video(tmp_path
 
     files = _videos(tmp_path, 42, pose=tmp_path / "pose")
     with ServerThread(make_settings(tmp_path / "srv")) as srv:
-        r = srv.client.post("/v1/jobs", data={"warmup": "10"}, files=[
+        r = srv.client.post("/v1/jobs", data={"warmup": "10", "refine": "true"}, files=[
             *files, ("keypoints", ("pose.zip", _zip_of(tmp_path / "pose"), "application/zip"))])
         assert r.status_code == 202, r.text
         done = _done(srv, r.json()["id"], timeout=60)
@@ -128,6 +129,8 @@ def test_a_video_job_takes_a_detectors_keypoints_numbered_by_each_video(tmp_path
         result = srv.client.get(f"/v1/jobs/{done['id']}/result").json()
     assert "sync" in result and any("detector's keypoints" in n for n in result["notes"]), result["notes"]
     assert "feedback" not in result  # the keypoints give the rig and the postures: no feedback pass
+    # refine=true without a feedback pass: the videos are segmented a second time for it alone
+    assert result["refined"]["priors"] > 0 and result["refined"]["silhouettes"].endswith("/silhouettes")
     assert result["rig"]["source"] == "self-calibration"
     truth = rotations_from_viewpoints([(az, 10.0) for az in TRUTH])
     assert geodesic_deg(np.array(result["rig"]["cameras"]["c1"]["rotation"]), truth[1] @ truth[0].T) < 3.0

@@ -115,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             # a detector's keypoints give the postures and the rig in place of the silhouettes
-            feedback = videos and args.feedback == "on" and keypoints is None
+            feedback = bool(videos) and args.feedback == "on" and keypoints is None
             # progress: segmentation, estimate, then with feedback the second segmentation and estimate
-            spans = [0.0, 0.3, 0.55, 0.7, 1.0] if feedback else [0.0, 0.5, 1.0, 1.0, 1.0] if videos else [0.0] * 5
+            spans = [0.0, 0.3, 0.55, 0.7, 1.0] if feedback else [0.0, 0.5, 1.0, 1.0, 1.0] if videos else [0, 0, 1, 1, 1]
             if videos:
                 tracks, info, decoding, timeline, first = _video_tracks(args, videos, model,
                                                                         lambda f: progress(spans[1] * f))
@@ -132,13 +132,12 @@ def run(args: argparse.Namespace) -> int:
                                     rig=rig, keypoints=per_camera,
                                     progress=lambda f: progress(start + (stop - start) * f))
 
-            walk = estimate(tracks, spans[1], spans[2] if videos else 1.0)
+            walk = estimate(tracks, spans[1], spans[2])
             fed = None
             if feedback:
                 from service.worker import feedback_pass
 
-                walk, fed, _ = feedback_pass(Path(args.sequence), model, walk, first,
-                                             lambda tracks: estimate(tracks, spans[3], spans[4]),
+                walk, fed, _ = feedback_pass(first, model, walk, lambda tracks: estimate(tracks, spans[3], spans[4]),
                                              progress=lambda f: progress(spans[2] + (spans[3] - spans[2]) * f))
                 progress(1.0)
         except ValueError as exc:  # input that reads but cannot be estimated (e.g. no walker)
@@ -209,34 +208,33 @@ def _export(result: dict, exports: dict[str, tuple[Path, str]]) -> None:
         raise CliFailure("; ".join(failed))
 
 
-def _videos(path: str) -> list[Path]:
-    """The videos of a folder of one video per camera ([] for a sequence folder or anything else)."""
+def _videos(path: str) -> dict[Path, int]:
+    """The videos of a folder of one video per camera, with the frame count each one's header gives
+    (0: none); empty for a sequence folder or anything else. Each must open and decode a frame:
+    refused now (exit 2), not after the others' segmentation."""
     from service.intake import UploadError, list_videos, probe_video
 
     folder = Path(path)
     if not folder.is_dir() or (folder / "rig.json").exists():
-        return []
-    videos = list(list_videos(folder).values())
-    for video in videos:  # each must open and decode a frame: refused now, not after the others' segmentation
-        try:
-            probe_video(video, video.name, None)
-        except UploadError as exc:
-            raise CliError(f"{path}: {exc}") from None
-    return videos
+        return {}
+    try:
+        return {video: probe_video(video, video.name, None)[1] for video in list_videos(folder).values()}
+    except UploadError as exc:
+        raise CliError(f"{path}: {exc}") from None
 
 
-def _video_tracks(args: argparse.Namespace, videos: list[Path], model, progress):
+def _video_tracks(args: argparse.Namespace, videos: dict[Path, int], model, progress):
     """Each video's silhouettes (background subtraction, as REST jobs do) as camera tracks on one
     timeline (``--sync``), the input's ``sequence`` summary (with the ``sync`` block), each
     camera's decoded/announced frame counts, its own frame at each frame of the timeline, and
-    what a feedback pass needs of the first (segmentations, warm-up, frame rate, whether frames
-    were paired other than by index)."""
-    from service.worker import DamagedVideo, sync_shifted, sync_videos, video_tracks
+    what a feedback pass needs of the first (:class:`service.worker.FirstPass`)."""
+    from service.worker import DamagedVideo, FirstPass, sync_shifted, sync_videos, video_tracks
 
     try:
         tracks, rates, info = video_tracks(Path(args.sequence), warmup=args.warmup,
                                            report=lambda f, _: progress(0.9 * f),
-                                           options={"windows": {"length": args.window}})
+                                           options={"windows": {"length": args.window},
+                                                    "header_frames": {p.stem: n for p, n in videos.items()}})
     except DamagedVideo as exc:
         raise CliError(f"{args.sequence}: {exc}") from None
     try:
@@ -248,8 +246,7 @@ def _video_tracks(args: argparse.Namespace, videos: list[Path], model, progress)
     size = next(iter(info["sizes"].values()))
     summary = {"fps": fps, "image_size": list(size), "frames": frames, "videos": [p.name for p in videos],
                "warmup": info["warmup"], **({"sync": sync} if sync is not None else {})}
-    first = {"segmentations": info["segmentations"], "warmup": info["warmup"], "fps": fps,
-             "shifted": sync_shifted(sync), "max_frames": None}
+    first = FirstPass(Path(args.sequence), info["segmentations"], info["warmup"], sync_shifted(sync))
     return tracks, summary, info["decoding"], timeline, first
 
 
