@@ -51,8 +51,9 @@ def test_rrd_holds_every_stage_of_live_windows_and_jobs(tmp_path: Path):
         with zenoh.open(build_config(connect=settings.zenoh_listen)) as session:
             time.sleep(0.3)
             _publish_sequence(session, seq)
-        wait_for(lambda: (r := srv.rig(RIG)) and r["windows"]["estimated"] >= 3,
-                 timeout=20, what="three live windows")
+        # Priors come from their own loop after a window's estimate (later under load).
+        wait_for(lambda: (r := srv.rig(RIG)) and r["windows"]["estimated"] >= 3
+                 and r["feedback"]["priors_sent"] > 0, timeout=30, what="three live windows and their priors")
         wait_for(lambda: srv.client.get(f"/v1/jobs/{job['id']}").json()["state"] == "done", timeout=20, what="job")
         latest = srv.client.get(f"/v1/rigs/{RIG}/estimate")
         assert latest.status_code == 200  # strict JSON although one camera saw nothing
