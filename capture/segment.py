@@ -191,6 +191,8 @@ class SegmentSettings(BaseModel):
     prior_threshold: float = Field(4.0, gt=0, description="inside a trusted prior, at full "
                                    "resolution: foreground above this many times the noise "
                                    "variance (refine_threshold's weaker twin)")
+    prior_floor: float = Field(10.0, ge=0, description="... and above this colour distance "
+                               "(refine_floor's weaker twin)")
     prior_max_age: int = Field(5, ge=0, description="frames after its frame_index a prior "
                                "stays valid")
     prior_max_age_ms: float = Field(2000.0, gt=0, description="a prior issued or received "
@@ -671,8 +673,12 @@ class Segmenter:
         noise are measured on the sure background around the walker (outside
         the dilated mask, inside the bounding rectangle, the only region
         processed). Thin limbs that the downscaled model blurs get their
-        full-resolution edges back; where a prior is trusted, the model's mask
-        (which fused the prior's weak evidence) is kept.
+        full-resolution edges back. Inside a trusted prior the weaker
+        ``prior_threshold`` / ``prior_floor`` test adds pixels (§7.1); the
+        union then passes the edge split again (the walker's colour from the
+        evidence alone) and the shadow test, so that a model body wider than
+        the walker does not paint a rim or the cast shadow back on
+        (docs/CAPTURE.md, "Fusion").
         """
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
@@ -693,23 +699,25 @@ class Segmenter:
         var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
         level = max(self.settings.refine_threshold * var, self.settings.refine_floor ** 2)
         refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
-        if self.settings.edge_split or self.settings.shadows:
-            frame = image[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / gain)  # gain divided out
-            if self.settings.edge_split:
-                refined = self._split_edges(refined, frame, d2)
-            if self.settings.shadows:
-                refined = self._drop_shadows(refined, frame, self._full_bg[y0:y1, x0:x1], var, g)
+        frame = image[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / gain)  # gain divided out
+        if self.settings.edge_split:
+            refined = self._split_edges(refined, frame, d2)
         if prior is not None:
-            # Inside a trusted prior weaker evidence will do, at full resolution too
-            # (§7.1), and the refinement must not undo the model's fused evidence.
-            trusted = prior[y0:y1, x0:x1]
-            weak = cv2.compare(d2, self.settings.prior_threshold * var, cv2.CMP_GT)
-            refined |= cv2.bitwise_and(weak, cv2.bitwise_and(trusted, near))
+            # Inside a trusted prior weaker evidence will do, at full resolution too (§7.1).
+            weak = cv2.compare(d2, max(self.settings.prior_threshold * var, self.settings.prior_floor ** 2),
+                               cv2.CMP_GT)
+            seen = refined
+            refined = cv2.bitwise_or(seen, cv2.bitwise_and(weak, cv2.bitwise_and(prior[y0:y1, x0:x1], near)))
+            if self.settings.edge_split:  # the walker's colour from the evidence alone
+                refined = self._split_edges(refined, frame, d2, interior=cv2.erode(seen, _kernel(5)))
+        if self.settings.shadows:
+            refined = self._drop_shadows(refined, frame, self._full_bg[y0:y1, x0:x1], var, g)
         fg[y0:y1, x0:x1] = refined
         return fg
 
     @staticmethod
-    def _split_edges(fg: np.ndarray, frame: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    def _split_edges(fg: np.ndarray, frame: np.ndarray, d2: np.ndarray,
+                     interior: np.ndarray | None = None) -> np.ndarray:
         """Keep an edge pixel of ``fg`` only where it is nearer the walker's colour than
         the background's (a region, full resolution; ``frame`` float32 with the gain
         divided out, ``d2`` = squared distance to the background, offset removed).
@@ -719,10 +727,11 @@ class Segmenter:
         pixel, so silhouettes grow by that band wherever the contrast is high
         (a dark coat on grass: ~0.75 IoU against careful masks). The walker's
         colour near each pixel is the mean of the interior (``fg`` eroded by
-        a 5 px square) over a 9 px window; where no interior is that close
-        the pixel is kept.
+        a 5 px kernel, unless given) over a 9 px window; where no interior is
+        that close the pixel is kept.
         """
-        interior = cv2.erode(fg, _kernel(5))
+        if interior is None:
+            interior = cv2.erode(fg, _kernel(5))
         if not cv2.countNonZero(interior):
             return fg
         weight = cv2.boxFilter(interior, cv2.CV_32F, (9, 9), normalize=False) / 255.0
