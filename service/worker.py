@@ -658,10 +658,7 @@ def run_job(job_id: str, db_url: str, kind: str, input_dir: str, options: dict[s
                 progress=lambda f: store.report(job_id, 0.65 + 0.1 * f, "segmenting again with the model's "
                                                                         "feedback (§7.1)"))
         store.report(job_id, 0.9, "writing result")
-        result = json_safe(walk.to_result())
-        if fed is not None:
-            result["feedback"] = fed
-            result["notes"].append(fed["note"])
+        result = add_feedback(json_safe(walk.to_result()), fed)
         result["fps"] = fps
         if kind == "videos" and sync is not None:
             result["sync"] = sync
@@ -752,6 +749,14 @@ def _second_pass(first: FirstPass, model: AppearanceModel, walk: SegmentedWalk,
     return refine_cameras({c: video_frames(p, first.max_frames) for c, p in list_videos(first.folder).items()},
                           model, renderer=_get_renderer(), settings=SegmentSettings(warmup_frames=first.warmup),
                           raw=first.segmentations, estimate=walk, progress=progress)
+
+
+def add_feedback(result: dict, block: dict | None) -> dict:
+    """``result`` with the feedback pass's ``block`` (:func:`feedback_pass`) and its note, if one ran."""
+    if block is not None:
+        result["feedback"] = block
+        result["notes"].append(block["note"])
+    return result
 
 
 def feedback_pass(first: FirstPass, model: AppearanceModel, walk: SegmentedWalk,

@@ -143,9 +143,10 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:  # input that reads but cannot be estimated (e.g. no walker)
             raise CliFailure(f"{args.sequence}: {exc}") from None
     result = walk.to_result()
-    if fed is not None:
-        result["feedback"] = fed
-        result["notes"].append(fed["note"])
+    if fed is not None:  # the worker module (slow to import) is loaded already on this path
+        from service.worker import add_feedback
+
+        add_feedback(result, fed)
     if videos:
         from service.worker import _mark_decoding
 
