@@ -746,7 +746,8 @@ def _second_pass(first: FirstPass, model: AppearanceModel, walk: SegmentedWalk,
     from capture.refine import refine_cameras, video_frames
     from capture.segment import SegmentSettings
 
-    return refine_cameras({c: video_frames(p, first.max_frames) for c, p in list_videos(first.folder).items()},
+    videos = {c: p for c, p in list_videos(first.folder).items() if c in first.segmentations}  # not those left out
+    return refine_cameras({c: video_frames(p, first.max_frames) for c, p in videos.items()},
                           model, renderer=_get_renderer(), settings=SegmentSettings(warmup_frames=first.warmup),
                           raw=first.segmentations, estimate=walk, progress=progress)
 
@@ -887,9 +888,10 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     Returns the segmentations per camera, the frame sizes, the frame rate (the first
     video's) and per camera ``{"decoded_frames", "header_frames", "fps"}`` (its own rate,
     None when the container does not say). At most ``options["max_frames"]``
-    frames are decoded per video (a header can lie); a video that decodes fewer
-    frames than its header counts and fewer than one window (``options["windows"]["length"]``)
-    is refused (:class:`DamagedVideo` naming it) rather than estimated from what is left.
+    frames are decoded per video (a header can lie). A video that decodes no frame, or
+    fewer than its header counts and fewer than one window (``options["windows"]["length"]``),
+    is damaged: it is left out (its ``decoding`` entry says why, ``"left_out"``) and the
+    other cameras go on; :class:`DamagedVideo` naming every video when none is left.
     """
     from capture.refine import segment
     from capture.segment import SegmentSettings
@@ -903,28 +905,37 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     segmentations, sizes, decoding, fps = {}, {}, {}, 0.0
     for i, path in enumerate(videos):
         with _open_video(path) as source:
-            fps = fps or source.fps or 0.0
-            sizes[path.stem] = source.size
+            rate = float(source.fps or 0.0)
             header = int(header_frames.get(path.stem) or source.frame_count() or 0)
             frames = itertools.islice((frame.image for frame in source), max_frames)
             segs = segment(frames, settings)
-        if not segs:
-            raise DamagedVideo(f"video {path.name} has no decodable frames")
+            size = source.size
         decoding[path.stem] = {"decoded_frames": len(segs), "header_frames": header,
-                               "fps": round(float(source.fps or 0.0), 4) or None}
-        if header and len(segs) < header and len(segs) < min_frames:
-            raise DamagedVideo(f"video {path.name}: only {len(segs)} of the {header} frames its header "
-                             f"counts decode, fewer than one window ({min_frames} frames): truncated "
-                             "or damaged")
-        segmentations[path.stem] = segs
+                               "fps": round(rate, 4) or None}
         report((i + 1) / len(videos), f"segmented {path.name}")
+        if not segs:
+            decoding[path.stem]["left_out"] = f"video {path.name} has no decodable frames"
+        elif header and len(segs) < header and len(segs) < min_frames:
+            decoding[path.stem]["left_out"] = (
+                f"video {path.name}: only {len(segs)} of the {header} frames its header counts decode, fewer "
+                f"than one window ({min_frames} frames): truncated or damaged")
+        else:
+            segmentations[path.stem], sizes[path.stem] = segs, size
+            fps = fps or rate
+    if not segmentations:
+        raise DamagedVideo("; ".join(d["left_out"] for d in decoding.values()) or f"no videos in {folder}")
     return segmentations, sizes, fps or 15.0, decoding
 
 
 def _mark_decoding(result: dict[str, Any], decoding: dict[str, dict[str, int]]) -> None:
-    """Each video camera's decoded and announced frame counts in ``result["cameras"]``, and a
-    note (camera and top level) for a video that decoded fewer frames than its header counts."""
+    """Each video camera's decoded and announced frame counts in ``result["cameras"]``, a note
+    (camera and top level) for a video that decoded fewer frames than its header counts, and one
+    (top level) for each video left out as damaged (:func:`_segment_videos`)."""
     for cam, counts in decoding.items():
+        if "left_out" in counts:
+            result.setdefault("notes", []).append(f"{cam}: left out, {counts['left_out']}; estimated from the "
+                                                  "other cameras")
+            continue
         entry = result.get("cameras", {}).get(cam)
         if entry is not None:
             entry.update(counts)

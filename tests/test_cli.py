@@ -101,11 +101,24 @@ def test_estimate_reads_a_folder_of_videos(small_model_path, tmp_path, capsys):
     (folder / "c2.avi").write_bytes(b"")
     assert main(["estimate", str(folder), "--model", small_model_path, "--posture", "model"]) == 2
     assert "'c2.avi' cannot be decoded" in capsys.readouterr().err
+    # A video found truncated while decoding (its header is fine) is left out, named; the others go on
     data = (folder / "c1.avi").read_bytes()
     (folder / "c2.avi").write_bytes(data[:len(data) // 8])  # a truncated copy: its header counts 36 frames
+    out = tmp_path / "left_out.json"
+    assert main(["estimate", str(folder), "--out", str(out), "--model", small_model_path, "--posture", "model",
+                 "--warmup", "10", "--feedback", "off"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: video c2.avi: only" in err and "of the 36 frames its header counts decode" in err, err
+    left = json.loads(out.read_text())
+    assert sorted(left["cameras"]) == ["c0", "c1"] and "c2" in left["sequence"]["left_out"], left["sequence"]
+    assert any(n.startswith("c2: left out, video c2.avi: only") for n in left["notes"]), left["notes"]
+    assert left["cameras"]["c0"]["azimuth_deg"] == first["cameras"]["c0"]["azimuth_deg"]  # nothing else lost
+    # ... and when no video is left, the input is refused, every video named
+    for name in ("c0", "c1"):
+        (folder / f"{name}.avi").write_bytes(data[:len(data) // 8])
     assert main(["estimate", str(folder), "--model", small_model_path, "--posture", "model", "--warmup", "10"]) == 2
     err = capsys.readouterr().err
-    assert "video c2.avi: only" in err and "of the 36 frames its header counts decode" in err, err
+    assert all(f"video {n}.avi: only" in err for n in ("c0", "c1", "c2")), err
 
 
 def test_serve_refuses_to_listen_beyond_loopback_without_tokens(tmp_path, capsys):

@@ -233,6 +233,10 @@ def test_videos_checked_from_their_header_and_truncation_reported(srv, seq_dir, 
                         data={"warmup": "10"})
     assert r.status_code == 202, r.text  # the header is fine; decoding finds it short
     short = r.json()["id"]
+    r = srv.client.post("/v1/jobs", files=_videos({"c0.avi": _truncated(full, 15), "c1.avi": _truncated(full, 12)}),
+                        data={"warmup": "10"})
+    assert r.status_code == 202, r.text
+    broken = r.json()["id"]
 
     assert _done(srv, running.json()["id"])["state"] == "done"
     job = _done(srv, marked)
@@ -243,9 +247,16 @@ def test_videos_checked_from_their_header_and_truncation_reported(srv, seq_dir, 
     assert any("header counts 80" in n for n in cam["notes"]) and any("c0:" in n for n in result["notes"])
     assert result["cameras"]["c1"]["decoded_frames"] == result["cameras"]["c1"]["header_frames"] == 80
     assert not any(n.startswith("c1:") for n in result["notes"])
-    job = _done(srv, short)
-    assert job["state"] == "failed" and "c0.avi" in job["error"] and "fewer than one window" in job["error"], job
-    _nothing_left(srv, {running.json()["id"], marked, short})
+    job = _done(srv, short)  # c0 decodes less than a window: left out, named; c1 goes on
+    assert job["state"] == "done", job
+    result = srv.client.get(f"/v1/jobs/{short}/result").json()
+    assert list(result["cameras"]) == ["c1"], list(result["cameras"])
+    assert any(n.startswith("c0: left out, video c0.avi: only ") and "of the 80 frames" in n
+               and "fewer than one window" in n for n in result["notes"]), result["notes"]
+    job = _done(srv, broken)  # nothing left: the job fails, every video named
+    assert job["state"] == "failed" and "c0.avi" in job["error"] and "c1.avi" in job["error"], job
+    assert "fewer than one window" in job["error"], job
+    _nothing_left(srv, {running.json()["id"], marked, short, broken})
     metrics = srv.client.get("/metrics").text
     for status in ("400", "413", "422"):
         assert f'posecal_uploads_rejected_total{{status="{status}"}}' in metrics

@@ -238,6 +238,9 @@ def _video_tracks(args: argparse.Namespace, videos: dict[Path, int], model, prog
                                                     "header_frames": {p.stem: n for p, n in videos.items()}})
     except DamagedVideo as exc:
         raise CliError(f"{args.sequence}: {exc}") from None
+    left_out = {c: d["left_out"] for c, d in info["decoding"].items() if "left_out" in d}
+    for reason in left_out.values():  # the others go on; the result's notes say so too
+        print(f"posecal estimate: warning: {reason}; left out, estimated from the other cameras", file=sys.stderr)
     try:
         tracks, fps, sync, timeline = sync_videos(tracks, rates, model, args.sync)
     except ValueError as exc:  # a camera without the walker
@@ -245,8 +248,9 @@ def _video_tracks(args: argparse.Namespace, videos: dict[Path, int], model, prog
     progress(1.0)
     frames = max(len(t.silhouettes) for t in tracks.values())
     size = next(iter(info["sizes"].values()))
-    summary = {"fps": fps, "image_size": list(size), "frames": frames, "videos": [p.name for p in videos],
-               "warmup": info["warmup"], **({"sync": sync} if sync is not None else {})}
+    summary = {"fps": fps, "image_size": list(size), "frames": frames,
+               "videos": [p.name for p in videos if p.stem not in left_out], "warmup": info["warmup"],
+               **({"left_out": left_out} if left_out else {}), **({"sync": sync} if sync is not None else {})}
     first = FirstPass(Path(args.sequence), info["segmentations"], info["warmup"], sync_shifted(sync))
     return tracks, summary, info["decoding"], timeline, first
 
