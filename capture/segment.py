@@ -93,6 +93,9 @@ class SegmentSettings(BaseModel):
                                     "(1 = off)")
     shadow_chroma: float = Field(0.08, gt=0, description="largest chromaticity distortion "
                                  "|I - rB| / |B| of a shadow pixel")
+    shadow_rounds: int = Field(3, ge=1, description="the shadow test repeated on what it left, until it "
+                               "removes nothing (at most this many times): the feet band is measured again, so a "
+                               "long cast shadow whose far end set it is removed back to the feet")
     shadow_texture: float = Field(0.4, gt=0, description="largest gradient change (relative to "
                                   "the gradients present) of a shadow pixel")
     shadow_feet: float = Field(0.15, ge=0, le=0.5, description="in this lowest fraction of "
@@ -678,7 +681,8 @@ class Segmenter:
         union then passes the edge split again (the walker's colour from the
         evidence alone) and the shadow test, so that a model body wider than
         the walker does not paint a rim or the cast shadow back on
-        (docs/CAPTURE.md, "Fusion").
+        (docs/CAPTURE.md, "Fusion"). The shadow test is repeated while it
+        removes something, at most ``shadow_rounds`` times.
         """
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
@@ -711,7 +715,11 @@ class Segmenter:
             if self.settings.edge_split:  # the walker's colour from the evidence alone
                 refined = self._split_edges(refined, frame, d2, interior=cv2.erode(seen, _kernel(5)))
         if self.settings.shadows:
-            refined = self._drop_shadows(refined, frame, self._full_bg[y0:y1, x0:x1], var, g)
+            for _ in range(self.settings.shadow_rounds):
+                before = cv2.countNonZero(refined)
+                refined = self._drop_shadows(refined, frame, self._full_bg[y0:y1, x0:x1], var, g)
+                if cv2.countNonZero(refined) == before:
+                    break
         fg[y0:y1, x0:x1] = refined
         return fg
 
@@ -761,7 +769,9 @@ class Segmenter:
         the background through (thin, semi-transparent, or a reflection) may
         pass all three, so when the tests would remove most of the foreground
         nothing is removed: never worse than no suppression. At the feet
-        (:meth:`_feet_band`) colour alone decides.
+        (:meth:`_feet_band`) colour alone decides. :meth:`_refine` runs it
+        again on what it left (``shadow_rounds``), so that the band, measured
+        on a blob with a long cast shadow at first, climbs back to the feet.
         """
         s = self.settings
         bb = cv2.transform(cv2.multiply(background, background), np.ones((1, 3), np.float32)) + 1.0
