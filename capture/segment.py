@@ -714,10 +714,12 @@ class Segmenter:
             refined = cv2.bitwise_or(seen, cv2.bitwise_and(weak, cv2.bitwise_and(prior[y0:y1, x0:x1], near)))
             if self.settings.edge_split:  # the walker's colour from the evidence alone
                 refined = self._split_edges(refined, frame, d2, interior=cv2.erode(seen, _kernel(5)))
-        if self.settings.shadows:
+        evidence = self._shadow_evidence(frame, self._full_bg[y0:y1, x0:x1], var) if self.settings.shadows \
+            else None
+        if evidence is not None:  # the pixels' evidence is the mask's to weigh, round after round
             for _ in range(self.settings.shadow_rounds):
                 before = cv2.countNonZero(refined)
-                refined = self._drop_shadows(refined, frame, self._full_bg[y0:y1, x0:x1], var, g)
+                refined = self._drop_shadows(refined, *evidence, g)
                 if cv2.countNonZero(refined) == before:
                     break
         fg[y0:y1, x0:x1] = refined
@@ -752,26 +754,18 @@ class Segmenter:
         out[nearer_bg] = 0
         return out
 
-    def _drop_shadows(self, fg: np.ndarray, frame: np.ndarray, background: np.ndarray,
-                      var: float, g: _Geometry) -> np.ndarray:
-        """Remove shadow and reflection pixels from ``fg`` (a region, full resolution;
-        ``frame`` float32 with the gain divided out).
+    def _shadow_evidence(self, frame: np.ndarray, background: np.ndarray,
+                         var: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per pixel of a region (full resolution; ``frame`` float32 with the gain divided out):
+        whether its colour is a shadow's or a reflection's of the background, and whether the
+        background's texture is still there; None where no pixel's colour is (nothing to drop).
 
-        A pixel is shadow if its colour is the background's scaled by a ratio
+        A pixel's colour is a shadow's if it is the background's scaled by a ratio
         ``r`` in ``shadow_ratio`` (or up to ``reflection_ratio`` brighter), with
-        little chromaticity distortion ``|I - rB| / |B|`` and the background's
-        texture still there (local gradients of ``I`` close to ``r`` times the
-        background's). Uniformly dark clothing on a plain background passes
-        those tests too, so shadow pixels enclosed by the remaining body (within
-        the closing of the rest, twice ``close_px``) are kept: a shadow is cast
-        *beside* the walker, clothing is inside it. Opaque clothing fails the
-        texture test (it hides the background's texture); a walker who shows
-        the background through (thin, semi-transparent, or a reflection) may
-        pass all three, so when the tests would remove most of the foreground
-        nothing is removed: never worse than no suppression. At the feet
-        (:meth:`_feet_band`) colour alone decides. :meth:`_refine` runs it
-        again on what it left (``shadow_rounds``), so that the band, measured
-        on a blob with a long cast shadow at first, climbs back to the feet.
+        little chromaticity distortion ``|I - rB| / |B|``; the texture is there
+        when the local gradients of ``I`` are close to ``r`` times the
+        background's. Neither depends on the mask, so :meth:`_refine` computes
+        them once for all of :meth:`_drop_shadows`' rounds.
         """
         s = self.settings
         bb = cv2.transform(cv2.multiply(background, background), np.ones((1, 3), np.float32)) + 1.0
@@ -782,7 +776,7 @@ class Segmenter:
         dark = ((r >= lo) & (r <= hi)) | ((r > 1.0) & (r <= s.reflection_ratio))
         shadow = dark & (chroma < s.shadow_chroma ** 2)
         if not shadow.any():
-            return fg
+            return None
         gi, gb = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), cv2.cvtColor(background, cv2.COLOR_BGR2GRAY)
         change = np.zeros_like(gi)
         present = np.zeros_like(gi)
@@ -793,11 +787,29 @@ class Segmenter:
             present += cv2.absdiff(a, 0) + cv2.absdiff(cv2.multiply(b, r), 0)
         k = (5, 5)
         floor = 8.0 * np.sqrt(var / 3.0)  # the gradient operator's response to noise alone
-        same_texture = cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
+        return shadow, cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
+
+    def _drop_shadows(self, fg: np.ndarray, shadow_colour: np.ndarray, same_texture: np.ndarray,
+                      g: _Geometry) -> np.ndarray:
+        """Remove shadow and reflection pixels from ``fg`` (a region, full resolution), given each
+        pixel's evidence (:meth:`_shadow_evidence`: a shadow's colour, the background's texture).
+
+        A pixel is shadow if it has a shadow's colour and the background's
+        texture. Uniformly dark clothing on a plain background passes
+        those tests too, so shadow pixels enclosed by the remaining body (within
+        the closing of the rest, twice ``close_px``) are kept: a shadow is cast
+        *beside* the walker, clothing is inside it. Opaque clothing fails the
+        texture test (it hides the background's texture); a walker who shows
+        the background through (thin, semi-transparent, or a reflection) may
+        pass both, so when the tests would remove most of the foreground
+        nothing is removed: never worse than no suppression. At the feet
+        (:meth:`_feet_band`) colour alone decides. :meth:`_refine` runs it
+        again on what it left (``shadow_rounds``), so that the band, measured
+        on a blob with a long cast shadow at first, climbs back to the feet.
+        """
+        s = self.settings
         feet = self._feet_band(fg, g) if s.shadow_feet > 0 else None
-        if feet is not None:
-            same_texture |= feet
-        shadow = (shadow & same_texture).astype(np.uint8) * 255
+        shadow = (shadow_colour & (same_texture if feet is None else same_texture | feet)).astype(np.uint8) * 255
         body = cv2.bitwise_and(fg, cv2.bitwise_not(shadow))
         if 2 * cv2.countNonZero(body) < cv2.countNonZero(fg):
             return fg  # most of it "shadow": a walker that looks like one (see docstring)
