@@ -82,6 +82,15 @@ class SegmentSettings(BaseModel):
     bootstrap_still: float = Field(12.0, gt=0, description="start-up buffer: a pixel changing "
                                    "more than this since the previous frame is moving and "
                                    "counts less in the median")
+    bootstrap_lit: float = Field(0.2, ge=0, le=1, description="a pixel whose median is a shadow "
+                                 "(darker by a ratio in shadow_ratio, same chromaticity) of a value "
+                                 "that at least this share of the samples agree on (within "
+                                 "bootstrap_still) takes that lit value: a shadow that lay there in "
+                                 "most samples, a walker's own or a dark-clad person's in place, is "
+                                 "not the background (0 = off)")
+    bootstrap_lit_width: int = Field(5, ge=1, description="... where such pixels make a region at "
+                                     "least this wide (px, an opening): a fluttering tape's line "
+                                     "keeps the median")
     shadows: bool = Field(True, description="drop shadow/reflection pixels at full resolution "
                           "(darker or brighter by a ratio in shadow_ratio, same chromaticity, "
                           "same texture) unless enclosed by the body, or unless they would "
@@ -333,6 +342,60 @@ def _median(stack: np.ndarray, moving: np.ndarray | None = None) -> np.ndarray:
     return np.median(stack, axis=0).astype(np.float32)
 
 
+def _lit(stack: np.ndarray, median: np.ndarray, moving: np.ndarray | None,
+         settings: SegmentSettings) -> np.ndarray:
+    """``median`` (H, W, 3 float32) with each pixel that a shadow covered in most samples given its lit value.
+
+    A walker who stays in view for most of the samples (walking towards the
+    camera, or slowly) leaves their cast shadow in the median wherever it lay
+    in more than half of them; the frames in which it had moved on then show
+    the ground *brighter* than the background, by a shadow's ratio, and that
+    region is taken for foreground beside the walker (docs/CAPTURE.md). A
+    pixel's sample is *lit* when the median is a shadow of it (ratio
+    ``shadow_ratio``, chromaticity distortion under ``shadow_chroma``,
+    brighter by more than ``bootstrap_still`` grey levels in some channel,
+    so noise is not a light); where at least ``bootstrap_lit`` of the
+    samples (not ``moving``) are lit and agree (their median absolute
+    deviation within ``bootstrap_still``: a ground, not passers-by), and
+    such pixels make a region ``bootstrap_lit_width`` wide (a tape
+    fluttering over a path is a line), their median is the background. A
+    dark-clad person standing on paler ground of the same hue is replaced
+    the same way.
+    """
+    need = max(settings.bootstrap_lit * len(stack), 1.0)
+    brighter = np.zeros(median.shape[:2], np.int32)  # lit needs brighter: only those pixels are tested
+    above = median + settings.bootstrap_still
+    for k, sample in enumerate(stack):
+        up = np.any(sample > above, axis=-1)
+        brighter += up if moving is None else up & ~moving[k]
+    ys, xs = np.nonzero(brighter >= need)
+    if not ys.size:
+        return median
+    f = stack[:, ys, xs].astype(np.float32)  # (N, P, 3)
+    m = median[ys, xs]
+    r = np.einsum("npc,pc->np", f, m) / (np.einsum("pc,pc->p", m, m) + 1.0)
+    dist = f - r[..., None] * m
+    chroma = np.einsum("npc,npc->np", dist, dist) / np.maximum(np.einsum("npc,npc->np", f, f), 1.0)
+    lo, hi = 1.0 / settings.shadow_ratio[1], 1.0 / settings.shadow_ratio[0]
+    lit = (r >= lo) & (r <= hi) & (chroma < settings.shadow_chroma ** 2) \
+        & ((f - m).max(axis=-1) > settings.bootstrap_still)
+    if moving is not None:
+        lit &= ~moving[:, ys, xs]
+    enough = lit.sum(axis=0) >= need
+    values = np.where(lit[:, enough, None], f[:, enough], np.nan)  # the lit samples
+    value = np.nanmedian(values, axis=0)
+    agree = np.nanmedian(np.abs(values - value).max(axis=-1), axis=0) <= settings.bootstrap_still
+    changed = np.zeros(median.shape[:2], np.uint8)
+    py, px = ys[enough][agree], xs[enough][agree]
+    changed[py, px] = 1
+    # a shadow is a region: lines (a fluttering tape, a kerb's edge) keep the median
+    changed = cv2.morphologyEx(changed, cv2.MORPH_OPEN, _kernel(settings.bootstrap_lit_width))
+    out = median.copy()
+    keep = changed[py, px] > 0
+    out[py[keep], px[keep]] = value[agree][keep]
+    return out
+
+
 def describe(settings: SegmentSettings, size: tuple[int, int]) -> str:
     """One line on how frames of ``size`` are segmented (for logs and benchmarks)."""
     g = _Geometry.of(settings, size)
@@ -403,7 +466,8 @@ class Segmenter:
         The background is the per-pixel temporal median of ``images`` (BGR uint8,
         spread over the first seconds: whoever walks is elsewhere in most of
         them), preferring samples where the pixel is not ``moving`` (bool masks,
-        optional). MOG2 is primed with the samples in which pixels far from the
+        optional); where the median is a shadow of a value enough samples agree
+        on, that lit value (``bootstrap_lit``, :func:`_lit`). MOG2 is primed with the samples in which pixels far from the
         median (``bootstrap_outlier``) are replaced by it, so it learns the real
         noise but not the walkers; the full-resolution background is the median.
         """
@@ -411,7 +475,10 @@ class Segmenter:
             raise ValueError("bootstrap needs at least one frame")
         stack = np.stack(images)
         g = self._geometry_for((stack.shape[2], stack.shape[1]))
-        median = _median(stack, None if moving is None else np.stack(moving))
+        moving = None if moving is None else np.stack(moving)
+        median = _median(stack, moving)
+        if self.settings.bootstrap_lit > 0:
+            median = _lit(stack, median, moving, self.settings)
         self._full_bg = median if g.refine_px else None
         med_small = self._small(median.astype(np.uint8), g)
         residuals = []
