@@ -254,3 +254,19 @@ def test_a_shadow_lying_in_most_bootstrap_samples_is_not_the_background(lit):
         assert np.mean([iou(s.full_mask(), f.mask) for s, f in walker]) > 0.9
     else:
         assert sum(not s.box.empty for s in empty if s is not None) > 20
+
+
+def test_a_change_of_light_in_some_bootstrap_samples_keeps_the_median():
+    """The sun out in 12 of 40 samples makes the whole scene a 'lit' value of the median: that is
+    a change of light, not a shadow (``bootstrap_lit_area``), and the background stays the median."""
+    frames = [f.image for f in scene_frames(SceneSpec(width=320, height=240, frames=40, empty=40))]
+    frames = [cv2.convertScaleAbs(f, alpha=1.3) if k < 12 else f for k, f in enumerate(frames)]
+    backgrounds = []
+    for lit in (0.0, SegmentSettings().bootstrap_lit):
+        seg = Segmenter(SegmentSettings(bootstrap_lit=lit))
+        seg.bootstrap(frames)
+        backgrounds.append(seg.background_image())
+    np.testing.assert_array_equal(backgrounds[0], backgrounds[1])
+    seg = Segmenter(SegmentSettings(bootstrap_lit_area=1.0))  # without the limit the minority's light wins
+    seg.bootstrap(frames)
+    assert np.mean(cv2.absdiff(seg.background_image(), backgrounds[0])) > 10
