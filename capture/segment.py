@@ -347,8 +347,8 @@ def _median(stack: np.ndarray, moving: np.ndarray | None = None) -> np.ndarray:
 
 def _lit(stack: np.ndarray, median: np.ndarray, moving: np.ndarray | None,
          settings: SegmentSettings, block: int = 1 << 15) -> np.ndarray:
-    """``median`` (H, W, 3 float32) with each pixel where it is a shadow of what enough samples show lit
-    given that lit value.
+    """The bootstrap ``median`` (H, W, 3 float32) given, where it is a shadow of a value enough samples
+    show lit, that lit value.
 
     A walker who stays in view for most of the samples (walking towards the
     camera, or slowly) leaves their cast shadow in the median wherever it lay
@@ -491,9 +491,10 @@ class Segmenter:
         spread over the first seconds: whoever walks is elsewhere in most of
         them), preferring samples where the pixel is not ``moving`` (bool masks,
         optional); where the median is a shadow of a value enough samples agree
-        on, that lit value (``bootstrap_lit``, :func:`_lit`). MOG2 is primed with the samples in which pixels far from the
-        median (``bootstrap_outlier``) are replaced by it, so it learns the real
-        noise but not the walkers; the full-resolution background is that median.
+        on, that lit value (``bootstrap_lit``, :func:`_lit`). MOG2 is primed
+        with the samples in which pixels far from the median
+        (``bootstrap_outlier``) are replaced by it, so it learns the real noise
+        but not the walkers; the full-resolution background is that median.
         """
         if not len(images):
             raise ValueError("bootstrap needs at least one frame")
