@@ -21,29 +21,23 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from capture.segment import Segmenter, SegmentSettings
-
-VIDEO = Path("/work/shared/data/video/vtest.avi")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from eval_real_video import VIDEO, load_video  # noqa: E402
+from capture.segment import Segmenter, SegmentSettings  # noqa: E402
 
 
 def _frames(n: int) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(VIDEO))
-    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-    out = []
-    for k in np.linspace(0, total - 1, n).astype(int):
-        cap.set(cv2.CAP_PROP_POS_FRAMES, int(k))
-        ok, frame = cap.read()
-        if not ok:
-            raise SystemExit(f"cannot read frame {k} of {VIDEO}")
-        out.append(cv2.resize(frame, (640, 480), interpolation=cv2.INTER_LINEAR))
-    cap.release()
-    return out
+    """``n`` frames of vtest.avi spread over it, scaled to 640x480."""
+    video = load_video(VIDEO)
+    return [cv2.resize(video[k], (640, 480), interpolation=cv2.INTER_LINEAR)
+            for k in np.linspace(0, len(video) - 1, n).astype(int)]
 
 
 def _cases(frames: list[np.ndarray]) -> dict[str, list[np.ndarray]]:
@@ -68,17 +62,18 @@ def main(argv: list[str] | None = None) -> None:
     print("| case | lit background off | on (default) | pixels changed by it |")
     print("|---|---|---|---|")
     for name, frames in cases.items():
-        times, backgrounds = {}, {}
-        for lit in (0.0, SegmentSettings().bootstrap_lit):
+        times, backgrounds = [], []
+        for lit in (0.0, SegmentSettings().bootstrap_lit):  # off, then the default
             runs = []
             for _ in range(args.repeats):
                 seg = Segmenter(SegmentSettings(bootstrap_lit=lit))
                 t = time.perf_counter()
                 seg.bootstrap(frames)
                 runs.append(time.perf_counter() - t)
-            times[lit], backgrounds[lit] = float(np.median(runs)), seg.background_image()
-        off, on = times.values()
-        changed = int(np.count_nonzero(np.any(backgrounds[0.0] != backgrounds[SegmentSettings().bootstrap_lit], axis=-1)))
+            times.append(float(np.median(runs)))
+            backgrounds.append(seg.background_image())
+        off, on = times
+        changed = int(np.count_nonzero(np.any(backgrounds[0] != backgrounds[1], axis=-1)))
         print(f"| {name} | {off:.2f} s | {on:.2f} s (+{on - off:.2f}) | {changed} |")
 
 
