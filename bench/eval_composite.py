@@ -31,13 +31,21 @@ stature); the synchronisation offsets found (the truth is 0); and the
 segmenter's silhouettes against the exact ones (IoU per frame, the same
 segmenter settings as the command's).
 
+The walker is rendered 190-300 px tall, larger than anyone in ``vtest.avi``
+(55-140 px at 640x480); ``--walker-scale 0.5`` makes it one of the crowd
+(100-150 px: the focal length halved, the silhouettes and 2D truth scaled
+about the image centre), where which person the segmenter follows matters
+(docs/ROBUSTNESS.md, "People of the walker's size").
+
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_composite.py [--sequences 8] [--seed 5] \
-        [--plot docs/img/composite_errors.png] [--montage docs/img/composite_frames.jpg] [--keep DIR]
+        [--plot docs/img/composite_errors.png] [--montage docs/img/composite_frames.jpg] [--keep DIR] \
+        [--walker-scale 0.5]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -54,7 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_estimate import az_err, ph_err  # noqa: E402
 from eval_mnbp import MOCAP, body  # noqa: E402
 from eval_real_video import VIDEO, load_video  # noqa: E402
-from capture.refine import segment  # noqa: E402
+from capture.refine import segment_clip  # noqa: E402
 from capture.scene import iou  # noqa: E402
 from capture.segment import SegmentSettings  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
@@ -155,6 +163,34 @@ def backgrounds(video: np.ndarray, n_frames: int, rng: np.random.Generator) -> n
     return clip[:, :, ::-1] if rng.random() < 0.5 else clip
 
 
+def scaled(seq: Sequence, k: float) -> Sequence:
+    """``seq`` seen through ``k`` times the focal length: every silhouette and 2D joint scaled by ``k``
+    about the image centre (silhouettes area-averaged, then thresholded at half), so the walker is ``k``
+    times as tall among the same real people; viewpoints and 3D truth unchanged."""
+    if k == 1.0:
+        return seq
+    w, h = SIZE
+    small = (round(w * k), round(h * k))
+    x0, y0 = (w - small[0]) // 2, (h - small[1]) // 2
+    sils = {}
+    for cam, frames in seq.silhouettes.items():
+        sils[cam] = []
+        for m in frames:
+            if m is not None:
+                canvas = np.zeros((h, w), np.float32)
+                canvas[y0:y0 + small[1], x0:x0 + small[0]] = cv2.resize((m > 0).astype(np.float32), small,
+                                                                         interpolation=cv2.INTER_AREA)
+                m = np.where(canvas >= 0.5, 255, 0).astype(np.uint8)
+            sils[cam].append(m)
+    centre = np.array([x0, y0], float) + 0.5 * (k - 1.0)  # pixel centres under the area resize
+    truth = json.loads(json.dumps(seq.truth))
+    for frame in truth["frames"]:
+        frame["joints2d"] = {c: (np.asarray(j, float) * k + centre).tolist() for c, j in frame["joints2d"].items()}
+    for cam in truth["cameras"].values():
+        cam["focal_px"] = cam["focal_px"] * k
+    return dataclasses.replace(seq, silhouettes=sils, truth=truth)
+
+
 def write_videos(folder: Path, seq: Sequence, video: np.ndarray, rng: np.random.Generator, *, cast_shadow: bool
                  ) -> Outfit:
     """Each camera's composite as ``<camera>.avi`` (MJPG, 15 fps); returns the outfit."""
@@ -243,7 +279,7 @@ def _image_height(sil: np.ndarray | None) -> float:
 
 
 def segmentation_iou(segs: list, seq: Sequence, cam: str) -> list[float]:
-    """IoU per frame of the command's segmenter's output ``segs`` (:func:`capture.refine.segment` of the
+    """IoU per frame of the command's segmenter's output ``segs`` (:func:`capture.refine.segment_clip` of the
     frames as decoded, default settings) with the exact mask."""
     out = []
     for s, sil in zip(segs, seq.silhouettes[cam]):
@@ -272,6 +308,9 @@ def main() -> None:
     parser.add_argument("--montage", type=Path,
                         help="image (.jpg, .png): one frame per camera of the first walk over its segmentation")
     parser.add_argument("--keep", type=Path, help="keep the videos and results in this folder")
+    parser.add_argument("--walker-scale", type=float, default=1.0,
+                        help="the walker this many times as tall (the focal length scaled; 0.5: 100-150 px, "
+                             "the size of the real people around them)")
     args = parser.parse_args()
     video = load_video(VIDEO)
     motions = [read_motion(MOCAP / "16_15.bvh"), read_motion(MOCAP / "07_05.amc")]
@@ -286,7 +325,7 @@ def main() -> None:
         n, shape, distance = int(rng.integers(2, 5)), body(rng), float(rng.uniform(5.0, 12.0))
         spec = SynthSpec(n_cameras=n, n_frames=args.frames, fps=FPS, seed=1000 * args.seed + i, shape=shape,
                          distance=distance, elevations=elevations(rng, n, shape.height, distance), image_size=SIZE)
-        seq = synthesize(spec, motion=motions[i % 2])
+        seq = scaled(synthesize(spec, motion=motions[i % 2]), args.walker_scale)
         walk_rng = np.random.default_rng([args.seed, i])
         videos, exact = work / f"walk{i}" / "videos", work / f"walk{i}" / "exact"
         outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1)
@@ -300,7 +339,7 @@ def main() -> None:
                 rows[name].setdefault(k, []).extend(v)
         for cam in seq.cameras:
             frames = load_video(videos / f"{cam}.avi")
-            segs = segment(list(frames), SegmentSettings(), fps=FPS)
+            segs, _ = segment_clip(lambda: list(frames), SegmentSettings(), fps=FPS)
             ious.extend(segmentation_iou(segs, seq, cam))
             if i == 0:
                 mid = len(frames) // 2

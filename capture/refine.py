@@ -34,13 +34,14 @@ from estimator.prior import (
 from estimator.sequence import Sequence
 from estimator.windows import SegmentedWalk
 
+from .choose import guide, walker_boxes
 from .segment import Segmentation, Segmenter, SegmentSettings, sample_indices
 from .sources import VideoFileSource
 from .wire import Box, FeedbackMessage
 
 __all__ = ["RefineResult", "RefinedSequence", "check_priors", "feedback_from_prior", "refine_cameras",
            "refine_sequence", "refine_videos", "second_pass", "segment", "track_from_segmentations", "trim",
-           "video_frames"]
+           "segment_clip", "video_frames"]
 
 
 def feedback_from_prior(prior: Prior, *, rig: str = "offline", camera: str = "c0") -> FeedbackMessage:
@@ -50,14 +51,16 @@ def feedback_from_prior(prior: Prior, *, rig: str = "offline", camera: str = "c0
 
 
 def segment(frames: Iterable[np.ndarray], settings: SegmentSettings,
-            priors: Iterable[Prior] = (), fps: float | None = None) -> list[Segmentation | None]:
+            priors: Iterable[Prior] = (), fps: float | None = None,
+            guide: list[tuple[int, int, int, int] | None] | None = None) -> list[Segmentation | None]:
     """Segment BGR frames (index = position) with a fresh segmenter and the given priors.
 
     With ``settings.background = "bootstrap"`` (the default) the background is
     bootstrapped from frames sampled over the first ones (``fps`` places
     ``bootstrap_seconds``; 15 when unknown) and every frame is segmented, as
     the agent does a file. Each prior is installed just before its frame, as a
-    live agent would have received it.
+    live agent would have received it. ``guide`` (a box or None per frame) is
+    the walker chosen over the whole clip (:func:`segment_clip`).
     """
     by_frame: dict[int, Prior] = {p.frame_index: p for p in priors}
     seg = Segmenter(settings)
@@ -74,8 +77,18 @@ def segment(frames: Iterable[np.ndarray], settings: SegmentSettings,
         p = by_frame.get(k)
         if p is not None:
             seg.set_prior(feedback_from_prior(p))
-        out.append(seg.apply(image, k))
+        out.append(seg.apply(image, k, None if guide is None or k >= len(guide) else guide[k]))
     return out
+
+
+def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSettings,
+                 fps: float | None = None) -> tuple[list[Segmentation | None], str | None]:
+    """:func:`segment` a clip (``frames()`` yields its BGR frames, and can be called again) with its
+    walker chosen over the whole clip (:mod:`capture.choose`): segmented again, guided, when the
+    first pass followed someone else; the note saying so, else None."""
+    segs = segment(frames(), settings, fps=fps)
+    boxes, note = guide(segs, settings)
+    return (segs, None) if boxes is None else (segment(frames(), settings, fps=fps, guide=boxes), note)
 
 
 def track_from_segmentations(segs: list[Segmentation | None]) -> CameraTrack:
@@ -123,7 +136,7 @@ def second_pass(frames: Iterable[np.ndarray], settings: SegmentSettings, priors:
     agent-side check); the trim (:func:`trim`, skipped when ``trim_reach`` is
     None) uses the priors checked against the first pass (:func:`check_priors`).
     """
-    segs = segment(frames, settings, priors)
+    segs = segment(frames, settings, priors, guide=walker_boxes(raw))  # the first pass's walker
     return segs if trim_reach is None else trim(segs, check_priors(priors, raw), reach=trim_reach)
 
 
@@ -203,7 +216,7 @@ def refine_cameras(
     ValueError
         No silhouette in any camera (nothing to estimate from).
     """
-    raw = dict(raw) if raw is not None else {name: segment(make(), settings) for name, make in frames.items()}
+    raw = dict(raw) if raw is not None else {name: segment_clip(make, settings)[0] for name, make in frames.items()}
     sizes = {}
     for name in frames:
         first = next((s for s in raw[name] if s is not None), None)

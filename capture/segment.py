@@ -179,6 +179,14 @@ class SegmentSettings(BaseModel):
                                                 "larger than the walker but rarely a taller one; by area such "
                                                 "a pair was kept and then tracked for a whole clip "
                                                 "(docs/ROBUSTNESS.md)")
+    walker_choice: Literal["centred", "first"] = Field("centred", description="on a file "
+                                                       "(capture.refine.segment_clip), the walker is "
+                                                       "chosen over the whole clip: the one person "
+                                                       "whose path stays nearest the image centre (the "
+                                                       "cameras are aimed at the walk; capture/choose.py) "
+                                                       "when clearly nearer than the one the track "
+                                                       "started on; 'first' = the person the track "
+                                                       "starts on, as live")
     colour_split: bool = Field(True, description="cut off the tracked walker's blob the regions "
                                "whose colours are the other people's rather than the walker's (running "
                                "colour histograms of both; capture/colours.py): a passer-by touching the "
@@ -235,6 +243,7 @@ class Segmentation:
     area: int
     used_prior: bool
     n_candidates: int = 0  # person-sized components seen (the tracked walker among them)
+    candidates: tuple[tuple[int, int, int, int], ...] = ()  # their boxes (x, y, w, h), full frame
 
     def full_mask(self) -> np.ndarray:
         """The crop pasted into a full-frame ``(height, width)`` canvas."""
@@ -650,7 +659,8 @@ class Segmenter:
         return (cv2.compare(stored.small, level, cv2.CMP_GE),
                 None if stored.full is None else cv2.compare(stored.full, level, cv2.CMP_GE))
 
-    def apply(self, image: np.ndarray, index: int) -> Segmentation | None:
+    def apply(self, image: np.ndarray, index: int,
+              guide: tuple[int, int, int, int] | None = None) -> Segmentation | None:
         """Learn from or segment one BGR frame; None while warming up.
 
         The selective background update a frame calls for is deferred to
@@ -662,6 +672,10 @@ class Segmenter:
         ----------
         image : ndarray of shape (H, W, 3), uint8 BGR
         index : frame index, matched against a prior's ``frame_index``
+        guide : (x, y, w, h), optional
+            The walker's box in this frame as chosen over a whole clip
+            (:func:`capture.refine.segment_clip`): the candidate overlapping it
+            most (box IoU at least 0.3) is kept, whatever the track says.
         """
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be (H, W, 3) uint8, got {image.dtype} {image.shape}")
@@ -708,7 +722,7 @@ class Segmenter:
             fg = cv2.compare(cv2.resize(fg, size, interpolation=cv2.INTER_LINEAR), 127, cv2.CMP_GT)
             if g.refine_px:
                 fg = self._refine(fg, image, None if prior is None else prior[1], g, gain)
-        return self._largest(fg, g, used_prior=prior is not None, image=image, gain=gain)
+        return self._largest(fg, g, used_prior=prior is not None, image=image, gain=gain, guide=guide)
 
     @staticmethod
     def _level(image: np.ndarray) -> np.ndarray:
@@ -942,7 +956,8 @@ class Segmenter:
         return cv2.bitwise_or(fg, weak)
 
     def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool,
-                 image: np.ndarray | None = None, gain: float = 1.0) -> Segmentation:
+                 image: np.ndarray | None = None, gain: float = 1.0,
+                 guide: tuple[int, int, int, int] | None = None) -> Segmentation:
         """Close holes, keep the tracked walker's component (else the tallest, ``pick``), crop it.
 
         Closing and labelling run only inside the bounding rectangle of all
@@ -976,9 +991,15 @@ class Segmenter:
         boxes = {k: (rx + int(stats[k, 0]), ry + int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]))
                  for k in candidates}
         best = self._continuing(boxes)
+        guided = None if guide is None else max(boxes, key=lambda k: box_iou(boxes[k], guide))
+        if guided is not None and box_iou(boxes[guided], guide) >= 0.3 and guided != best:
+            best = None  # the clip's walker, not the track's: a new track on it
+        else:
+            guided = None
         if best is None:  # a new track
             key = cv2.CC_STAT_HEIGHT if self.settings.pick == "tallest" else cv2.CC_STAT_AREA
-            best = max(candidates, key=lambda k: (stats[k, key], stats[k, cv2.CC_STAT_AREA]))
+            best = guided if guided is not None else \
+                max(candidates, key=lambda k: (stats[k, key], stats[k, cv2.CC_STAT_AREA]))
             self._walker.clear()
             self._colours.reset()
         self._track, self._track_missed = boxes[best], 0
@@ -1004,7 +1025,7 @@ class Segmenter:
         x1, y1 = min(size[0], x + w + m), min(size[1], y + h + m)
         crop = cv2.copyMakeBorder(blob, y - y0, y1 - y - h, x - x0, x1 - x - w, cv2.BORDER_CONSTANT, value=0)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, cv2.countNonZero(blob), used_prior,
-                            len(candidates))
+                            len(candidates), tuple(boxes[k] for k in candidates))
 
     @staticmethod
     def _wide(labels: np.ndarray, stats: np.ndarray, k: int, g: _Geometry) -> bool:

@@ -893,7 +893,7 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     is damaged: it is left out (its ``decoding`` entry says why, ``"left_out"``) and the
     other cameras go on; :class:`DamagedVideo` naming every video when none is left.
     """
-    from capture.refine import segment
+    from capture.refine import segment_clip, video_frames
     from capture.segment import SegmentSettings
 
     options = options or {}
@@ -907,11 +907,12 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
         with _open_video(path) as source:
             rate = float(source.fps or 0.0)
             header = int(header_frames.get(path.stem) or source.frame_count() or 0)
-            frames = itertools.islice((frame.image for frame in source), max_frames)
-            segs = segment(frames, settings)
             size = source.size
+        segs, chosen = segment_clip(video_frames(path, max_frames), settings)
         decoding[path.stem] = {"decoded_frames": len(segs), "header_frames": header,
                                "fps": round(rate, 4) or None}
+        if chosen:
+            decoding[path.stem]["walker"] = chosen
         report((i + 1) / len(videos), f"segmented {path.name}")
         if not segs:
             decoding[path.stem]["left_out"] = f"video {path.name} has no decodable frames"
@@ -937,8 +938,13 @@ def _mark_decoding(result: dict[str, Any], decoding: dict[str, dict[str, int]]) 
                                                   "other cameras")
             continue
         entry = result.get("cameras", {}).get(cam)
+        walker = counts.get("walker")
         if entry is not None:
-            entry.update(counts)
+            entry.update({k: v for k, v in counts.items() if k != "walker"})
+            if walker:
+                entry.setdefault("notes", []).append(walker)
+        if walker:
+            result.setdefault("notes", []).append(f"{cam}: {walker}")
         decoded, header = counts["decoded_frames"], counts["header_frames"]
         if header and decoded != header:
             note = (f"{cam}: {decoded} frames decoded, its video's header counts {header}: "

@@ -1,0 +1,146 @@
+"""Which of the people in a clip is the walker, chosen over the whole clip.
+
+Frame by frame, the segmenter keeps one person-sized component: the one
+continuing its track, else the tallest (``SegmentSettings.pick``). Live it
+cannot look ahead. With a walker of the size of the people around them (50-120
+px tall among passers-by, as in ``vtest.avi``), the tallest at the start is
+often someone else, and a camera that follows someone else puts the walker on
+the wrong side of the rig (docs/ROBUSTNESS.md, "People of the walker's
+size"). A file can be looked at whole, and a rig's cameras are aimed at the walk, so
+the walker's path runs through the middle of every image:
+
+1. the first pass records every candidate's box in every frame
+   (:attr:`capture.segment.Segmentation.candidates`);
+2. :func:`choose`: the walker's path is the cheapest through them, one person
+   kept through merges and splits, its cost the boxes' distances from the
+   image centre, the frames it leaves out and the changes of its height;
+3. :func:`guide`: the first pass stands when it followed that path, or when
+   the path is not clearly (:data:`MARGIN`) nearer the centre than what it
+   followed; otherwise the clip is segmented again with the path's boxes as
+   the guide (:meth:`capture.segment.Segmenter.apply`), by
+   :func:`capture.refine.segment_clip`.
+
+The choice is off with ``SegmentSettings.walker_choice = "first"`` (the
+person the track starts on, as live).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .segment import Segmentation, SegmentSettings, box_iou
+
+__all__ = ["AGREE", "GAP", "MARGIN", "NOBODY", "RESIZE", "choose", "guide", "overlap", "path_cost", "walker_boxes"]
+
+Box = tuple[int, int, int, int]
+
+NOBODY = 0.5
+"""Cost of a frame the walker's path leaves out (in the units of a box centre's distance from the image
+centre): a path gains by taking a frame's box if that box is nearer the centre than this."""
+GAP = 4
+"""Frames the path may leave out between two of its boxes (the walker not detected there)."""
+RESIZE = 1.0
+"""Cost per unit of |log| of the box height's change between two of the path's boxes: where a group
+splits, the path goes on with the part whose height continues the walker's."""
+AGREE = 0.8
+"""The first pass stands when its walker is on the chosen path in this fraction of the path's frames ...
+"""
+MARGIN = 0.12
+"""... or when the chosen path is not nearer the image centre than the first pass's walker by this much
+(mean cost per frame with someone in view, :func:`path_cost`): a walker who crosses the whole image is followed from its first
+frames (as the tallest) and is left for no one who is merely a little more central."""
+_SAME = 0.5  # boxes overlapping by this fraction of the smaller are the same person (or one merged into a group)
+
+
+def overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersection over the smaller box's area, every box of ``a`` (N, 4) against every box of ``b`` (M, 4)."""
+    ix = np.clip(np.minimum(a[:, None, 0] + a[:, None, 2], b[None, :, 0] + b[None, :, 2])
+                 - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
+    iy = np.clip(np.minimum(a[:, None, 1] + a[:, None, 3], b[None, :, 1] + b[None, :, 3])
+                 - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
+    smaller = np.minimum((a[:, 2] * a[:, 3])[:, None], (b[:, 2] * b[:, 3])[None, :])
+    return ix * iy / np.maximum(smaller, 1.0)
+
+
+def choose(candidates: list[tuple[Box, ...]], size: tuple[int, int]) -> list[Box | None]:
+    """The walker's box in each frame (None: not on the path), the cheapest path through the candidates.
+
+    A path is one person: from frame to frame (or across at most :data:`GAP`
+    frames it leaves out) its boxes overlap by half of the smaller, so it
+    stays on the walker through the merges and splits that change their box,
+    and never jumps to someone apart. It may start and end anywhere. Its cost
+    is the sum of its boxes' distances from the image centre (in image widths
+    and heights), :data:`NOBODY` for every frame it leaves out and
+    :data:`RESIZE` times the changes of its boxes' height (|log|): the
+    longest, most central, steadiest track. Solved exactly by dynamic programming over
+    the frames.
+    """
+    w, h = size
+    T = len(candidates)
+    boxes = [np.array(b, float).reshape(-1, 4) for b in candidates]
+    cost: list[np.ndarray] = []  # per frame and candidate: the cheapest path ending there (frames before it too)
+    back: list[np.ndarray] = []  # ... and where it came from: (frame, candidate), (-1, -1) = it starts here
+    for t, cur in enumerate(boxes):
+        unary = np.hypot((cur[:, 0] + cur[:, 2] / 2) / w - 0.5, (cur[:, 1] + cur[:, 3] / 2) / h - 0.5)
+        best = np.full(len(cur), NOBODY * t)  # starting here: every earlier frame left out
+        came = np.full((len(cur), 2), -1)
+        for g in range(1, min(GAP + 1, t) + 1):
+            prev = boxes[t - g]
+            if not len(prev) or not len(cur):
+                continue
+            resize = RESIZE * np.abs(np.log(cur[None, :, 3] / prev[:, None, 3]))
+            total = np.where(overlap(prev, cur) >= _SAME, cost[t - g][:, None] + resize, np.inf) + NOBODY * (g - 1)
+            i = np.argmin(total, axis=0)
+            better = total[i, np.arange(len(cur))] < best
+            best = np.where(better, total[i, np.arange(len(cur))], best)
+            came[better] = np.stack([np.full(better.sum(), t - g), i[better]], axis=1)
+        cost.append(best + unary)
+        back.append(came)
+    ends = [(cost[t][j] + NOBODY * (T - 1 - t), t, j) for t in range(T) for j in range(len(cost[t]))]
+    path: list[Box | None] = [None] * T
+    if not ends:
+        return path
+    _, t, j = min(ends)
+    while t >= 0:
+        path[t] = candidates[t][j]
+        t, j = (int(v) for v in back[t][j])
+    return path
+
+
+def path_cost(path: list[Box | None], size: tuple[int, int]) -> float:
+    """Mean cost per frame of a path (:func:`choose`, without the changes of height): its boxes' distances
+    from the image centre, :data:`NOBODY` where it has none."""
+    w, h = size
+    return float(np.mean([NOBODY if b is None else np.hypot((b[0] + b[2] / 2) / w - 0.5, (b[1] + b[3] / 2) / h - 0.5)
+                          for b in path]))
+
+
+def walker_boxes(segs: list[Segmentation | None]) -> list[Box | None]:
+    """Each frame's walker box (None where there is none): the guide that keeps a later pass on it."""
+    return [None if s is None or s.box.empty else (s.box.x, s.box.y, s.box.w, s.box.h) for s in segs]
+
+
+def guide(segs: list[Segmentation | None], settings: SegmentSettings) -> tuple[list[Box | None] | None, str | None]:
+    """The chosen walker's box per frame, and a note saying so, when a first pass ``segs`` followed
+    someone else (module docstring, step 4); ``(None, None)`` when the first pass stands."""
+    size = next((s.image_size for s in segs if s is not None), None)
+    if settings.walker_choice == "first" or size is None:
+        return None, None
+    walker = choose([() if s is None else s.candidates for s in segs], size)
+    on = [t for t, b in enumerate(walker) if b is not None]
+    if not on:
+        return None, None
+    followed = walker_boxes(segs)
+    agree = float(np.mean([followed[t] is not None and box_iou(followed[t], walker[t]) >= 0.3 for t in on]))
+    # The first pass's walker as a path through the candidates: the candidate its box came from.
+    first = [max(c, key=lambda b: box_iou(f, b), default=None) if f is not None else None
+             for f, c in zip(followed, (() if s is None else s.candidates for s in segs))]
+    first = [b if b is not None and box_iou(f, b) >= 0.3 else None for f, b in zip(followed, first)]
+    seen = [t for t, s in enumerate(segs) if s is not None and s.candidates]  # someone in view
+    gain = path_cost([first[t] for t in seen], size) - path_cost([walker[t] for t in seen], size)
+    if agree >= AGREE or gain < MARGIN:
+        return None, None
+    people = max(len(s.candidates) for s in segs if s is not None)
+    note = (f"up to {people} people in view; the walker is the one whose path stays nearest the image centre, "
+            f"not the one the track started on (followed on {agree:.0%} of its frames): segmented again on it")
+    return walker, note

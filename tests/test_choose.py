@@ -1,0 +1,109 @@
+"""Choosing the walker over a whole clip (capture.choose, capture.refine.segment_clip)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from capture.choose import GAP, choose, guide
+from capture.refine import segment, segment_clip
+from capture.scene import SceneSpec, iou, scene_frames
+from capture.segment import Segmentation, SegmentSettings
+from capture.wire import Box
+
+SIZE = (640, 480)
+
+
+def _box(cx: float, top: float, w: float, h: float) -> tuple[int, int, int, int]:
+    return (int(cx - w / 2), int(top), int(w), int(h))
+
+
+def test_the_path_through_the_middle_is_the_walker_not_the_taller_person_at_the_side():
+    frames = [(_box(200 + 6 * t, 180, 40, 120), _box(40, 150 + t, 50, 160)) for t in range(40)]
+    path = choose(frames, SIZE)
+    assert path == [f[0] for f in frames]
+
+
+def test_a_group_that_splits_goes_on_with_the_part_of_the_walkers_height():
+    """Walker and a shorter passer-by cross the middle from either side, as far from it as each
+    other in every frame, and make one box for frames 10-19: the path keeps the walker's height
+    on both sides of the merge."""
+    frames = []
+    for t in range(30):
+        walker = _box(260 + 4 * t, 180, 40, 120)
+        other = _box(380 - 4 * t, 200, 30, 80)
+        frames.append((_box(320, 180, 120, 120),) if 10 <= t < 20 else (other, walker)[::1 if t % 2 else -1])
+    path = choose(frames, SIZE)
+    assert all(path[t][3] == 120 for t in range(30))
+
+
+def test_a_walker_missed_for_a_few_frames_is_not_left_for_someone_else():
+    frames = [(() if 10 <= t < 10 + GAP else (_box(300 + t, 180, 40, 120),)) + (_box(560, 200, 40, 110),)
+              for t in range(30)]
+    path = choose(frames, SIZE)
+    assert all(path[t] is None for t in range(10, 10 + GAP))
+    assert all(path[t] == frames[t][0] for t in range(30) if not 10 <= t < 10 + GAP)
+
+
+def test_nothing_in_view_is_no_path():
+    assert choose([(), ()], SIZE) == [None, None]
+
+
+def _followed(frames: list[tuple], k: int) -> list[Segmentation]:
+    """A first pass that kept candidate ``k`` of every frame."""
+    return [Segmentation(np.full((b[k][3], b[k][2]), 255, np.uint8), Box(*b[k]), SIZE, b[k][2] * b[k][3], False,
+                         len(b), b) for b in frames]
+
+
+def test_a_walker_crossing_the_image_is_not_left_for_someone_a_little_more_central():
+    """The first pass followed the walker across the whole image; a short passer-by stands near the
+    middle all along, nearer the centre on average but not by ``MARGIN``: the first pass stands."""
+    frames = [(_box(80 + 12 * t, 150, 70, 220), _box(420, 250, 30, 70)) for t in range(40)]
+    assert guide(_followed(frames, 0), SegmentSettings()) == (None, None)
+
+
+def test_a_first_pass_on_someone_at_the_edge_is_moved_to_the_walker_in_the_middle():
+    frames = [(_box(600, 100 + t, 40, 150), _box(300 + t, 180, 40, 120)) for t in range(40)]
+    boxes, note = guide(_followed(frames, 0), SegmentSettings())
+    assert boxes == [f[1] for f in frames] and "segmented again" in note
+    assert guide(_followed(frames, 0), SegmentSettings(walker_choice="first")) == (None, None)
+
+
+def _with_passer_by(spec: SceneSpec):
+    """The scripted scene (its walker crossing the middle) with a taller person walking down the
+    right edge from the first frame after the warm-up: the tallest when the track starts."""
+    rng = np.random.default_rng(3)
+    coat = rng.integers(20, 80, (spec.height, spec.width, 3), dtype=np.uint8)
+    for f in scene_frames(spec):
+        if f.index >= spec.empty:
+            f.image = f.image.copy()
+            inside = np.zeros(f.mask.shape, np.uint8)
+            cv2.ellipse(inside, (290, 50 + int(1.5 * (f.index - spec.empty))), (14, 58), 0, 0, 360, 255, -1)
+            f.image[inside > 0] = coat[inside > 0]
+        yield f
+
+
+@pytest.fixture(scope="module")
+def passer_by():
+    spec = SceneSpec(width=320, height=240, frames=160, empty=100)
+    return list(_with_passer_by(spec))
+
+
+def test_on_a_clip_the_walker_is_chosen_and_not_the_tallest_at_the_start(passer_by):
+    settings = SegmentSettings(background="warmup", warmup_frames=100)
+    walking = [f for f in passer_by if f.mask.any()]
+    first = segment([f.image for f in passer_by], settings)
+    assert np.mean([iou(first[f.index].full_mask(), f.mask) for f in walking]) < 0.2  # the person at the side
+    chosen, note = segment_clip(lambda: (f.image for f in passer_by), settings)
+    assert note is not None and "nearest the image centre" in note
+    assert np.mean([iou(chosen[f.index].full_mask(), f.mask) > 0.8 for f in walking]) > 0.9
+    assert guide(chosen, settings) == (None, None)  # the second pass followed the chosen walker
+
+
+def test_walker_choice_first_keeps_the_track(passer_by):
+    settings = SegmentSettings(background="warmup", warmup_frames=100, walker_choice="first")
+    images = [f.image for f in passer_by]
+    segs, note = segment_clip(lambda: iter(images), settings)
+    assert note is None
+    assert [s and s.box for s in segs] == [s and s.box for s in segment(images, settings)]
