@@ -47,8 +47,8 @@ AGREE = 0.8
 """
 MARGIN = 0.12
 """... or when the chosen path is not nearer the image centre than the first pass's walker by this much
-(mean cost per frame with someone in view, :func:`path_cost`): a walker who crosses the whole image is followed from its first
-frames (as the tallest) and is left for no one who is merely a little more central."""
+(mean cost per frame with someone in view, :func:`path_cost`): a walker who crosses the whole image is
+followed from its first frames (as the tallest) and left for no one who is merely a little more central."""
 _SAME = 0.5  # boxes overlapping by this fraction of the smaller are the same person (or one merged into a group)
 
 
@@ -62,6 +62,12 @@ def overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return ix * iy / np.maximum(smaller, 1.0)
 
 
+def _off_centre(boxes: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Distance of each box's centre (boxes (N, 4)) from the image centre, in image widths and heights."""
+    w, h = size
+    return np.hypot((boxes[:, 0] + boxes[:, 2] / 2) / w - 0.5, (boxes[:, 1] + boxes[:, 3] / 2) / h - 0.5)
+
+
 def choose(candidates: list[tuple[Box, ...]], size: tuple[int, int]) -> list[Box | None]:
     """The walker's box in each frame (None: not on the path), the cheapest path through the candidates.
 
@@ -72,16 +78,15 @@ def choose(candidates: list[tuple[Box, ...]], size: tuple[int, int]) -> list[Box
     is the sum of its boxes' distances from the image centre (in image widths
     and heights), :data:`NOBODY` for every frame it leaves out and
     :data:`RESIZE` times the changes of its boxes' height (|log|): the
-    longest, most central, steadiest track. Solved exactly by dynamic programming over
-    the frames.
+    longest, most central, steadiest track. Solved exactly by dynamic
+    programming over the frames.
     """
-    w, h = size
     T = len(candidates)
     boxes = [np.array(b, float).reshape(-1, 4) for b in candidates]
     cost: list[np.ndarray] = []  # per frame and candidate: the cheapest path ending there (frames before it too)
     back: list[np.ndarray] = []  # ... and where it came from: (frame, candidate), (-1, -1) = it starts here
     for t, cur in enumerate(boxes):
-        unary = np.hypot((cur[:, 0] + cur[:, 2] / 2) / w - 0.5, (cur[:, 1] + cur[:, 3] / 2) / h - 0.5)
+        unary = _off_centre(cur, size)
         best = np.full(len(cur), NOBODY * t)  # starting here: every earlier frame left out
         came = np.full((len(cur), 2), -1)
         for g in range(1, min(GAP + 1, t) + 1):
@@ -110,9 +115,7 @@ def choose(candidates: list[tuple[Box, ...]], size: tuple[int, int]) -> list[Box
 def path_cost(path: list[Box | None], size: tuple[int, int]) -> float:
     """Mean cost per frame of a path (:func:`choose`, without the changes of height): its boxes' distances
     from the image centre, :data:`NOBODY` where it has none."""
-    w, h = size
-    return float(np.mean([NOBODY if b is None else np.hypot((b[0] + b[2] / 2) / w - 0.5, (b[1] + b[3] / 2) / h - 0.5)
-                          for b in path]))
+    return float(np.mean([NOBODY if b is None else _off_centre(np.array([b], float), size)[0] for b in path]))
 
 
 def walker_boxes(segs: list[Segmentation | None]) -> list[Box | None]:
@@ -122,7 +125,7 @@ def walker_boxes(segs: list[Segmentation | None]) -> list[Box | None]:
 
 def guide(segs: list[Segmentation | None], settings: SegmentSettings) -> tuple[list[Box | None] | None, str | None]:
     """The chosen walker's box per frame, and a note saying so, when a first pass ``segs`` followed
-    someone else (module docstring, step 4); ``(None, None)`` when the first pass stands."""
+    someone else (module docstring, step 3); ``(None, None)`` when the first pass stands."""
     size = next((s.image_size for s in segs if s is not None), None)
     if settings.walker_choice == "first" or size is None:
         return None, None
