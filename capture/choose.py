@@ -115,7 +115,8 @@ def choose(candidates: list[tuple[Box, ...]], size: tuple[int, int]) -> list[Box
 def path_cost(path: list[Box | None], size: tuple[int, int]) -> float:
     """Mean cost per frame of a path (:func:`choose`, without the changes of height): its boxes' distances
     from the image centre, :data:`NOBODY` where it has none."""
-    return float(np.mean([NOBODY if b is None else _off_centre(np.array([b], float), size)[0] for b in path]))
+    boxes = np.array([b for b in path if b is not None], float).reshape(-1, 4)
+    return float((_off_centre(boxes, size).sum() + NOBODY * (len(path) - len(boxes))) / len(path))
 
 
 def walker_boxes(segs: list[Segmentation | None]) -> list[Box | None]:
@@ -136,8 +137,8 @@ def guide(segs: list[Segmentation | None], settings: SegmentSettings) -> tuple[l
     followed = walker_boxes(segs)
     agree = float(np.mean([followed[t] is not None and box_iou(followed[t], walker[t]) >= 0.3 for t in on]))
     # The first pass's walker as a path through the candidates: the candidate its box came from.
-    first = [max(c, key=lambda b: box_iou(f, b), default=None) if f is not None else None
-             for f, c in zip(followed, (() if s is None else s.candidates for s in segs))]
+    first = [None if f is None else max(s.candidates, key=lambda b: box_iou(f, b), default=None)
+             for f, s in zip(followed, segs)]
     first = [b if b is not None and box_iou(f, b) >= 0.3 else None for f, b in zip(followed, first)]
     seen = [t for t, s in enumerate(segs) if s is not None and s.candidates]  # someone in view
     gain = path_cost([first[t] for t in seen], size) - path_cost([walker[t] for t in seen], size)

@@ -992,10 +992,10 @@ class Segmenter:
                  for k in candidates}
         best = self._continuing(boxes)
         guided = None if guide is None else max(boxes, key=lambda k: box_iou(boxes[k], guide))
-        if guided is not None and box_iou(boxes[guided], guide) >= 0.3 and guided != best:
+        if guided is not None and box_iou(boxes[guided], guide) < 0.3:
+            guided = None  # no candidate is the clip's walker here
+        if guided is not None and guided != best:
             best = None  # the clip's walker, not the track's: a new track on it
-        else:
-            guided = None
         if best is None:  # a new track
             key = cv2.CC_STAT_HEIGHT if self.settings.pick == "tallest" else cv2.CC_STAT_AREA
             best = guided if guided is not None else \

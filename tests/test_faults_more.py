@@ -157,8 +157,8 @@ _SLOW_SUBSCRIBER = textwrap.dedent("""
     endpoint, rig = sys.argv[1], sys.argv[2]
     counts = {"estimate": 0, "feedback": 0}
 
-    def slow(sample):  # a dashboard that takes 50 ms per message
-        time.sleep(0.05)
+    def slow(sample):  # a dashboard that takes 100 ms per message (at 50 ms, on a 2-core machine,
+        time.sleep(0.1)   # it still got 116 of 179 estimates: not congested enough to tell)
         counts["estimate" if str(sample.key_expr).endswith("/estimate") else "feedback"] += 1
 
     with zenoh.open(build_config(mode="client", connect=[endpoint])) as session:
@@ -261,10 +261,8 @@ def test_slow_consumers_do_not_stall_the_windows(tmp_path, crops):
     windows = rig["windows"]
     assert windows["estimated"] == windows["seq"] == cut and windows["dropped"] == 0, windows
     assert sorted(prompt) == list(range(1, windows["seq"] + 1))  # the prompt subscriber got every window
-    # The slow subscriber fell behind (its messages were dropped for it: the run did congest it; how
-    # the drops split between its two keys is Zenoh's scheduling, so they are counted together) ...
-    sent = windows["seq"] + rig["feedback"]["priors_sent"]
-    assert got["estimate"] + got["feedback"] < 0.75 * sent, (got, sent)
+    # The slow subscriber fell behind (its messages were dropped for it: the run did congest it) ...
+    assert got["estimate"] < windows["seq"] / 2 and got["feedback"] < rig["feedback"]["priors_sent"] / 2, got
     # ... while the agents got priors to the end: none of the last 10 s went without.
     last_frames = [k for k, _ in priors if k >= n - 10 * FPS]
     assert len({k // int(FPS) for k in last_frames}) >= 9, "priors stopped flowing in the last 10 s"
