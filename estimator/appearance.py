@@ -11,6 +11,7 @@ the camera-pose and phase steps that follow (§3 steps 4–5).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import io
 import json
@@ -573,7 +574,8 @@ def default_model(
     rng: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> AppearanceModel:
-    """Load the default model from ``cache_dir``, building and caching it on first use.
+    """Load the default model from ``cache_dir``, building and caching it on first use
+    (under a file lock: processes that need it at once build it once).
 
     Parameters
     ----------
@@ -595,11 +597,33 @@ def default_model(
     key = dict(key or _default_examples_key())
     name = model_filename({**key, "n_clusters": n_clusters, "seed": rng})
     path = Path(cache_dir) / name
-    if path.exists():
-        try:
-            return load_model(path)
-        except ValueError:
-            pass  # stale or truncated: rebuild
+    model = _load_cached(path)
+    if model is not None:
+        return model
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # Processes that start together on a fresh machine (service replicas, test workers)
+    # build the model once: the first holds the lock, the others load its file.
+    with open(path.with_name(path.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        model = _load_cached(path)
+        if model is None:
+            model = _build_default(path, key, make_examples, n_clusters, rng, progress)
+    return model
+
+
+def _load_cached(path: Path) -> AppearanceModel | None:
+    """The model cached at ``path``; None if there is none or it is stale or truncated."""
+    if not path.exists():
+        return None
+    try:
+        return load_model(path)
+    except ValueError:
+        return None
+
+
+def _build_default(path: Path, key: dict, make_examples: Callable[[], Examples] | None, n_clusters: int,
+                   rng: int, progress: Callable[[str], None] | None) -> AppearanceModel:
+    """Build the default model (:func:`default_model`) and save it at ``path``."""
     if progress:
         progress("render")
     if make_examples is None:

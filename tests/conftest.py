@@ -15,20 +15,15 @@ def mocap_dir() -> str:
 
 
 @pytest.fixture(scope="session")
-def small_model_path(tmp_path_factory) -> str:
-    """A small appearance model (15-degree azimuths, 3 elevations, 40 clusters): ~10 s to build.
+def small_model_path() -> str:
+    """A small appearance model (15-degree azimuths, 3 elevations, 40 clusters): ~10-30 s to
+    build, once for all sessions and test workers (:func:`conftest_service.small_model_path`).
 
-    Cached as a file for the session; tests that need the full 17,280-example
-    model are evaluations, not unit tests.
+    Tests that need the full 17,280-example model are evaluations, not unit tests.
     """
-    from estimator.appearance import build_model, save_model
-    from estimator.examples import ExampleGrid, render_examples
+    from conftest_service import small_model_path as cached
 
-    examples = render_examples(ExampleGrid(azimuth_step_deg=15.0, elevations_deg=(-10.0, 10.0, 30.0)))
-    model = build_model(examples, n_clusters=40, rng=0)
-    path = tmp_path_factory.mktemp("model") / "small.npz"
-    save_model(model, path)
-    return str(path)
+    return str(cached())
 
 
 @pytest.fixture(scope="session")

@@ -6,6 +6,7 @@ Imported by the ``test_service_*`` modules (``tests/conftest.py`` is not ours).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import io
 import os
@@ -31,12 +32,14 @@ def small_model_path() -> Path:
 
     key = repr((SMALL_MODEL_KEY, getattr(examples, "RENDER_VERSION", ""), appearance.FORMAT_VERSION))
     path = Path(tempfile.gettempdir()) / f"posecal-test-model-{hashlib.sha256(key.encode()).hexdigest()[:10]}.npz"
-    if not path.exists():
-        from estimator.appearance import build_model, save_model
-        from estimator.examples import ExampleGrid, render_examples
+    with open(path.with_name(path.name + ".lock"), "a") as lock:  # test workers build it once
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not path.exists():
+            from estimator.appearance import build_model, save_model
+            from estimator.examples import ExampleGrid, render_examples
 
-        ex = render_examples(ExampleGrid(azimuth_step_deg=15, elevations_deg=(-10.0, 10.0, 30.0)))
-        save_model(build_model(ex, n_clusters=40, rng=0), path)
+            ex = render_examples(ExampleGrid(azimuth_step_deg=15, elevations_deg=(-10.0, 10.0, 30.0)))
+            save_model(build_model(ex, n_clusters=40, rng=0), path)
     return path
 
 

@@ -28,6 +28,9 @@ from service.server import free_port
 from test_service_live import _msg
 from test_wire_hostile import FPS, RIG, _Agents, _live_settings, _windows_through, crops  # noqa: F401
 
+# Real-time streams and timeouts: run alone, not beside another test (README "Tests").
+pytestmark = pytest.mark.serial
+
 # ------------------------------------------------------------------- a restarted agent
 
 

@@ -36,6 +36,9 @@ from service.settings import Settings
 from test_faults import _gone
 from test_wire_hostile import FPS, RIG, _Agents, crops  # noqa: F401
 
+# Real-time streams and timeouts: run alone, not beside another test (README "Tests").
+pytestmark = pytest.mark.serial
+
 REPO = Path(__file__).resolve().parents[1]
 CAMERAS = {"c0": 60.0, "c1": 150.0}
 
@@ -157,8 +160,8 @@ _SLOW_SUBSCRIBER = textwrap.dedent("""
     endpoint, rig = sys.argv[1], sys.argv[2]
     counts = {"estimate": 0, "feedback": 0}
 
-    def slow(sample):  # a dashboard that takes 100 ms per message (at 50 ms, on a 2-core machine,
-        time.sleep(0.1)   # it still got 116 of 179 estimates: not congested enough to tell)
+    def slow(sample):  # a dashboard that takes 200 ms per message (at 50 ms, on a 2-core machine,
+        time.sleep(0.2)   # it still got 116 of 179 estimates, at 100 ms 90: not congested enough to tell)
         counts["estimate" if str(sample.key_expr).endswith("/estimate") else "feedback"] += 1
 
     with zenoh.open(build_config(mode="client", connect=[endpoint])) as session:
@@ -198,7 +201,7 @@ class _SlowReader(threading.Thread):
 
 
 def test_slow_consumers_do_not_stall_the_windows(tmp_path, crops):
-    """A Zenoh subscriber on the rig's estimates and priors that takes 50 ms per message
+    """A Zenoh subscriber on the rig's estimates and priors that takes 200 ms per message
     (the service publishes ~100 messages a second here) falls behind: its messages are
     dropped for it (estimates and priors are published with congestion control DROP),
     while every window is estimated, a prompt subscriber gets every estimate and the

@@ -19,10 +19,10 @@ from eval_refine_damage import damaged, evaluate, make_sequences  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def model():
-    from service.cli.model import get_default_model
-
-    return get_default_model()
+def model(small_model):
+    """The small test model: the feedback must be safe with a coarser model than the default
+    one too (bench/eval_refine_damage.py measures the default model; CI need not build it)."""
+    return small_model
 
 
 @pytest.fixture(scope="module")

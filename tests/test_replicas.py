@@ -28,6 +28,9 @@ from service.server import free_port
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from _replica_cluster import Replica, Router, Traffic, shutdown  # noqa: E402
 
+# Real-time streams and timeouts: run alone, not beside another test (README "Tests").
+pytestmark = pytest.mark.serial
+
 FAILOVER_BOUND_S = 5.0  # the issue's
 SLACK_S = 3.0  # a loaded 2-core machine (a benchmark beside the tests)
 

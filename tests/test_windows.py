@@ -133,12 +133,12 @@ def test_priors_come_from_each_frames_segment(small_model, turn):
 def test_cli_estimate_reports_segments(small_model_path, turn, tmp_path, capsys):
     write_sequence(tmp_path / "seq", turn)
     out = tmp_path / "result.json"
-    assert main(["estimate", str(tmp_path / "seq"), "--out", str(out), "--model", small_model_path]) == 0
+    light = ["--model", small_model_path, "--posture", "model"]  # the segments are under test, not the posture
+    assert main(["estimate", str(tmp_path / "seq"), "--out", str(out), *light]) == 0
     result = json.loads(out.read_text())
     assert len(result["segments"]) == 2 and len(result["frames"]) == 80
     assert "2 segments" in capsys.readouterr().out
-    assert main(["estimate", str(tmp_path / "seq"), "--out", str(out), "--model", small_model_path,
-                 "--window", "80"]) == 0
+    assert main(["estimate", str(tmp_path / "seq"), "--out", str(out), *light, "--window", "80"]) == 0
     assert len(json.loads(out.read_text())["segments"]) == 1
     with pytest.raises(SystemExit) as exc:
         main(["estimate", str(tmp_path / "seq"), "--out", str(out), "--hop", "0"])
