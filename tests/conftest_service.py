@@ -6,8 +6,6 @@ Imported by the ``test_service_*`` modules (``tests/conftest.py`` is not ours).
 
 from __future__ import annotations
 
-import fcntl
-import hashlib
 import io
 import os
 import tempfile
@@ -22,24 +20,23 @@ import httpx
 from service.server import BackgroundServer, free_port
 from service.settings import Settings
 
-SMALL_MODEL_KEY = {"azimuth_step_deg": 15, "elevations_deg": (-10.0, 10.0, 30.0), "n_clusters": 40, "rng": 0}
+SMALL_GRID = {"azimuth_step_deg": 15.0, "elevations_deg": (-10.0, 10.0, 30.0)}
 
 
 def small_model_path() -> Path:
     """A 40-cluster model (15 deg azimuth steps, 3 elevations), built once and kept in the
-    temp directory across sessions (~10-30 s to build)."""
+    temp directory across sessions and test workers (~10-30 s to build): the default model's
+    cache (:func:`estimator.appearance.default_model`, which builds under a file lock) with
+    a smaller grid."""
     from estimator import appearance, examples
 
-    key = repr((SMALL_MODEL_KEY, getattr(examples, "RENDER_VERSION", ""), appearance.FORMAT_VERSION))
-    path = Path(tempfile.gettempdir()) / f"posecal-test-model-{hashlib.sha256(key.encode()).hexdigest()[:10]}.npz"
-    with open(path.with_name(path.name + ".lock"), "a") as lock:  # test workers build it once
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not path.exists():
-            from estimator.appearance import build_model, save_model
-            from estimator.examples import ExampleGrid, render_examples
-
-            ex = render_examples(ExampleGrid(azimuth_step_deg=15, elevations_deg=(-10.0, 10.0, 30.0)))
-            save_model(build_model(ex, n_clusters=40, rng=0), path)
+    key = {"source": "tests/conftest_service.small_model_path", "grid": SMALL_GRID,
+           "render_version": getattr(examples, "RENDER_VERSION", "")}
+    cache = Path(tempfile.gettempdir()) / "posecal-test-models"
+    path = cache / appearance.model_filename({**key, "n_clusters": 40, "seed": 0})
+    if not path.exists():
+        appearance.default_model(cache, key=key, n_clusters=40, rng=0,
+                                 make_examples=lambda: examples.render_examples(examples.ExampleGrid(**SMALL_GRID)))
     return path
 
 
