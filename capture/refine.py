@@ -172,6 +172,7 @@ class RefineResult:
     estimate: WalkEstimate | SegmentedWalk
     priors: dict[str, list[Prior]]
     image_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    notes: dict[str, str] = field(default_factory=dict)  # camera -> whose walker was followed (segment_clip)
 
 
 def refine_cameras(
@@ -216,7 +217,14 @@ def refine_cameras(
     ValueError
         No silhouette in any camera (nothing to estimate from).
     """
-    raw = dict(raw) if raw is not None else {name: segment_clip(make, settings)[0] for name, make in frames.items()}
+    notes: dict[str, str] = {}
+    if raw is None:
+        raw = {}
+        for name, make in frames.items():
+            raw[name], note = segment_clip(make, settings)
+            if note:
+                notes[name] = note
+    raw = dict(raw)
     sizes = {}
     for name in frames:
         first = next((s for s in raw[name] if s is not None), None)
@@ -234,7 +242,7 @@ def refine_cameras(
         refined[name] = second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach)
         if progress is not None:
             progress((k + 1) / len(frames))
-    return RefineResult(raw, refined, estimate, priors, sizes)
+    return RefineResult(raw, refined, estimate, priors, sizes, notes)
 
 
 # ------------------------------------------------------------------ whole recordings
@@ -256,6 +264,7 @@ class RefinedSequence:
     changed_pixels: int
     raw: dict[str, list[np.ndarray | Segmentation | None]]
     priors: dict[str, list[Prior]]
+    notes: dict[str, str] = field(default_factory=dict)  # camera -> whose walker was followed
 
     def raw_frame(self, camera: str, k: int) -> np.ndarray | None:
         """Frame ``k``'s input silhouette of ``camera``, full frame (a crop at the origin)."""
@@ -374,7 +383,7 @@ def refined_sequence(result: RefineResult, fps: float, truth: dict | None = None
     size = next(iter(result.image_sizes.values()))
     seq = Sequence(fps=fps, cameras=cameras, image_size=size, silhouettes=sils, truth=truth)
     return RefinedSequence(seq, result.estimate, sum(len(v) for v in result.priors.values()),
-                           changed, result.raw, result.priors)
+                           changed, result.raw, result.priors, result.notes)
 
 
 def refine_videos(videos: dict[str, str | os.PathLike], model: AppearanceModel, *, renderer,

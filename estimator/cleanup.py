@@ -203,6 +203,8 @@ def _candidates(stats: np.ndarray, at: np.ndarray, config: CleanupConfig,
     areas = stats[1:, cv2.CC_STAT_AREA].astype(float)
     if areas.size == 0:
         return []
+    if areas.size == 1:  # one piece (most frames): the grouping below would find it alone
+        return [_Candidate(boxes[0], int(areas[0]), [1], at)]
     free = areas >= config.min_part * areas.max()
     groups = []
     for s in np.argsort(-areas, kind="stable"):
@@ -239,6 +241,8 @@ def _choose(cands: list[list[_Candidate]], config: CleanupConfig) -> list[int]:
     choice = [-1] * len(cands)
     if not frames:
         return choice
+    if all(len(cands[t]) == 1 for t in frames):  # nothing to choose between
+        return [0 if c else -1 for c in cands]
     cost = None
     back = []
     prev_t = None

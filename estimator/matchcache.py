@@ -81,7 +81,8 @@ class MatchCache:
         self.max_entries = max_entries
         self._model: AppearanceModel | None = None
         self._entries: OrderedDict[bytes, _Entry] = OrderedDict()
-        self.hits = self.misses = 0
+        self.hits = self.misses = 0  # silhouettes found / not found (registration and eq. 8)
+        self.derived_hits = self.derived_misses = 0  # the same for derived results (MatchCache.derived)
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -124,6 +125,8 @@ class MatchCache:
         entries = [self._entries.get(k) for k in keys]
         out = [None if e is None else e.derived.get(t) for e, t in zip(entries, tags)]
         todo = np.array([i for i, v in enumerate(out) if v is None], int)
+        self.derived_hits += len(out) - todo.size
+        self.derived_misses += todo.size
         if todo.size:
             for i, v in zip(todo, compute(todo)):
                 out[i] = v

@@ -47,8 +47,8 @@ from .viewpoint import (FALL_MIN_ELEVATION_DEG, MotionCue, Viewpoint, azimuth_di
                         head_points, motion_cue)
 
 __all__ = ["CameraObservation", "CameraTrack", "EstimateConfig", "PhaseRefinement", "WalkEstimate", "clean_tracks",
-           "concat_estimates", "decode_walk", "estimable_frames", "estimate_walk", "observe_cameras",
-           "refine_cameras", "take_frames", "track_length", "tracks_from_sequence"]
+           "concat_estimates", "decode_walk", "estimable_frames", "estimate_walk", "extrapolate_states",
+           "observe_cameras", "prime_cache", "refine_cameras", "take_frames", "track_length", "tracks_from_sequence"]
 
 _J = {name: i for i, name in enumerate(FULL_JOINT_NAMES)}
 
@@ -977,6 +977,65 @@ def estimate_walk(
                                                                    sides=sides, cache=cache))
 
 
+def prime_cache(tracks: dict[str, CameraTrack], model: AppearanceModel, cache: MatchCache, *,
+                config: EstimateConfig | None = None, viewpoints: dict[str, Viewpoint] | None = None,
+                states: np.ndarray | None = None) -> int:
+    """Some frames of a window not yet closed, taken through what the window will ask of
+    ``cache`` for them: then it is there when the window closes.
+
+    Live windows are estimated when their last frame arrives; all but those
+    frames can be looked at before. What depends on a silhouette alone is
+    computed as the window will: the clean-up's scores, the registrations and
+    eq. 8 matches, the members of the nearest clusters. What depends on the
+    window's own choices is computed at a guess of them, the window before's:
+    the examples near each camera's ``viewpoints`` (the phase evidence, §6)
+    and those at the frames' ``states`` (the phase-given re-vote, see
+    :func:`extrapolate_states`); a wrong guess costs the time it took, no
+    more. The window's estimate is the same with or without. Returns the
+    frames looked at.
+    """
+    config = config or EstimateConfig()
+    if config.method != "exemplars":
+        return 0
+    index = model.exemplars()
+    if config.cleanup is not None:
+        tracks, _ = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
+    by_phase = _rows_by_phase(index) if states is not None else None
+    looked = 0
+    for name, track in tracks.items():
+        present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
+        if not present.size:
+            continue
+        m = match(model, [track.silhouettes[k] for k in present], cache)
+        present, registered, keys = present[m.valid], m.registered[m.valid], [k for k, v in zip(m.keys, m.valid) if v]
+        if not present.size:
+            continue
+        looked += present.size
+        bits = pack(registered)
+        _member_distances(model, index, bits, m.means_distance[m.valid], config.top_clusters, cache, keys)
+        vp = (viewpoints or {}).get(name)
+        if vp is not None and np.isfinite(vp.azimuth_deg):
+            _phase_distances(index, bits, vp, cache, keys)
+        if by_phase is not None:
+            _cloud_at_phases(index, by_phase, registered, np.asarray(states)[present], config, cache, keys)
+    return looked
+
+
+def extrapolate_states(indices: np.ndarray, states: np.ndarray, n_states: int, ahead: np.ndarray) -> np.ndarray:
+    """The HMM states of frames ``ahead`` from those decoded at ``indices``: the phase
+    unwrapped and carried on at its rate over the window (least squares)."""
+    angle = np.unwrap(2 * np.pi * np.asarray(states, float) / n_states)
+    t = np.asarray(indices, float)
+    slope, intercept = np.polyfit(t, angle, 1) if len(t) > 1 else (0.0, angle[0])
+    return np.round((slope * np.asarray(ahead, float) + intercept) * n_states / (2 * np.pi)).astype(int) % n_states
+
+
+def _log_hmm(hmm: PhaseHMM) -> tuple[np.ndarray, np.ndarray]:
+    """The HMM's start and transition log-probabilities (log 0 = -inf)."""
+    with np.errstate(divide="ignore"):
+        return np.log(hmm.startprob_), np.log(hmm.transmat_)
+
+
 def decode_walk(
     observations: dict[str, CameraObservation],
     *,
@@ -1006,13 +1065,11 @@ def decode_walk(
     cams = {name: o.estimate for name, o in observations.items()}
     if all(c.viewpoint.n_samples == 0 for c in cams.values()):
         raise ValueError("no non-empty silhouette in the window")
-    hmm = config.hmm
-    with np.errstate(divide="ignore"):
-        log_start, log_trans = np.log(hmm.startprob_), np.log(hmm.transmat_)
+    log_start, log_trans = _log_hmm(config.hmm)
     sides: dict[str, bool] = {}
     voted = {name: o for name, o in observations.items() if o.evidence is not None}  # exemplar path only
     if not exemplars:
-        log_emission = hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
+        log_emission = config.hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
     else:
         if config.settle_ahead_behind:
             sides = _settle_ahead_behind(voted, log_start, log_trans, T, config)

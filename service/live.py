@@ -70,7 +70,8 @@ from estimator.windows import ViewpointTrack
 from .metrics import Metrics
 from .replicas import Replicas
 from .settings import Settings
-from .worker import PinnedPools, StageBundle, estimate_window, predict_feedback, register_stage
+from .worker import (PinnedPools, StageBundle, WindowBefore, estimate_window, predict_feedback, register_stage,
+                     warm_window)
 
 __all__ = ["FrameAssembler", "FrameSet", "LiveService", "WindowBuffer"]
 
@@ -266,6 +267,7 @@ class WindowBuffer:
         self.length, self.hop = length, hop
         self.frames: collections.deque[FrameSet] = collections.deque(maxlen=length)
         self._since = 0
+        self._fresh = 0  # frames pushed since the last window or early look (take_fresh)
         self.resets = 0
 
     def push(self, fs: FrameSet) -> list[FrameSet] | None:
@@ -276,14 +278,23 @@ class WindowBuffer:
         first = len(self.frames) < self.length
         self.frames.append(fs)
         self._since += 1
+        self._fresh += 1
         if len(self.frames) == self.length and (first or self._since >= self.hop):
-            self._since = 0
+            self._since = self._fresh = 0
             return list(self.frames)
         return None
 
+    def take_fresh(self, every: int) -> list[FrameSet] | None:
+        """The frame sets pushed since the last window or the last call, once there are ``every``
+        of them (0: never): what the next window will hold, to be looked at before it closes."""
+        if every <= 0 or self._fresh < every:
+            return None
+        fresh, self._fresh = list(self.frames)[-self._fresh:], 0
+        return fresh
+
     def clear(self) -> None:
         self.frames.clear()
-        self._since = 0
+        self._since = self._fresh = 0
 
 
 # ------------------------------------------------------------------------------ rigs
@@ -402,6 +413,7 @@ class RigState:
     index_ahead: int = 0  # frames dropped: frame_index too far ahead of the rig
     realigned: int = 0  # restarted index-synchronised cameras re-based onto the rig's indices
     pending_ahead: dict[str, tuple[int, int]] = field(default_factory=dict)  # camera -> (index, run)
+    before: WindowBefore | None = None  # the newest window estimated, for a look at the next (warm_every)
 
     def silent_for(self, now: float) -> float:
         """Seconds since any camera of the rig was heard from."""
@@ -463,6 +475,9 @@ class LiveService:
         self._stop = threading.Event()
         self._expired_at = time.monotonic()
         self._retired: list = []  # publishers of forgotten rigs and cameras, undeclared by _tick
+        self._fresh: list = []  # frames of open windows for an early look (_look_early, by _tick)
+        self._warming = 0  # early looks in the live workers
+        self._estimating = 0  # windows in the live workers
         self._threads = [threading.Thread(target=self._consume, name=f"live-estimate-{i}", daemon=True)
                          for i in range(settings.live_workers)]
         self._threads.append(threading.Thread(target=self._tick, name="live-tick", daemon=True))
@@ -619,6 +634,7 @@ class LiveService:
                 if offset is None:  # no other camera live: the rig's assembly starts over
                     rig.assembler = self._assembler()
                     rig.buffer.clear()
+                    rig.before = None
                 else:  # joined onto the rig's frames; its lag is learned anew
                     rig.realigned += 1
                     rig.assembler.lag.pop(msg.camera, None)
@@ -653,7 +669,32 @@ class LiveService:
             if frames is not None:
                 rig.window_seq += 1
                 out.append(Window(rig.name, rig.window_seq, frames, max(f.last_receive_ns for f in frames)))
+            elif (fresh := rig.buffer.take_fresh(self.settings.warm_every)) is not None:
+                cams = sorted(set().union(*(f.parts for f in rig.buffer.frames)))  # as the window's will be
+                self._fresh.append((rig.name, fresh, cams, rig.before))
         return out
+
+    def _look_early(self, fresh: list[tuple[str, list[FrameSet], list[str], WindowBefore | None]]) -> None:
+        """Frames of windows not yet closed registered and matched by the processes that will
+        estimate them, at the rig's newest window's viewpoints and phase
+        (:func:`~service.worker.warm_window`), so that a window waits on its last frames only.
+        In the live workers' idle time only: skipped while a window is estimated or waits (it
+        will do the same work when it closes, and the window in hand comes first)."""
+        for name, frames, cams, before in fresh:
+            if self._queue.qsize() or self._estimating or self._warming >= len(self.pool):
+                self.metrics.frames_warmed.labels("skipped").inc(len(frames))
+                continue
+            tracks = {cam: track_from_segmentations([fs.parts.get(cam) for fs in frames]) for cam in cams}
+            with self._lock:
+                self._warming += 1
+            self.metrics.frames_warmed.labels("sent").inc(len(frames))
+            warm_window(self.pool, name, tracks, [fs.index for fs in frames], before).add_done_callback(self._warmed)
+
+    def _warmed(self, future: concurrent.futures.Future) -> None:
+        with self._lock:
+            self._warming -= 1
+        if future.exception() is not None:  # the window will do it: nothing lost but time
+            log.debug("early look failed: %s", future.exception())
 
     def _tick(self) -> None:
         """Close frame sets whose missing cameras did not come in time; forget silent rigs."""
@@ -671,8 +712,10 @@ class LiveService:
                     if closed:
                         self._count_drops(rig, before)
                         windows += self._windows(rig, closed)
+                fresh, self._fresh = self._fresh, []
             for pub in retired:
                 _undeclare(pub)
+            self._look_early(fresh)
             for w in windows:
                 self._enqueue(w)
 
@@ -739,6 +782,8 @@ class LiveService:
                 last = -1 if rig is None else rig.last_logged_index
             bundle_from = sum(1 for i in w.indices if i <= last)
         feedback = self.feedback_pool is not None
+        with self._lock:
+            self._estimating += 1
         try:
             result, bundle, seconds, est = estimate_window(self.pool, w.rig, tracks, w.indices, sizes,
                                                            bundle_from=bundle_from,
@@ -747,6 +792,9 @@ class LiveService:
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
             self._count(w.rig, "skipped")
             return
+        finally:
+            with self._lock:
+                self._estimating -= 1
         with self._lock:
             rig = self._rigs.get(w.rig)
             if rig is None:  # forgotten while its window was estimated
@@ -759,6 +807,8 @@ class LiveService:
                         threshold_deg=self.settings.change_threshold_deg,
                         confirm=self.settings.change_windows)
                 smoothed[cam] = track.update(c["azimuth_deg"], c["elevation_deg"], w.indices[-1])
+            if rig.before is None or w.indices[-1] > rig.before.indices[-1]:
+                rig.before = WindowBefore.of(w.indices, est)
             publisher = rig.publisher
             if publisher is None:
                 publisher = rig.publisher = self.session.declare_publisher(estimate_key(w.rig))

@@ -56,6 +56,8 @@ class Metrics:
                                         "replica now estimates them (a replica joined)", registry=r)
         self.frames_not_owned = Counter("posecal_frames_not_owned", "silhouettes skipped before "
                                         "decoding: their rig is estimated by another replica", registry=r)
+        self.frames_warmed = Counter("posecal_frames_warmed", "frame sets registered and matched "
+                                     "before their window closed (warm_every)", ["outcome"], registry=r)
         self.frames_missing = Counter("posecal_frames_missing", "camera frames absent when a "
                                       "synchronized frame set was closed", ["rig"], registry=r)
         self.windows = Counter("posecal_windows", "sliding windows by outcome "

@@ -118,6 +118,10 @@ class Settings(BaseSettings):
     window_length: int = Field(20, ge=4, description="frames per window (about one gait cycle; "
                                "live windows and the windows of batch jobs)")
     window_hop: int = Field(10, ge=1, description="frames between window starts")
+    warm_every: int = Field(3, ge=0, description="live: every this many frames, the frames of the "
+                            "next window so far are registered and matched by the processes that "
+                            "will estimate it, so that a closed window waits on its last frames only "
+                            "(0: at the window's close, all at once)")
     sync_tolerance_ms: float = Field(20.0, gt=0, description="capture times closer than this "
                                      "are the same frame (cameras synchronised by time)")
     max_wait_ms: float = Field(120.0, gt=0, description="how long a frame waits for missing cameras")

@@ -46,11 +46,12 @@ from estimator.appearance import AppearanceModel, load_model
 from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraObservation, CameraTrack, PhaseRefinement, WalkEstimate, crop_to_box,
-                                decode_walk, estimable_frames, observe_cameras, pad_tracks, refine_cameras,
-                                tracks_from_sequence)
+                                EstimateConfig, decode_walk, estimable_frames, extrapolate_states,
+                                observe_cameras, pad_tracks, prime_cache, refine_cameras, tracks_from_sequence)
 from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
 from estimator.sync import index_frames, sync_tracks
+from estimator.viewpoint import Viewpoint
 from estimator.windows import SegmentedWalk, segment_walk, window_tracks
 
 from .intake import UploadError, list_videos, stage_upload
@@ -487,9 +488,61 @@ def camera_shares(names: list[str], rig: str, n: int) -> dict[int, list[str]]:
     return shares
 
 
-def match_cache_hits() -> int:
-    """This worker's match-cache hits so far (for tests and benchmarks)."""
-    return _match_cache.hits
+@dataclass
+class WindowBefore:
+    """What a rig's newest estimated window said, for a look at the next one's frames before it
+    closes (:func:`warm_window`): its frame indices, decoded states and cameras' viewpoints."""
+
+    indices: np.ndarray
+    states: np.ndarray
+    viewpoints: dict[str, Viewpoint]
+
+    @classmethod
+    def of(cls, indices: list[int], est: WalkEstimate) -> WindowBefore:
+        return cls(np.asarray(indices), est.states, {c: e.viewpoint for c, e in est.cameras.items()})
+
+
+def warm_part(tracks: dict[str, CameraTrack], indices: list[int], before: WindowBefore | None) -> int:
+    """Frames ``indices`` of a live window not yet closed, for some of its cameras, taken through
+    what the window will ask of the match cache, at the window ``before``'s viewpoints and phase
+    carried on (:func:`~estimator.pipeline.prime_cache`), in a worker: the frames looked at."""
+    guess = {}
+    if before is not None:
+        n_states = EstimateConfig().hmm.n_states
+        guess = dict(viewpoints=before.viewpoints,
+                     states=extrapolate_states(before.indices, before.states, n_states, np.asarray(indices)))
+    return prime_cache(tracks, _get_model(), _match_cache, **guess)
+
+
+def warm_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack], indices: list[int],
+                before: WindowBefore | None = None) -> concurrent.futures.Future:
+    """Send frames ``indices`` of a live window not yet closed to the processes that will
+    estimate its cameras (:func:`camera_shares`, as :func:`estimate_window` deals them;
+    ``tracks`` in sorted camera order), with what the rig's window ``before`` said: a future
+    done when all are (its result: the frames looked at). The window's estimate is the same
+    with or without: only its wait is shorter."""
+    futures = [pools.submit_to(k, warm_part, {n: tracks[n] for n in share}, indices, before)
+               for k, share in camera_shares(list(tracks), rig, len(pools)).items()]
+    done: concurrent.futures.Future = concurrent.futures.Future()
+
+    def collect(_: concurrent.futures.Future) -> None:
+        if all(f.done() for f in futures) and not done.done():
+            errors = [f.exception() for f in futures if f.exception() is not None]
+            if errors:
+                done.set_exception(errors[0])
+            else:
+                done.set_result(sum(f.result() for f in futures))
+
+    for f in futures:
+        f.add_done_callback(collect)
+    return done
+
+
+def match_cache_stats() -> dict[str, int]:
+    """This worker's match-cache hits and misses so far, of silhouettes and of derived results
+    (for tests and benchmarks)."""
+    c = _match_cache
+    return {"hits": c.hits, "misses": c.misses, "derived_hits": c.derived_hits, "derived_misses": c.derived_misses}
 
 
 def estimate_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack], indices: list[int],

@@ -107,3 +107,17 @@ def test_walker_choice_first_keeps_the_track(passer_by):
     segs, note = segment_clip(lambda: iter(images), settings)
     assert note is None
     assert [s and s.box for s in segs] == [s and s.box for s in segment(images, settings)]
+
+
+def test_refine_says_whose_walker_it_followed(passer_by, small_model):
+    """The refine path (``posecal refine`` on videos) keeps the clip's note that the walker
+    in the middle was followed rather than the tallest at the start."""
+    from capture.refine import refine_cameras
+    from estimator.prior import FEEDBACK
+    from estimator.render import Renderer
+
+    settings = SegmentSettings(background="warmup", warmup_frames=100)
+    with Renderer(FEEDBACK.body) as renderer:
+        result = refine_cameras({"c0": lambda: (f.image for f in passer_by)}, small_model, renderer=renderer,
+                                settings=settings, config=FEEDBACK)
+    assert list(result.notes) == ["c0"] and "nearest the image centre" in result.notes["c0"]

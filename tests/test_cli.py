@@ -257,13 +257,13 @@ def test_capture_exit_codes(tmp_path):
     assert failed.returncode == 1 and "posecal capture: error: zenoh:" in failed.stderr, failed.stderr
 
 
-def test_serve_exit_codes(tmp_path):
+def test_serve_exit_codes(tmp_path, small_model_path):
     import signal
     import time
 
     from service.server import free_port
 
-    common = ["--no-live", "--db", str(tmp_path / "j.db"), "--data-dir", str(tmp_path / "d")]
+    common = ["--no-live", "--db", str(tmp_path / "j.db"), "--data-dir", str(tmp_path / "d"), "--model", small_model_path]
     with _busy_port() as sock:
         taken = _posecal("serve", "--port", str(sock.getsockname()[1]), *common)
     assert taken.returncode == 1 and "posecal serve: error: the server did not start" in taken.stderr, taken.stderr

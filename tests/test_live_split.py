@@ -10,10 +10,12 @@ import time
 import numpy as np
 import pytest
 
+from estimator.matchcache import MatchCache
 from estimator.pipeline import estimate_walk, tracks_from_sequence
 from estimator.synth import SynthSpec, synthesize
 from estimator.windows import window_tracks
-from service.worker import camera_shares, estimate_window, json_safe, make_pinned_pools, match_cache_hits
+from service.worker import (WindowBefore, camera_shares, estimate_window, json_safe, make_pinned_pools,
+                            match_cache_stats, warm_window)
 from test_pipeline import contested_shadow_walk
 
 
@@ -61,16 +63,54 @@ def test_each_camera_stays_in_its_process_so_overlapping_windows_are_matched_onc
     assert sorted(len(s) for s in shares.values()) == [2, 2]  # dealt evenly
     assert camera_shares(sorted(full), "walk", 2) == shares  # and the same every window
 
-    def hits() -> int:
-        return sum(pools.submit_to(k, match_cache_hits).result(timeout=30) for k in range(len(pools)))
-
-    before = hits()
+    before = _stats(pools)["hits"]
     estimate_window(pools, "walk", window_tracks(full, 0, 20), list(range(20)), sizes)
-    within = hits() - before  # the shadow test's scores, found again by the match
+    within = _stats(pools)["hits"] - before  # the shadow test's scores, found again by the match
     second, *_ = estimate_window(pools, "walk", window_tracks(full, 10, 30), list(range(10, 30)), sizes)
-    assert hits() - before - within >= within + 4 * 10  # and every camera's frames 10-19, in its own process
+    assert _stats(pools)["hits"] - before - within >= within + 4 * 10  # and every camera's frames 10-19, in its own process
     alone = estimate_walk(window_tracks(full, 10, 30), small_model)
     assert [f["phase"] for f in second["frames"]] == pytest.approx(alone.phase.tolist())
+
+
+def _stats(pools) -> dict[str, int]:
+    """The match caches' hits and misses, summed over the processes."""
+    each = [pools.submit_to(k, match_cache_stats).result(timeout=30) for k in range(len(pools))]
+    return {key: sum(e[key] for e in each) for key in each[0]}
+
+
+def _delta(pools, before: dict[str, int]) -> dict[str, int]:
+    return {k: v - before[k] for k, v in _stats(pools).items()}
+
+
+def test_frames_looked_at_before_their_window_closes_leave_it_little_to_do_and_change_nothing(pools, small_model):
+    """The live service sends a window's frames to its processes as they come
+    (``warm_every``), with the window before's viewpoints and phase: when the window
+    closes, its silhouettes are registered in the process that estimates their camera,
+    most of what it derives from them is there, and the estimate is the one computed
+    without (the same windows in one process with a cache of its own, nothing looked at
+    early, for comparison)."""
+    seq = synthesize(SynthSpec(n_cameras=4, n_frames=30, seed=7, image_size=(320, 240)))
+    full = tracks_from_sequence(seq)
+    sizes = {c: seq.image_size for c in full}
+    cache = MatchCache(max_entries=1280)
+    estimate_walk(window_tracks(full, 0, 20), small_model, cache=cache)
+    misses, derived = cache.misses, cache.derived_misses
+    alone = estimate_walk(window_tracks(full, 10, 30), small_model, cache=cache)
+    misses, derived = cache.misses - misses, cache.derived_misses - derived
+
+    _, _, _, first = estimate_window(pools, "warm", window_tracks(full, 0, 20), list(range(20)), sizes)
+    for a in range(20, 29, 3):  # frames 20-28 in looks of 3, as the service sends them; 29 closes
+        frames = list(range(a, a + 3))
+        assert warm_window(pools, "warm", window_tracks(full, a, a + 3), frames,
+                           WindowBefore.of(list(range(20)), first)).result(timeout=60) == 4 * 3
+    start = _stats(pools)
+    result, *_ = estimate_window(pools, "warm", window_tracks(full, 10, 30), list(range(10, 30)), sizes)
+    done = _delta(pools, start)
+    assert done["misses"] <= misses - 4 * 9  # frames 20-28 of every camera were registered before
+    assert done["derived_misses"] < 0.5 * derived
+    assert [f["phase"] for f in result["frames"]] == pytest.approx(alone.phase.tolist())
+    assert {c: v["azimuth_deg"] for c, v in result["cameras"].items()} == pytest.approx(
+        {c: v.viewpoint.azimuth_deg for c, v in alone.cameras.items()}, abs=1e-3)  # the result's rounding
 
 
 def test_a_dead_worker_costs_a_window_at_most(pools, small_model):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import threading
 import time
 
@@ -262,6 +263,9 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
         assert "posecal_receiver_rejected_total 1.0" in metrics
         assert f'posecal_frames_in_total{{camera="c0",rig="{RIG}"}} {float(sent)}' in metrics
         assert "posecal_window_latency_seconds_count" in metrics
+        # The windows' frames went to the live workers ahead of each close (warm_every), in their idle time.
+        warmed = re.search(r'posecal_frames_warmed_total\{outcome="sent"\} (\d+)', metrics)
+        assert warmed and int(warmed.group(1)) > 0, [m for m in metrics.splitlines() if "warmed" in m]
         sub.undeclare()
 
 

@@ -127,6 +127,8 @@ def _refine_videos(args: argparse.Namespace, model, videos: dict[str, str]) -> i
         raise CliFailure(f"{args.sequence}: {exc}") from None
     _write(args.out, refined, "video")
     print(f"wrote {args.out}: {n} frames (warm-up {warmup}), {len(videos)} cameras")
+    for cam, note in sorted(refined.notes.items()):
+        print(f"  {cam}: {note}")
     return 0
 
 
@@ -134,13 +136,14 @@ def _write(out: str, refined, kind: str) -> None:
     from estimator.sequence import write_sequence
 
     write_sequence(out, refined.sequence)
-    _write_summary(out, refined.estimate, kind, refined.n_priors)
+    _write_summary(out, refined.estimate, kind, refined.n_priors, refined.notes)
 
 
-def _write_summary(out: str, estimate, kind: str, n_priors: int) -> None:
+def _write_summary(out: str, estimate, kind: str, n_priors: int, notes: dict[str, str] | None = None) -> None:
     os.makedirs(out, exist_ok=True)
     with open(os.path.join(out, "refine.json"), "w") as fh:
-        json.dump({"input": kind, "priors": n_priors, "estimate": estimate.to_result()}, fh)
+        json.dump({"input": kind, "priors": n_priors, "estimate": estimate.to_result(),
+                   "notes": dict(sorted((notes or {}).items()))}, fh)
 
 
 __all__ = ["register", "run"]
