@@ -9,6 +9,8 @@ time), subscribes to ``posecal/<rig>/estimate``, and reports:
 - latency from publishing a window's last frame to receiving its estimate
   (same clock), p50 / p95 / max (target: p95 <= 200 ms);
 - the service's own figure (last frame received -> estimate published);
+- how many frame sets the service looked at before their window closed
+  (``warm_every``), and how many it skipped with the live workers busy;
 - the live rig (``GET /v1/rigs/<rig>/calibration``): its source, frames, the
   windows it lags, and the time per window of its low-priority posture process
   (``--no-live-rig`` to run without it); with ``--keypoints SHARE`` every
@@ -141,7 +143,10 @@ def main() -> int:
         time.sleep(3.0)
         summary = svc.client.get(f"/v1/rigs/{RIG}").json()
         cal = svc.client.get(f"/v1/rigs/{RIG}/calibration")
-        rig_seconds = _histogram(svc.client.get("/metrics").text, "posecal_live_rig_seconds")
+        metrics = svc.client.get("/metrics").text
+        rig_seconds = _histogram(metrics, "posecal_live_rig_seconds")
+        warmed = {outcome: _counter(metrics, "posecal_frames_warmed_total", f'outcome="{outcome}"')
+                  for outcome in ("sent", "skipped")}
         sub.undeclare()
     results = {r["window"]["seq"]: (t_ns, r) for t_ns, r in received}
     ext = np.array([(t_ns - sent_ns[r["window"]["last_index"]]) / 1e6 for t_ns, r in results.values()])
@@ -155,6 +160,7 @@ def main() -> int:
         "latency_ms_publish_to_estimate": _pct(ext), "latency_ms_service": _pct(svc_lat),
         "estimate_ms": _pct(est_ms),
         "frames_in": sum(c["frames"] for c in summary["cameras"].values()),
+        "frame_sets_looked_at_early": warmed,  # warm_every: sent to the workers, or skipped (busy)
         "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "live_rig": None if args.no_live_rig else {
             "calibration": {k: cal.json()[k] for k in ("source", "postures", "frames", "windows", "lag_windows")}
@@ -201,6 +207,12 @@ def _histogram(metrics: str, name: str) -> float | None:
             if line.startswith(name + part + " "):
                 values[part] = float(line.split()[-1])
     return round(values["_sum"] / values["_count"], 3) if values.get("_count") else None
+
+
+def _counter(metrics: str, name: str, labels: str) -> int:
+    """A Prometheus counter's value in the service's /metrics text (0 if absent)."""
+    prefix = f"{name}{{{labels}}} "
+    return next((int(float(line[len(prefix):])) for line in metrics.splitlines() if line.startswith(prefix)), 0)
 
 
 def _pct(a: np.ndarray) -> dict:
