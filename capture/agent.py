@@ -35,6 +35,7 @@ import zenoh
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from .choose import LiveChoice
 from .receiver import ValidatingSubscriber
 from .scene import iou
 from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
@@ -106,6 +107,7 @@ class AgentStats:
     segmented: int = 0  # frames segmented (after the background was known)
     with_walker: int = 0  # ... in which a walker was found
     candidates: int = 0  # person-sized candidates seen in the last frame
+    walker_moves: int = 0  # the track moved to another person by a look back (capture.choose.LiveChoice)
     areas: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
     stability: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
     _last_box: tuple | None = None
@@ -359,6 +361,8 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
         if not source.live:
             frames = paced(frames, settings.fps or source.fps or 30.0)
         last_index, seq = None, 0
+        choice = LiveChoice(segmenter.settings) if segmenter.settings.walker_choice == "centred" else None
+        onto = None  # the box the next frame's track moves to (a look back chose another person)
         started = last_log = time.monotonic()
         cpu_started = time.process_time()
         sent_at_log = 0
@@ -374,7 +378,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 continue
             if stats.priors:  # the feedback loop runs: was this frame's prior in time?
                 clock.check(frame, stats)
-            seg = segmenter.apply(frame.image, frame.index)
+            seg = segmenter.apply(frame.image, frame.index, onto)
             stats.segmented_index = frame.index
             stats.observe(seg)
             msg = SilhouetteMessage(
@@ -399,6 +403,10 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 stats.unheard += 1
             stats.latency_ms.append((time.time_ns() - frame.timestamp_ns) / 1e6)
             segmenter.learn()  # the deferred background update, off the latency path
+            onto = None if choice is None else choice.see(seg)  # a look back, also off it
+            if onto is not None:
+                stats.walker_moves += 1
+                log.info("%s/%s frame %d: %s", settings.rig, settings.camera, frame.index, choice.note)
             if view is not None and (stats.segmented - 1) % settings.rerun_every == 0:
                 view = view if _show(view, settings.camera, frame, seg, segmenter) else None
             if settings.score_truth and frame.mask is not None and frame.mask.any():

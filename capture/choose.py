@@ -20,17 +20,26 @@ the walker's path runs through the middle of every image:
    the guide (:meth:`capture.segment.Segmenter.apply`), by
    :func:`capture.refine.segment_clip`.
 
+Live, the agent cannot look ahead, but it can look back: :class:`LiveChoice`
+runs the same choice over the last ``LIVE_WINDOW`` frames (at least twice
+``LIVE_EVERY``) every ``LIVE_EVERY`` and, when the track follows someone other than the path
+through the middle (by the same test), moves the track onto the path's
+newest box for the frames to come.
+
 The choice is off with ``SegmentSettings.walker_choice = "first"`` (the
-person the track starts on, as live).
+person the track starts on).
 """
 
 from __future__ import annotations
+
+import collections
 
 import numpy as np
 
 from .segment import Segmentation, SegmentSettings, box_iou
 
-__all__ = ["AGREE", "GAP", "MARGIN", "NOBODY", "RESIZE", "choose", "guide", "overlap", "path_cost", "walker_boxes"]
+__all__ = ["AGREE", "GAP", "LIVE_EVERY", "LIVE_WINDOW", "MARGIN", "NOBODY", "RESIZE", "LiveChoice", "choose", "guide",
+           "overlap", "path_cost", "walker_boxes"]
 
 Box = tuple[int, int, int, int]
 
@@ -49,6 +58,10 @@ MARGIN = 0.12
 """... or when the chosen path is not nearer the image centre than the first pass's walker by this much
 (mean cost per frame with someone in view, :func:`path_cost`): a walker who crosses the whole image is
 followed from its first frames (as the tallest) and left for no one who is merely a little more central."""
+LIVE_WINDOW = 45
+"""Frames a live agent looks back over to choose the walker (:class:`LiveChoice`): 3 s at 15 fps."""
+LIVE_EVERY = 15
+"""Frames between a live agent's choices."""
 _SAME = 0.5  # boxes overlapping by this fraction of the smaller are the same person (or one merged into a group)
 
 
@@ -148,3 +161,35 @@ def guide(segs: list[Segmentation | None], settings: SegmentSettings) -> tuple[l
     note = (f"up to {people} people in view; the walker is the one whose path stays nearest the image centre, "
             f"not the one the track started on (followed on {agree:.0%} of its frames): segmented again on it")
     return walker, note
+
+
+class LiveChoice:
+    """The walker chosen live, looking back (module docstring): feed each frame's segmentation
+    to :meth:`see`; it returns the box to guide the next frame onto
+    (:meth:`capture.segment.Segmenter.apply`) when the track should move to another person,
+    else None. ``switches`` counts the moves, ``note`` says the last."""
+
+    def __init__(self, settings: SegmentSettings, *, window: int = LIVE_WINDOW, every: int = LIVE_EVERY) -> None:
+        if window < 2 or every < 1:
+            raise ValueError(f"window must be >= 2 and every >= 1, got {window} and {every}")
+        self.settings, self.every = settings, every
+        self._recent: collections.deque[Segmentation | None] = collections.deque(maxlen=window)
+        self._since = 0
+        self.switches = 0
+        self.note: str | None = None
+
+    def see(self, seg: Segmentation | None) -> Box | None:
+        self._recent.append(seg)
+        self._since += 1
+        if self._since < self.every or len(self._recent) < 2 * self.every:  # a path of a few seconds at least
+            return None
+        self._since = 0
+        path, note = guide(list(self._recent), self.settings)
+        if path is None or path[-1] is None:  # the track stands, or the walker is not in the newest frame
+            return None
+        now = walker_boxes([seg])[0]
+        if now is not None and box_iou(now, path[-1]) >= 0.3:  # already on it (moved on it since)
+            return None
+        self.switches += 1
+        self.note = note.replace("segmented again on it", "the track moved to it")
+        return path[-1]

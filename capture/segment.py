@@ -185,8 +185,9 @@ class SegmentSettings(BaseModel):
                                                        "whose path stays nearest the image centre (the "
                                                        "cameras are aimed at the walk; capture/choose.py) "
                                                        "when clearly nearer than the one the track "
-                                                       "started on; 'first' = the person the track "
-                                                       "starts on, as live")
+                                                       "started on; live, over the last 45 frames, every 15 "
+                                                       "(capture.choose.LiveChoice); 'first' = the person "
+                                                       "the track starts on")
     colour_split: bool = Field(True, description="cut off the tracked walker's blob the regions "
                                "whose colours are the other people's rather than the walker's (running "
                                "colour histograms of both; capture/colours.py): a passer-by touching the "

@@ -121,3 +121,29 @@ def test_refine_says_whose_walker_it_followed(passer_by, small_model):
         result = refine_cameras({"c0": lambda: (f.image for f in passer_by)}, small_model, renderer=renderer,
                                 settings=settings, config=FEEDBACK)
     assert list(result.notes) == ["c0"] and "nearest the image centre" in result.notes["c0"]
+
+
+def test_live_the_track_moves_to_the_walker_after_a_look_back(passer_by):
+    """A live agent cannot look ahead: it starts on the tallest (the person at the edge) and,
+    looking back over the last frames (capture.choose.LiveChoice), moves the track onto the
+    walker in the middle; the frames after that are the walker's. With the choice off
+    (``walker_choice="first"``) it never moves."""
+    from capture.choose import LIVE_EVERY, LiveChoice
+    from capture.segment import Segmenter
+
+    def live(settings: SegmentSettings) -> tuple[list, LiveChoice]:
+        segmenter, choice, nxt, out = Segmenter(settings), LiveChoice(settings), None, []
+        for f in passer_by:
+            seg = segmenter.apply(f.image, f.index, nxt)
+            nxt = None if seg is None else choice.see(seg)
+            out.append(seg)
+        return out, choice
+
+    walking = [f for f in passer_by if f.mask.any()]
+    segs, choice = live(SegmentSettings(background="warmup", warmup_frames=100))
+    assert choice.switches == 1 and "the track moved to it" in choice.note
+    late = walking[2 * LIVE_EVERY + 1:]  # after the first look back that could move it
+    assert late and np.mean([iou(segs[f.index].full_mask(), f.mask) > 0.8 for f in late]) > 0.9
+    first, off = live(SegmentSettings(background="warmup", warmup_frames=100, walker_choice="first"))
+    assert off.switches == 0
+    assert np.mean([iou(first[f.index].full_mask(), f.mask) for f in late]) < 0.2  # still the person at the side
