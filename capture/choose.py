@@ -99,20 +99,22 @@ def choose(candidates: list[tuple[Box, ...]], size: tuple[int, int]) -> list[Box
     cost: list[np.ndarray] = []  # per frame and candidate: the cheapest path ending there (frames before it too)
     back: list[np.ndarray] = []  # ... and where it came from: (frame, candidate), (-1, -1) = it starts here
     for t, cur in enumerate(boxes):
-        unary = _off_centre(cur, size)
         best = np.full(len(cur), NOBODY * t)  # starting here: every earlier frame left out
         came = np.full((len(cur), 2), -1)
-        for g in range(1, min(GAP + 1, t) + 1):
-            prev = boxes[t - g]
-            if not len(prev) or not len(cur):
-                continue
+        gaps = [g for g in range(1, min(GAP + 1, t) + 1) if len(boxes[t - g])]
+        if gaps and len(cur):  # the frames it may come from, nearest first (ties keep the nearest)
+            prev = np.concatenate([boxes[t - g] for g in gaps])
+            came_from = np.concatenate([np.stack([np.full(len(boxes[t - g]), t - g), np.arange(len(boxes[t - g]))], 1)
+                                        for g in gaps])
+            before = np.concatenate([cost[t - g] + NOBODY * (g - 1) for g in gaps])
             resize = RESIZE * np.abs(np.log(cur[None, :, 3] / prev[:, None, 3]))
-            total = np.where(overlap(prev, cur) >= _SAME, cost[t - g][:, None] + resize, np.inf) + NOBODY * (g - 1)
+            total = np.where(overlap(prev, cur) >= _SAME, before[:, None] + resize, np.inf)
             i = np.argmin(total, axis=0)
-            better = total[i, np.arange(len(cur))] < best
-            best = np.where(better, total[i, np.arange(len(cur))], best)
-            came[better] = np.stack([np.full(better.sum(), t - g), i[better]], axis=1)
-        cost.append(best + unary)
+            lowest = total[i, np.arange(len(cur))]
+            better = lowest < best
+            best = np.where(better, lowest, best)
+            came[better] = came_from[i[better]]
+        cost.append(best + _off_centre(cur, size))
         back.append(came)
     ends = [(cost[t][j] + NOBODY * (T - 1 - t), t, j) for t in range(T) for j in range(len(cost[t]))]
     path: list[Box | None] = [None] * T
