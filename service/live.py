@@ -274,6 +274,7 @@ class WindowBuffer:
         """Add a frame set; returns a window's frames when one is due."""
         if self.frames and fs.index - self.frames[-1].index > self.length // 2:
             self.frames.clear()  # a long gap: the frames before belong to another walk
+            self._fresh = 0
             self.resets += 1
         first = len(self.frames) < self.length
         self.frames.append(fs)
@@ -671,30 +672,39 @@ class LiveService:
                 out.append(Window(rig.name, rig.window_seq, frames, max(f.last_receive_ns for f in frames)))
             elif (fresh := rig.buffer.take_fresh(self.settings.warm_every)) is not None:
                 cams = sorted(set().union(*(f.parts for f in rig.buffer.frames)))  # as the window's will be
-                self._fresh.append((rig.name, fresh, cams, rig.before))
+                self._fresh.append((rig.name, fresh, cams, rig.before, rig.window_seq))
         return out
 
-    def _look_early(self, fresh: list[tuple[str, list[FrameSet], list[str], WindowBefore | None]]) -> None:
+    def _look_early(self, fresh: list[tuple[str, list[FrameSet], list[str], WindowBefore | None, int]]) -> None:
         """Frames of windows not yet closed registered and matched by the processes that will
         estimate them, at the rig's newest window's viewpoints and phase
         (:func:`~service.worker.warm_window`), so that a window waits on its last frames only.
         In the live workers' idle time only: skipped while a window is estimated or waits (it
         will do the same work when it closes, and the window in hand comes first)."""
-        for name, frames, cams, before in fresh:
-            if self._queue.qsize() or self._estimating or self._warming >= len(self.pool):
+        for name, frames, cams, before, seq in fresh:
+            with self._lock:
+                rig = self._rigs.get(name)
+                busy = self._queue.qsize() or self._estimating or self._warming >= len(self.pool)
+                if not busy and rig is not None and rig.window_seq == seq:  # else a window holds them now
+                    self._warming += 1
+            if busy or rig is None or rig.window_seq != seq:
                 self.metrics.frames_warmed.labels("skipped").inc(len(frames))
                 continue
-            tracks = {cam: track_from_segmentations([fs.parts.get(cam) for fs in frames]) for cam in cams}
-            with self._lock:
-                self._warming += 1
+            try:
+                tracks = {cam: track_from_segmentations([fs.parts.get(cam) for fs in frames]) for cam in cams}
+                future = warm_window(self.pool, name, tracks, [fs.index for fs in frames], before)
+            except Exception:  # noqa: BLE001 - a look is never worth the tick thread: its window will do it
+                log.exception("early look at %s frames %d-%d failed", name, frames[0].index, frames[-1].index)
+                self._warmed(None)
+                continue
             self.metrics.frames_warmed.labels("sent").inc(len(frames))
-            warm_window(self.pool, name, tracks, [fs.index for fs in frames], before).add_done_callback(self._warmed)
+            future.add_done_callback(self._warmed)
 
-    def _warmed(self, future: concurrent.futures.Future) -> None:
+    def _warmed(self, future: concurrent.futures.Future | None) -> None:
         with self._lock:
             self._warming -= 1
-        if future.exception() is not None:  # the window will do it: nothing lost but time
-            log.debug("early look failed: %s", future.exception())
+        if future is not None and (future.cancelled() or future.exception() is not None):
+            log.debug("early look failed or cancelled (its window will do it: nothing lost but time)")
 
     def _tick(self) -> None:
         """Close frame sets whose missing cameras did not come in time; forget silent rigs."""
@@ -715,9 +725,9 @@ class LiveService:
                 fresh, self._fresh = self._fresh, []
             for pub in retired:
                 _undeclare(pub)
-            self._look_early(fresh)
             for w in windows:
                 self._enqueue(w)
+            self._look_early(fresh)  # after the windows: a look never goes ahead of one
 
     def _enqueue(self, w: Window) -> None:
         while True:
@@ -747,11 +757,16 @@ class LiveService:
                 w = self._queue.get(timeout=0.1)
             except queue.Empty:
                 continue
+            with self._lock:
+                self._estimating += 1  # from here: no early look goes ahead of this window
             try:
                 self._process(w)
             except Exception:  # keep the consumer alive; the window counts as failed
                 log.exception("window %s/%d failed", w.rig, w.seq)
                 self._count(w.rig, "failed")
+            finally:
+                with self._lock:
+                    self._estimating -= 1
 
     def _tracks(self, w: Window) -> tuple[dict[str, CameraTrack], dict[str, tuple[int, int]]] | None:
         cams = sorted(set().union(*(fs.parts for fs in w.frames)))
@@ -782,8 +797,6 @@ class LiveService:
                 last = -1 if rig is None else rig.last_logged_index
             bundle_from = sum(1 for i in w.indices if i <= last)
         feedback = self.feedback_pool is not None
-        with self._lock:
-            self._estimating += 1
         try:
             result, bundle, seconds, est = estimate_window(self.pool, w.rig, tracks, w.indices, sizes,
                                                            bundle_from=bundle_from,
@@ -792,9 +805,6 @@ class LiveService:
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
             self._count(w.rig, "skipped")
             return
-        finally:
-            with self._lock:
-                self._estimating -= 1
         with self._lock:
             rig = self._rigs.get(w.rig)
             if rig is None:  # forgotten while its window was estimated
@@ -807,8 +817,8 @@ class LiveService:
                         threshold_deg=self.settings.change_threshold_deg,
                         confirm=self.settings.change_windows)
                 smoothed[cam] = track.update(c["azimuth_deg"], c["elevation_deg"], w.indices[-1])
-            if rig.before is None or w.indices[-1] > rig.before.indices[-1]:
-                rig.before = WindowBefore.of(w.indices, est)
+            if rig.before is None or w.seq > rig.before.seq:  # windows may finish out of order
+                rig.before = WindowBefore.of(w.seq, w.indices, est)
             publisher = rig.publisher
             if publisher is None:
                 publisher = rig.publisher = self.session.declare_publisher(estimate_key(w.rig))

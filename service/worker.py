@@ -491,15 +491,17 @@ def camera_shares(names: list[str], rig: str, n: int) -> dict[int, list[str]]:
 @dataclass
 class WindowBefore:
     """What a rig's newest estimated window said, for a look at the next one's frames before it
-    closes (:func:`warm_window`): its frame indices, decoded states and cameras' viewpoints."""
+    closes (:func:`warm_window`): its sequence number, frame indices, decoded states and
+    cameras' viewpoints."""
 
+    seq: int
     indices: np.ndarray
     states: np.ndarray
     viewpoints: dict[str, Viewpoint]
 
     @classmethod
-    def of(cls, indices: list[int], est: WalkEstimate) -> WindowBefore:
-        return cls(np.asarray(indices), est.states, {c: e.viewpoint for c, e in est.cameras.items()})
+    def of(cls, seq: int, indices: list[int], est: WalkEstimate) -> WindowBefore:
+        return cls(seq, np.asarray(indices), est.states, {c: e.viewpoint for c, e in est.cameras.items()})
 
 
 def warm_part(tracks: dict[str, CameraTrack], indices: list[int], before: WindowBefore | None) -> int:
@@ -523,16 +525,30 @@ def warm_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack], in
     with or without: only its wait is shorter."""
     futures = [pools.submit_to(k, warm_part, {n: tracks[n] for n in share}, indices, before)
                for k, share in camera_shares(list(tracks), rig, len(pools)).items()]
+    return _all_of(futures)
+
+
+def _all_of(futures: list[concurrent.futures.Future]) -> concurrent.futures.Future:
+    """One future for several (their results summed): done when the last is, with the first
+    error (a cancelled one's too). The callbacks run in the pools' threads, several at once."""
     done: concurrent.futures.Future = concurrent.futures.Future()
+    left = [len(futures)]
+    lock = threading.Lock()
 
     def collect(_: concurrent.futures.Future) -> None:
-        if all(f.done() for f in futures) and not done.done():
-            errors = [f.exception() for f in futures if f.exception() is not None]
-            if errors:
-                done.set_exception(errors[0])
-            else:
-                done.set_result(sum(f.result() for f in futures))
+        with lock:
+            left[0] -= 1
+            if left[0]:
+                return
+        if any(f.cancelled() for f in futures):
+            done.set_exception(concurrent.futures.CancelledError())
+        elif errors := [f.exception() for f in futures if f.exception() is not None]:
+            done.set_exception(errors[0])
+        else:
+            done.set_result(sum(f.result() for f in futures))
 
+    if not futures:
+        done.set_result(0)
     for f in futures:
         f.add_done_callback(collect)
     return done

@@ -102,7 +102,7 @@ def test_frames_looked_at_before_their_window_closes_leave_it_little_to_do_and_c
     for a in range(20, 29, 3):  # frames 20-28 in looks of 3, as the service sends them; 29 closes
         frames = list(range(a, a + 3))
         assert warm_window(pools, "warm", window_tracks(full, a, a + 3), frames,
-                           WindowBefore.of(list(range(20)), first)).result(timeout=60) == 4 * 3
+                           WindowBefore.of(1, list(range(20)), first)).result(timeout=60) == 4 * 3
     start = _stats(pools)
     result, *_ = estimate_window(pools, "warm", window_tracks(full, 10, 30), list(range(10, 30)), sizes)
     done = _delta(pools, start)
@@ -138,3 +138,30 @@ def test_a_dead_worker_costs_a_window_at_most(pools, small_model):
     assert victim not in pools.pids and len(pools.pids) == 2
     expected = json_safe(estimate_walk(tracks, small_model).to_result())
     assert [f["phase"] for f in outcomes[-1]["frames"]] == [f["phase"] for f in expected["frames"]]
+
+
+def test_an_early_look_is_done_once_when_its_last_process_is():
+    """The processes' futures of one early look joined (their callbacks run in several pools'
+    threads): done once, when the last is, with the first error or a cancellation (a pool
+    terminated at stop), so that the service's count of looks in flight comes down."""
+    from concurrent.futures import CancelledError, Future
+
+    from service.worker import _all_of
+
+    a, b = Future(), Future()
+    both = _all_of([a, b])
+    a.set_result(2)
+    assert not both.done()
+    b.set_result(3)
+    assert both.result() == 5
+    a, b = Future(), Future()
+    both = _all_of([a, b])
+    assert a.cancel()
+    b.set_exception(ValueError("worker died"))
+    assert isinstance(both.exception(), CancelledError)
+    a, b = Future(), Future()
+    both = _all_of([a, b])
+    b.set_exception(ValueError("worker died"))
+    a.set_result(1)
+    assert isinstance(both.exception(), ValueError)
+    assert _all_of([]).result() == 0

@@ -117,6 +117,24 @@ def test_window_buffer_length_hop_and_gap():
     assert b.push(FrameSet(20, 0, 0.0)) is None and b.resets == 1  # gap > length/2: start over
 
 
+def test_window_buffer_gives_the_frames_of_the_next_window_ahead_of_it():
+    """``take_fresh``: the frame sets pushed since the last window (or the last take), once there
+    are ``every`` of them: what the live service looks at before the window closes."""
+    from service.live import FrameSet
+
+    b = WindowBuffer(length=6, hop=3)
+    taken = []
+    for i in range(12):
+        if b.push(FrameSet(i, 0, 0.0)) is None and (fresh := b.take_fresh(2)) is not None:
+            taken.append([f.index for f in fresh])
+    # windows close at 5, 8 and 11; between them every two new frames, none left for the window's
+    assert taken == [[0, 1], [2, 3], [6, 7], [9, 10]]
+    assert b.take_fresh(0) is None
+    b.push(FrameSet(12, 0, 0.0))
+    b.push(FrameSet(30, 0, 0.0))  # a gap: the frames before are another walk's
+    assert [f.index for f in b.take_fresh(1)] == [30]
+
+
 def test_viewpoint_track_smooths_noise_and_reports_a_move():
     rng = np.random.default_rng(0)
     t = ViewpointTrack(threshold_deg=30.0, confirm=3)
