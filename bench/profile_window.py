@@ -31,9 +31,10 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from estimator.matchcache import MatchCache  # noqa: E402
-from estimator.pipeline import estimate_walk, extrapolate_states, prime_cache, tracks_from_sequence  # noqa: E402
+from estimator.pipeline import estimate_walk, prime_cache, tracks_from_sequence  # noqa: E402
 from estimator.synth import SynthSpec, synthesize  # noqa: E402
 from estimator.windows import window_tracks  # noqa: E402
+from service.worker import WindowBefore  # noqa: E402
 
 # (label, module path suffix, function name): the stages in the order they run.
 STAGES = [
@@ -85,12 +86,11 @@ def main() -> None:
     def look_early(k: int, before) -> None:
         """As the live service (warm_every): window k's frames after those it shares with the
         window before, ``step`` at a time, at the window before's viewpoints and phase."""
+        said = WindowBefore.of(k - 1, list(range((k - 1) * hop, (k - 1) * hop + args.frames)), before)
         for a in range(hop, args.frames, step) if step else ():
             b = min(a + step, args.frames)
-            states = extrapolate_states(np.arange((k - 1) * hop, (k - 1) * hop + args.frames), before.states,
-                                        n_states, np.arange(k * hop + a, k * hop + b))
-            prime_cache(window_tracks(windows[k], a, b), model, cache, states=states,
-                        viewpoints={c: e.viewpoint for c, e in before.cameras.items()})
+            prime_cache(window_tracks(windows[k], a, b), model, cache,
+                        **said.guess(np.arange(k * hop + a, k * hop + b), n_states))
 
     cpu, early = [], []
     before = estimate_walk(windows[0], model, cache=cache)  # warm-up

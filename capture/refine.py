@@ -224,7 +224,8 @@ def refine_cameras(
             raw[name], note = segment_clip(make, settings)
             if note:
                 notes[name] = note
-    raw = dict(raw)
+    else:
+        raw = dict(raw)
     sizes = {}
     for name in frames:
         first = next((s for s in raw[name] if s is not None), None)

@@ -818,6 +818,27 @@ class PhaseRefinement:
     outliers: int  # frames that count less
 
 
+def _cleaned(tracks: dict[str, CameraTrack], model: AppearanceModel, config: EstimateConfig,
+             cache: MatchCache | None) -> tuple[dict[str, CameraTrack], dict[str, CleanupReport]]:
+    """The tracks after the clean-up ``config`` asks for (:func:`clean_tracks`, shadows scored
+    with ``cache``), and its reports; as they are without one."""
+    if config.cleanup is None:
+        return tracks, {}
+    return clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
+
+
+def _matched(track: CameraTrack, model: AppearanceModel, cache: MatchCache | None
+             ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, list[bytes] | None]:
+    """A camera's frames with a silhouette that registers, their registered silhouettes, eq. 8
+    distances to the cluster means and cache keys (:func:`~estimator.matchcache.match`)."""
+    present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
+    if not present.size:
+        return present, None, None, None
+    m = match(model, [track.silhouettes[k] for k in present], cache)
+    keys = None if m.keys is None else [k for k, v in zip(m.keys, m.valid) if v]
+    return present[m.valid], m.registered[m.valid], m.means_distance[m.valid], keys
+
+
 def _settles(config: EstimateConfig, camera: CameraEstimate) -> bool:
     """Whether a camera's ahead/behind is open to the other cameras' phase (:func:`_settle_ahead_behind`)."""
     return (config.settle_ahead_behind and np.isfinite(camera.viewpoint.azimuth_deg) and _contested(camera)
@@ -842,13 +863,10 @@ def observe_cameras(
     exemplars = model.exemplars() if config.method == "exemplars" else None
     if exemplars is not None and exemplars.n_phases != config.hmm.n_states:
         raise ValueError(f"exemplars have {exemplars.n_phases} phases, the HMM {config.hmm.n_states}")
-    reports: dict[str, CleanupReport] = {}
-    if config.cleanup is not None:
-        tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
+    tracks, reports = _cleaned(tracks, model, config, cache)
     out: dict[str, CameraObservation] = {}
     for name, track in tracks.items():
         T = len(track.silhouettes)
-        present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
         labels = np.full(T, -1, np.int64)
         dist = np.full((T, model.n_clusters), np.inf, np.float32)
         cam_notes = []
@@ -862,11 +880,7 @@ def observe_cameras(
                 "cropped silhouettes: no position in the full frame, so no motion cue (ahead/behind decided by "
                 "the majority of matches), and joints2d are in each crop's own pixels"
             )
-        keys = None
-        if present.size:
-            m = match(model, [track.silhouettes[k] for k in present], cache)
-            present, registered, d = present[m.valid], m.registered[m.valid], m.means_distance[m.valid]
-            keys = None if m.keys is None else [k for k, v in zip(m.keys, m.valid) if v]
+        present, registered, d, keys = _matched(track, model, cache)
         if present.size == 0:
             cam_notes.append("no silhouette in this window")
             vp = Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)
@@ -998,21 +1012,16 @@ def prime_cache(tracks: dict[str, CameraTrack], model: AppearanceModel, cache: M
     if config.method != "exemplars":
         return 0
     index = model.exemplars()
-    if config.cleanup is not None:
-        tracks, _ = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
+    tracks, _ = _cleaned(tracks, model, config, cache)
     by_phase = _rows_by_phase(index) if states is not None else None
     looked = 0
     for name, track in tracks.items():
-        present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
-        if not present.size:
-            continue
-        m = match(model, [track.silhouettes[k] for k in present], cache)
-        present, registered, keys = present[m.valid], m.registered[m.valid], [k for k, v in zip(m.keys, m.valid) if v]
+        present, registered, d, keys = _matched(track, model, cache)
         if not present.size:
             continue
         looked += present.size
         bits = pack(registered)
-        _member_distances(model, index, bits, m.means_distance[m.valid], config.top_clusters, cache, keys)
+        _member_distances(model, index, bits, d, config.top_clusters, cache, keys)
         vp = (viewpoints or {}).get(name)
         if vp is not None and np.isfinite(vp.azimuth_deg):
             _phase_distances(index, bits, vp, cache, keys)

@@ -52,7 +52,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -360,6 +360,16 @@ def insert_by_seq(recent: collections.deque, result: dict[str, Any]) -> None:
         recent.popleft()
         i -= 1
     recent.insert(i, result)
+
+
+def _cameras(frames: Iterable[FrameSet]) -> list[str]:
+    """The cameras heard in any of ``frames``, sorted (a window's, and how its cameras are dealt)."""
+    return sorted(set().union(*(fs.parts for fs in frames)))
+
+
+def _camera_tracks(frames: list[FrameSet], cams: list[str]) -> dict[str, CameraTrack]:
+    """Each of ``cams``' track over ``frames`` (tight crops, full-frame boxes; None where it is missing)."""
+    return {cam: track_from_segmentations([fs.parts.get(cam) for fs in frames]) for cam in cams}
 
 
 def window_keypoints(frames: list[FrameSet]) -> dict[str, np.ndarray] | None:
@@ -671,7 +681,7 @@ class LiveService:
                 rig.window_seq += 1
                 out.append(Window(rig.name, rig.window_seq, frames, max(f.last_receive_ns for f in frames)))
             elif (fresh := rig.buffer.take_fresh(self.settings.warm_every)) is not None:
-                cams = sorted(set().union(*(f.parts for f in rig.buffer.frames)))  # as the window's will be
+                cams = _cameras(rig.buffer.frames)  # as the window's will be
                 self._fresh.append((rig.name, fresh, cams, rig.before, rig.window_seq))
         return out
 
@@ -691,8 +701,8 @@ class LiveService:
                 self.metrics.frames_warmed.labels("skipped").inc(len(frames))
                 continue
             try:
-                tracks = {cam: track_from_segmentations([fs.parts.get(cam) for fs in frames]) for cam in cams}
-                future = warm_window(self.pool, name, tracks, [fs.index for fs in frames], before)
+                future = warm_window(self.pool, name, _camera_tracks(frames, cams), [fs.index for fs in frames],
+                                     before)
             except Exception:  # noqa: BLE001 - a look is never worth the tick thread: its window will do it
                 log.exception("early look at %s frames %d-%d failed", name, frames[0].index, frames[-1].index)
                 self._warmed(None)
@@ -769,18 +779,14 @@ class LiveService:
                     self._estimating -= 1
 
     def _tracks(self, w: Window) -> tuple[dict[str, CameraTrack], dict[str, tuple[int, int]]] | None:
-        cams = sorted(set().union(*(fs.parts for fs in w.frames)))
-        tracks, sizes = {}, {}
         present = 0
         for fs in w.frames:
             present += any(not m.box.empty for m in fs.parts.values())
         if present < max(1, self.settings.min_present * len(w.frames)):
             return None
-        for cam in cams:
-            parts = [fs.parts.get(cam) for fs in w.frames]
-            tracks[cam] = track_from_segmentations(parts)
-            sizes[cam] = next(m.image_size for m in reversed(parts) if m is not None)
-        return tracks, sizes
+        cams = _cameras(w.frames)
+        sizes = {cam: next(fs.parts[cam].image_size for fs in reversed(w.frames) if cam in fs.parts) for cam in cams}
+        return _camera_tracks(w.frames, cams), sizes
 
     def _process(self, w: Window) -> None:
         if not self.has_rig(w.rig):  # forgotten or handed over while it waited

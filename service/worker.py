@@ -46,7 +46,7 @@ from estimator.appearance import AppearanceModel, load_model
 from estimator.matchcache import MatchCache
 from estimator.mnbp import MNBPConfig
 from estimator.pipeline import (CameraObservation, CameraTrack, PhaseRefinement, WalkEstimate, crop_to_box,
-                                EstimateConfig, decode_walk, estimable_frames, extrapolate_states,
+                                decode_walk, estimable_frames, extrapolate_states,
                                 observe_cameras, pad_tracks, prime_cache, refine_cameras, tracks_from_sequence)
 from estimator.rig import Rig, RigAccumulator, RigConfig
 from estimator.sequence import Sequence, read_sequence, write_sequence
@@ -503,17 +503,20 @@ class WindowBefore:
     def of(cls, seq: int, indices: list[int], est: WalkEstimate) -> WindowBefore:
         return cls(seq, np.asarray(indices), est.states, {c: e.viewpoint for c, e in est.cameras.items()})
 
+    def guess(self, indices: list[int] | np.ndarray, n_states: int) -> dict[str, Any]:
+        """:func:`~estimator.pipeline.prime_cache`'s guess for frames ``indices`` of the next
+        window: this one's viewpoints, its phase carried on (``extrapolate_states``)."""
+        return {"viewpoints": self.viewpoints,
+                "states": extrapolate_states(self.indices, self.states, n_states, np.asarray(indices))}
+
 
 def warm_part(tracks: dict[str, CameraTrack], indices: list[int], before: WindowBefore | None) -> int:
     """Frames ``indices`` of a live window not yet closed, for some of its cameras, taken through
     what the window will ask of the match cache, at the window ``before``'s viewpoints and phase
     carried on (:func:`~estimator.pipeline.prime_cache`), in a worker: the frames looked at."""
-    guess = {}
-    if before is not None:
-        n_states = EstimateConfig().hmm.n_states
-        guess = dict(viewpoints=before.viewpoints,
-                     states=extrapolate_states(before.indices, before.states, n_states, np.asarray(indices)))
-    return prime_cache(tracks, _get_model(), _match_cache, **guess)
+    model = _get_model()
+    guess = {} if before is None else before.guess(indices, model.exemplars().n_phases)
+    return prime_cache(tracks, model, _match_cache, **guess)
 
 
 def warm_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack], indices: list[int],
