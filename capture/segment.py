@@ -821,14 +821,20 @@ class Segmenter:
             refined = cv2.bitwise_or(seen, cv2.bitwise_and(weak, cv2.bitwise_and(prior[y0:y1, x0:x1], near)))
             if self.settings.edge_split:  # the walker's colour from the evidence alone
                 refined = self._split_edges(refined, frame, d2, interior=cv2.erode(seen, _kernel(5)))
-        evidence = self._shadow_evidence(frame, self._full_bg[y0:y1, x0:x1], var) if self.settings.shadows \
-            else None
+        evidence = self._shadow_evidence(frame, self._full_bg[y0:y1, x0:x1], var, refined) \
+            if self.settings.shadows else None
         if evidence is not None:  # the pixels' evidence is the mask's to weigh, round after round
+            feet = None
             for _ in range(self.settings.shadow_rounds):
-                before = cv2.countNonZero(refined)
-                refined = self._drop_shadows(refined, *evidence, g)
-                if cv2.countNonZero(refined) == before:
-                    break
+                out, feet = self._drop_shadows(refined, *evidence, g, feet)
+                if out is refined:
+                    break  # nothing removed
+                refined = out
+                if feet is None:
+                    break  # without a feet band the next round removes only what this one gave back
+                feet, before = self._feet_band(refined, g), feet
+                if np.array_equal(feet, before):
+                    break  # the same band: so too
         fg[y0:y1, x0:x1] = refined
         return fg
 
@@ -861,18 +867,23 @@ class Segmenter:
         out[nearer_bg] = 0
         return out
 
-    def _shadow_evidence(self, frame: np.ndarray, background: np.ndarray,
-                         var: float) -> tuple[np.ndarray, np.ndarray] | None:
+    def _shadow_evidence(self, frame: np.ndarray, background: np.ndarray, var: float,
+                         fg: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """Per pixel of a region (full resolution; ``frame`` float32 with the gain divided out):
         whether its colour is a shadow's or a reflection's of the background, and whether the
-        background's texture is still there; None where no pixel's colour is (nothing to drop).
+        background's texture is still there; None where no pixel of ``fg`` has such a colour
+        (nothing to drop).
 
         A pixel's colour is a shadow's if it is the background's scaled by a ratio
         ``r`` in ``shadow_ratio`` (or up to ``reflection_ratio`` brighter), with
         little chromaticity distortion ``|I - rB| / |B|``; the texture is there
         when the local gradients of ``I`` are close to ``r`` times the
         background's. Neither depends on the mask, so :meth:`_refine` computes
-        them once for all of :meth:`_drop_shadows`' rounds.
+        them once for all of :meth:`_drop_shadows`' rounds, which only shrink
+        ``fg``: the texture is measured only on the bounding rectangle of
+        ``fg``'s shadow-coloured pixels (padded by the 3 px the gradients and
+        their 5 px mean reach, so exactly as on the whole region) and is False
+        elsewhere.
         """
         s = self.settings
         bb = cv2.transform(cv2.multiply(background, background), np.ones((1, 3), np.float32)) + 1.0
@@ -882,22 +893,30 @@ class Segmenter:
         lo, hi = s.shadow_ratio
         dark = ((r >= lo) & (r <= hi)) | ((r > 1.0) & (r <= s.reflection_ratio))
         shadow = dark & (chroma < s.shadow_chroma ** 2)
-        if not shadow.any():
+        bx, by, bw, bh = cv2.boundingRect(cv2.bitwise_and(fg, shadow.view(np.uint8)))
+        if bw == 0:
             return None
-        gi, gb = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), cv2.cvtColor(background, cv2.COLOR_BGR2GRAY)
+        pad = 3  # Sobel's 1 px and the 5 px mean's 2 px
+        x0, y0 = max(0, bx - pad), max(0, by - pad)
+        x1, y1 = min(frame.shape[1], bx + bw + pad), min(frame.shape[0], by + bh + pad)
+        sub = (slice(y0, y1), slice(x0, x1))
+        gi, gb = cv2.cvtColor(frame[sub], cv2.COLOR_BGR2GRAY), cv2.cvtColor(background[sub], cv2.COLOR_BGR2GRAY)
+        rs = r[sub]
         change = np.zeros_like(gi)
         present = np.zeros_like(gi)
         for dx, dy in ((1, 0), (0, 1)):
             a = cv2.Sobel(gi, cv2.CV_32F, dx, dy, ksize=3)
-            b = cv2.Sobel(gb, cv2.CV_32F, dx, dy, ksize=3)
-            change += cv2.absdiff(a, cv2.multiply(b, r))
-            present += cv2.absdiff(a, 0) + cv2.absdiff(cv2.multiply(b, r), 0)
+            b = cv2.multiply(cv2.Sobel(gb, cv2.CV_32F, dx, dy, ksize=3), rs)
+            change += cv2.absdiff(a, b)
+            present += cv2.absdiff(a, 0) + cv2.absdiff(b, 0)
         k = (5, 5)
         floor = 8.0 * np.sqrt(var / 3.0)  # the gradient operator's response to noise alone
-        return shadow, cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
+        same_texture = np.zeros(shadow.shape, bool)
+        same_texture[sub] = cv2.blur(change, k) < s.shadow_texture * cv2.blur(present, k) + floor
+        return shadow, same_texture
 
     def _drop_shadows(self, fg: np.ndarray, shadow_colour: np.ndarray, same_texture: np.ndarray,
-                      g: _Geometry) -> np.ndarray:
+                      g: _Geometry, feet: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Remove shadow and reflection pixels from ``fg`` (a region, full resolution), given each
         pixel's evidence (:meth:`_shadow_evidence`: a shadow's colour, the background's texture).
 
@@ -913,18 +932,39 @@ class Segmenter:
         (:meth:`_feet_band`) colour alone decides. :meth:`_refine` runs it
         again on what it left (``shadow_rounds``), so that the band, measured
         on a blob with a long cast shadow at first, climbs back to the feet.
+        The closing is computed only around the pixels it may give back
+        (their bounding rectangle padded by the closing's reach), which is
+        exactly the closing of the whole region there.
+
+        Returns the mask (``fg`` itself when nothing is removed) and the feet
+        band it used (``feet``, computed when not given; None without one).
         """
         s = self.settings
-        feet = self._feet_band(fg, g) if s.shadow_feet > 0 else None
-        shadow = (shadow_colour & (same_texture if feet is None else same_texture | feet)).astype(np.uint8) * 255
-        body = cv2.bitwise_and(fg, cv2.bitwise_not(shadow))
+        coloured = cv2.bitwise_and(fg, shadow_colour.view(np.uint8))  # 0/1: only these can go
+        if not cv2.countNonZero(coloured):
+            return fg, feet
+        if feet is None and s.shadow_feet > 0:
+            feet = self._feet_band(fg, g)
+        texture = same_texture.view(np.uint8)
+        removed = cv2.bitwise_and(coloured, texture if feet is None else cv2.bitwise_or(texture, feet.view(np.uint8)))
+        bx, by, bw, bh = cv2.boundingRect(removed)
+        if bw == 0:
+            return fg, feet
+        body = cv2.bitwise_and(fg, cv2.compare(removed, 0, cv2.CMP_EQ))
         if 2 * cv2.countNonZero(body) < cv2.countNonZero(fg):
-            return fg  # most of it "shadow": a walker that looks like one (see docstring)
-        enclosed = cv2.morphologyEx(body, cv2.MORPH_CLOSE, _kernel(2 * g.close_px + 1)) \
-            if g.close_px else body
+            return fg, feet  # most of it "shadow": a walker that looks like one (see docstring)
+        if not g.close_px:
+            return body, feet
+        reach = 2 * g.close_px  # a closing by a (2 close_px + 1) disc looks this far
+        x0, y0 = max(0, bx - reach), max(0, by - reach)
+        x1, y1 = min(fg.shape[1], bx + bw + reach), min(fg.shape[0], by + bh + reach)
+        enclosed = cv2.morphologyEx(body[y0:y1, x0:x1], cv2.MORPH_CLOSE, _kernel(2 * g.close_px + 1))
+        box = (slice(by, by + bh), slice(bx, bx + bw))
+        back = (removed[box] > 0) & (enclosed[by - y0:by - y0 + bh, bx - x0:bx - x0 + bw] > 0)
         if feet is not None:
-            enclosed[feet] = 0
-        return cv2.bitwise_or(body, cv2.bitwise_and(fg, enclosed))
+            back &= ~feet[box]
+        body[box][back] = 255
+        return body, feet
 
     def _feet_band(self, fg: np.ndarray, g: _Geometry) -> np.ndarray:
         """The lowest ``shadow_feet`` of each foreground blob's height (bool mask).
