@@ -16,7 +16,13 @@ Sets (2-4 cameras, 15 Hz, cameras 8-12 m away):
   steps (stride x0.7) and high knees (leg lift x1.3), the same bodies;
 - ``model``: the gait model with its usual random style (in distribution).
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_mnbp.py [--sequences 6] [--plot docs/img/mnbp_errors.png]
+With ``--rig``, each walk's rig is calibrated as ``posecal estimate`` does
+(:func:`estimator.rig.calibrate_rig` on :func:`estimator.mnbp.measure_postures`)
+and each camera's rotation to camera 0 is scored against the truth
+(geodesic, degrees, every pair (c, 0)).
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_mnbp.py [--sequences 6] [--seed 7] [--rig] \
+        [--plot docs/img/mnbp_errors.png]
 """
 
 from __future__ import annotations
@@ -38,7 +44,8 @@ from tqdm import tqdm  # noqa: E402
 
 from estimator.gait import GaitStyle  # noqa: E402
 from estimator.joints import JOINT_NAMES, MIRROR  # noqa: E402
-from estimator.mnbp import MNBPConfig, posture_sequences  # noqa: E402
+from estimator._selfcal_core import geodesic_deg  # noqa: E402
+from estimator.mnbp import MNBPConfig, measure_postures, posture_sequences  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.skeleton import BodyShape  # noqa: E402
@@ -79,8 +86,8 @@ def swapped(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return m < d
 
 
-def evaluate(kind: str, n: int, seed: int, model, config: MNBPConfig) -> dict[str, list]:
-    rows = {"model": [], "mnbp": [], "swap_model": [], "swap_mnbp": [], "ms": []}
+def evaluate(kind: str, n: int, seed: int, model, config: MNBPConfig, rig: bool = False) -> dict[str, list]:
+    rows = {"model": [], "mnbp": [], "swap_model": [], "swap_mnbp": [], "ms": [], "rig": []}
     motions = {}
     for spec, motion_name in tqdm(items(kind, n, seed), desc=kind, leave=False):
         motion = motions.setdefault(motion_name, read_motion(MOCAP / motion_name)) if motion_name else None
@@ -99,6 +106,13 @@ def evaluate(kind: str, n: int, seed: int, model, config: MNBPConfig) -> dict[st
             for name, j in (("model", c.joints2d), ("mnbp", joints)):
                 rows[name].append(np.linalg.norm(j - truth, axis=-1) / height[:, None])
                 rows[f"swap_{name}"].append(swapped(j, truth))
+        if rig:
+            from estimator.rig import calibrate_rig, rotations_from_viewpoints
+
+            found = calibrate_rig(measure_postures(est, config))
+            true = rotations_from_viewpoints([(seq.truth["cameras"][c]["azimuth_deg"],
+                                               seq.truth["cameras"][c]["elevation_deg"]) for c in names])
+            rows["rig"] += [float(geodesic_deg(r, t)) for r, t in zip(found.rotations[1:], true[1:])]
     return rows
 
 
@@ -109,6 +123,7 @@ def main() -> None:
     parser.add_argument("--plot", type=Path, default=None)
     parser.add_argument("--config", default="{}", help='MNBPConfig fields as JSON, e.g. \'{"n_iterations": 8}\'')
     parser.add_argument("--sets", default=",".join(SETS))
+    parser.add_argument("--rig", action="store_true", help="also calibrate each walk's rig and score its rotations")
     args = parser.parse_args()
     from service.cli.model import get_default_model
 
@@ -120,13 +135,19 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     results = {}
     for kind in args.sets.split(","):
-        r = evaluate(kind, args.sequences, args.seed, model, config)
+        r = evaluate(kind, args.sequences, args.seed, model, config, rig=args.rig)
         results[kind] = r
         em, ep = np.concatenate(r["model"]), np.concatenate(r["mnbp"])
         sm, sp = np.concatenate(r["swap_model"]), np.concatenate(r["swap_mnbp"])
         print(f"| {kind} | {len(em)} | {np.nanmedian(em):.4f} / {np.nanpercentile(em, 90):.4f} | "
               f"{np.nanmedian(ep):.4f} / {np.nanpercentile(ep, 90):.4f} | {sm.mean():.1%} / {sp.mean():.1%} | "
               f"{np.median(r['ms']):.0f} |")
+    if args.rig:
+        print("\nRig (default, `calibrate_rig` on the mNBP postures): rotation to camera 0 against the truth, deg\n")
+        print("| set | pairs | median | p90 | max |\n|---|---|---|---|---|")
+        for kind, r in results.items():
+            e = np.array(r["rig"])
+            print(f"| {kind} | {len(e)} | {np.median(e):.2f} | {np.percentile(e, 90):.2f} | {e.max():.2f} |")
     print("\nPer joint, median (cmu + stylised):\n")
     print("| joint | model | mNBP |\n|---|---|---|")
     em = np.concatenate([e for k in ("cmu", "stylised") if k in results for e in results[k]["model"]])

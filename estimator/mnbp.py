@@ -19,7 +19,8 @@ What makes it the paper's *modified* NBP:
   pulled onto the torso's edge.
 - **Scale**: every part's projected length is sampled (0.3–1.1 times its
   model length at the walker's image height), so a walker nearer or farther,
-  or taller or shorter, than the model is followed part by part.
+  or taller or shorter, than the model is followed part by part; the widths
+  are the person's, read off the silhouettes first (:func:`person_widths`).
 - **Annealing**: the observation enters as ``phi^(1/tau_n)`` with a
   temperature ``tau_n`` decreasing over the iterations (the paper's
   decreasing factor lambda), and the particle perturbations shrink with it.
@@ -92,6 +93,8 @@ PARTS_2D: tuple[_Part, ...] = (
 widths as fractions of stature (skeleton.py's ratios, body.py's girths)."""
 
 _INDEX = {p.name: i for i, p in enumerate(PARTS_2D)}
+MODEL_WIDTHS = np.array([p.width for p in PARTS_2D])
+MODEL_WIDTHS.flags.writeable = False
 _EDGES = tuple((_INDEX[p.parent], i) for i, p in enumerate(PARTS_2D) if p.parent)
 _NEIGHBOURS = {i: [k for e in _EDGES for k in e if i in e and k != i] for i in range(len(PARTS_2D))}
 # The joint of the parent a child hangs from: "neck" = the shoulders' midpoint.
@@ -116,6 +119,7 @@ class MNBPConfig:
     length_range: tuple[float, float] = (0.3, 1.1)
     explore: float = 0.5  # share of a limb's proposals with a fresh angle ...
     explore_deg: float = 90.0  # ... within this of the current best (shrinking to 0 by the end)
+    fit_widths: bool = True  # the person's own limb widths (person_widths) instead of the model's
     seed: int = 0
 
 
@@ -175,13 +179,15 @@ def _grid(n_u: int, n_v: int) -> tuple[np.ndarray, np.ndarray]:
 _GU, _GV = _grid(9, 5)
 
 
-def _sample_points(i: int, x: np.ndarray, height: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+def _sample_points(i: int, x: np.ndarray, height: np.ndarray | float,
+                   width: np.ndarray | float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Points inside part ``i`` for states ``x`` (..., D): (..., K, 2), and each state's area (...).
 
-    ``height`` (the walker's image height) broadcasts against ``x``'s leading axes.
+    ``height`` (the walker's image height) and ``width`` (the part's width as a
+    fraction of it, default the model's) broadcast against ``x``'s leading axes.
     """
     part = PARTS_2D[i]
-    w = part.width * np.asarray(height, float)
+    w = (part.width if width is None else np.asarray(width, float)) * np.asarray(height, float)
     if i == 0:  # the quad of shoulders and hips, widened by half the torso's depth
         t = _torso_points(x)
         half = (0.5 * w)[..., None]
@@ -210,10 +216,11 @@ def _sample_points(i: int, x: np.ndarray, height: np.ndarray | float) -> tuple[n
     return pts, length * w
 
 
-def _draw(mask: np.ndarray, i: int, x: np.ndarray, height: float) -> None:
-    """Draw part ``i`` in state ``x`` (one state) into ``mask`` (value 1), OpenCV capsules."""
+def _draw(mask: np.ndarray, i: int, x: np.ndarray, height: float, width: float | None = None) -> None:
+    """Draw part ``i`` in state ``x`` (one state) into ``mask`` (value 1), OpenCV capsules
+    ``width`` (a fraction of ``height``; default the model's) wide."""
     part = PARTS_2D[i]
-    w = max(1, int(round(part.width * height)))
+    w = max(1, int(round((part.width if width is None else width) * height)))
     s = 16.0  # 4 bits of sub-pixel precision
 
     def p(v: np.ndarray) -> tuple[int, int]:
@@ -394,9 +401,13 @@ class SilhouetteView:
     where another part is drawn, ``+1`` on the silhouette, ``-1`` off it. A
     count of the parts drawn on each pixel makes "another part" one
     comparison at the candidates' points, with no image-sized work per call.
+    ``widths`` (B, parts) are the parts' widths in each image as fractions of
+    its walker's height (default the model's, :data:`PARTS_2D`; the person's
+    own from :func:`person_widths`).
     """
 
-    def __init__(self, silhouettes: list[np.ndarray], heights: np.ndarray, states: list[np.ndarray]) -> None:
+    def __init__(self, silhouettes: list[np.ndarray], heights: np.ndarray, states: list[np.ndarray],
+                 widths: np.ndarray | None = None) -> None:
         self.shapes = np.array([s.shape for s in silhouettes], np.int64).reshape(-1, 2)  # (B, 2): rows, columns
         padded = self.shapes + 2
         sizes = padded.prod(axis=1)
@@ -404,6 +415,8 @@ class SilhouetteView:
         self.base = np.concatenate([np.pad(np.where(s > 0, 1, -1).astype(np.int8), 1, constant_values=-1).ravel()
                                     for s in silhouettes])
         self.height = np.asarray(heights, float).reshape(len(silhouettes))
+        self.widths = np.broadcast_to(MODEL_WIDTHS if widths is None else np.asarray(widths, float),
+                                      (len(silhouettes), len(PARTS_2D)))
         self.drawn = [np.zeros(int(sizes.sum()), np.uint8) for _ in PARTS_2D]
         # pixel (row, col) of image b, -1 <= row <= rows, -1 <= col <= cols, is origin + row * stride + col
         self._rows, self._cols = (self.shapes[:, k, None, None] for k in (0, 1))
@@ -420,12 +433,12 @@ class SilhouetteView:
 
     def _draw(self, i: int, x: np.ndarray) -> None:
         for b in range(len(self.height)):
-            _draw(self._image(self.drawn[i], b), i, x[b], self.height[b])
+            _draw(self._image(self.drawn[i], b), i, x[b], self.height[b], self.widths[b, i])
 
     def log_phi(self, i: int, x: np.ndarray) -> np.ndarray:
         """``log phi_i`` of candidate states ``x`` (B, M, D) of part ``i``, in units of height^2:
         the mean of ``G`` at each candidate's points times its area; off the image ``-1``."""
-        pts, area = _sample_points(i, x, self.height[:, None])
+        pts, area = _sample_points(i, x, self.height[:, None], self.widths[:, i, None])
         ij = np.round(pts).astype(np.int64)
         flat = (self._origin + np.clip(ij[..., 1], -1, self._rows) * self._stride
                 + np.clip(ij[..., 0], -1, self._cols))
@@ -480,10 +493,12 @@ def anneal(beliefs: _Beliefs, log_phi, redraw, prior_energy, config: MNBPConfig,
 
 def estimate_postures2d(silhouettes: list[np.ndarray], starts: np.ndarray, *, heights: np.ndarray | None = None,
                         priors: np.ndarray | None = None, seeds: list[int] | None = None,
-                        config: MNBPConfig = MNBPConfig()) -> list[Posture2D]:
+                        widths: np.ndarray | None = None, config: MNBPConfig = MNBPConfig()) -> list[Posture2D]:
     """2D postures on several silhouettes at once (one frame's cameras): :func:`estimate_posture2d`
     for each, batched through the same array operations; each answer is the one
-    :func:`estimate_posture2d` gives with ``config.seed`` = its seed (default: ``config.seed``)."""
+    :func:`estimate_posture2d` gives with ``config.seed`` = its seed (default: ``config.seed``).
+    ``widths`` (B, parts or parts,): the parts' widths, fractions of each walker's height
+    (default the model's)."""
     starts = np.asarray(starts, float)
     priors = starts if priors is None else np.asarray(priors, float)
     if heights is None:
@@ -498,7 +513,7 @@ def estimate_postures2d(silhouettes: list[np.ndarray], starts: np.ndarray, *, he
 
     beliefs = _Beliefs(batch(starts), heights, config, rngs)
     prior_states = batch(priors)
-    view = SilhouetteView(silhouettes, heights, [beliefs.best(i) for i in range(len(PARTS_2D))])
+    view = SilhouetteView(silhouettes, heights, [beliefs.best(i) for i in range(len(PARTS_2D))], widths)
     anneal(beliefs, view.log_phi, view.redraw,
            lambda i, x: _prior_energy(i, x, prior_states[i], heights, config), config, heights)
     best = [beliefs.best(i) for i in range(len(PARTS_2D))]
@@ -568,7 +583,8 @@ def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: np.ndarray,
 
 def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np.ndarray], starts: list[np.ndarray],
                       *, config: MNBPConfig = MNBPConfig(), carry: float = 0.5, chain: int | None = 15,
-                      seeds: list[int] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                      seeds: list[int] | None = None,
+                      widths: np.ndarray | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """2D postures over several cameras' frames, in full-frame pixels.
 
     For camera *c*, ``silhouettes[c]`` are crops at ``boxes[c]`` (T, 4: x, y,
@@ -585,10 +601,16 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
     Chains and cameras are independent, so one step of every chain is solved
     as one batch (:func:`estimate_postures2d`); camera *c*'s frame *t* draws
     from seed ``seeds[c] + t`` (default ``config.seed + t``), so a frame's
-    posture does not depend on the other cameras.
+    posture does not depend on the other cameras but through the person's
+    widths, measured over all of them.
+    ``widths`` (parts,): the person's part widths, fractions of the walker's
+    image height; by default the model's, or with ``config.fit_widths``
+    measured on these silhouettes at the starts (:func:`person_widths`).
     Returns per camera joints (T, 13, 2), NaN where no silhouette, and scores (T,).
     """
     n_cams = len(silhouettes)
+    if widths is None and config.fit_widths:
+        widths = person_widths(silhouettes, boxes, starts)
     seeds = [config.seed] * n_cams if seeds is None else list(seeds)
     starts = [np.asarray(s, float) for s in starts]
     boxes = [np.asarray(b, float) for b in boxes]
@@ -617,11 +639,95 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
         model = np.stack([starts[c][t] for _, c, t in active])
         posts = estimate_postures2d([silhouettes[c][t] for _, c, t in active],
                                     model + carry * correction[ks] - origin, priors=model - origin,
-                                    seeds=[seeds[c] + t for _, c, t in active], config=config)
+                                    seeds=[seeds[c] + t for _, c, t in active], widths=widths, config=config)
         for (k, c, t), post, o, m in zip(active, posts, origin, model):
             out[c][t], scores[c][t] = post.joints + o, post.score
             correction[k] = out[c][t] - m
     return out, scores
+
+
+_LIMBS = tuple(i for i, p in enumerate(PARTS_2D) if i > 0 and p.name != "head")
+_KINDS = tuple(dict.fromkeys(PARTS_2D[i].name.split("_", 1)[1] for i in _LIMBS))  # upper_arm, forearm, thigh, shin
+_KIND = np.array([_KINDS.index(PARTS_2D[i].name.split("_", 1)[1]) for i in _LIMBS])
+_ALONG = np.linspace(0.25, 0.75, 7)  # where along a limb its width is read
+
+
+def person_widths(silhouettes: list[list[np.ndarray | None]], boxes: list[np.ndarray], joints: list[np.ndarray],
+                  *, share: float = 0.9, min_samples: int = 40,
+                  bounds: tuple[float, float] = (0.6, 1.6)) -> np.ndarray:
+    """The person's part widths (parts,), fractions of the walker's image height, read off the
+    silhouettes where the limbs stand free (Wang–Leow §2: a part's size is person-specific).
+
+    For each limb placed by ``joints`` (per camera (T, 13, 2), full frame; the
+    crops ``silhouettes`` at ``boxes`` as for :func:`posture_sequences`),
+    the silhouette's half-width is its distance transform's ridge across the
+    limb's middle half (the largest distance within one model width either
+    side of the axis, so an axis a little off the limb still finds it),
+    where no other part (at the model's width) lies across it and the ridge
+    is not at the end of the search (a limb merged with another). Left and
+    right are pooled per kind (upper arm, forearm, thigh, shin), the median
+    over every camera and frame, relative to the model's width; a kind with
+    fewer than ``min_samples`` readings takes all limbs' median (the body's
+    girth), which the torso takes too; the head keeps the model's width.
+    Fewer than ``min_samples`` readings in all: the model's widths. The
+    capsules are ``share`` of the widths read (a limb's silhouette is widest
+    at its middle, where it is read, and mNBP scored on bench/eval_mnbp.py's
+    seed 7 placed the joints best at 0.9: median 0.0175 / 0.0179 / 0.0186 at
+    1.0, 0.0160 / 0.0168 / 0.0170 at 0.9, 0.0165 / 0.0167 / 0.0169 at 0.8 with
+    worse p90s, on the CMU, stylised and model sets). Ratios to the model's
+    are held within ``bounds``.
+    """
+    ratios: list[np.ndarray] = []
+    kinds: list[np.ndarray] = []
+    for sils, bxs, js in zip(silhouettes, boxes, joints):
+        for sil, box, j in zip(sils, np.asarray(bxs, float), np.asarray(js, float)):
+            if sil is None or not sil.any() or not (np.all(np.isfinite(box)) and np.all(np.isfinite(j))):
+                continue
+            r, k = _width_readings(sil, j - box[:2])
+            ratios.append(r)
+            kinds.append(k)
+    widths = MODEL_WIDTHS.copy()
+    r, k = (np.concatenate(ratios), np.concatenate(kinds)) if ratios else (np.zeros(0), np.zeros(0, int))
+    if len(r) < min_samples:
+        return widths
+    girth = float(np.median(r))
+    per_kind = [float(np.median(r[k == n])) if np.sum(k == n) >= min_samples else girth for n in range(len(_KINDS))]
+    scale = np.full(len(PARTS_2D), girth)
+    scale[_INDEX["head"]] = 1.0  # a head's width does not follow the limbs' (measured: 2D head error 0.0083 -> 0.0099)
+    scale[list(_LIMBS)] = np.array(per_kind)[_KIND]
+    return widths * np.clip(share * scale, *bounds)
+
+
+def _width_readings(sil: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One silhouette's limb width readings (:func:`person_widths`): ratios to the model's width
+    and the limb kind of each."""
+    height = image_height(sil)
+    states = states_from_joints(joints, height)
+    drawn = np.zeros((len(PARTS_2D), *sil.shape), np.uint8)
+    for i, x in enumerate(states):
+        _draw(drawn[i], i, x, height)
+    count = drawn.sum(axis=0)
+    dist = cv2.distanceTransform((sil > 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    x = np.stack([states[i] for i in _LIMBS])  # (L, 4)
+    w = MODEL_WIDTHS[list(_LIMBS)] * height  # (L,)
+    d = _unit(x[:, 2])
+    n = np.stack([d[:, 1], -d[:, 0]], -1)
+    across = np.arange(-np.ceil(w.max()), np.ceil(w.max()) + 0.25, 0.5)  # half-pixel steps: no ridge pixel missed
+    reach = np.abs(across) <= w[:, None]  # (L, across): one model width either side of the axis
+    pts = (x[:, None, None, :2] + (_ALONG[:, None, None] * x[:, None, None, 3:4]) * d[:, None, None]
+           + across[None, None, :, None] * n[:, None, None])  # (L, along, across, 2)
+    ij = np.round(pts).astype(int)
+    inside = (ij[..., 0] >= 0) & (ij[..., 0] < sil.shape[1]) & (ij[..., 1] >= 0) & (ij[..., 1] < sil.shape[0])
+    inside &= reach[:, None]
+    col, row = np.clip(ij[..., 0], 0, sil.shape[1] - 1), np.clip(ij[..., 1], 0, sil.shape[0] - 1)
+    ridge = np.where(inside, dist[row, col], 0.0)
+    others = np.where(inside, count[row, col] - drawn[np.array(_LIMBS)[:, None, None], row, col], 0) > 0
+    peak = np.abs(across[ridge.argmax(axis=-1)])
+    free = ~others.any(axis=-1) & (peak < w[:, None] - 0.5) & (ridge.max(axis=-1) > 0)
+    # A run of n pixels has its ridge at (n + 1) / 2; a capsule of width w is scored on points
+    # spanning w (``_sample_points``), i.e. on runs of w + 1 pixels: w = n - 1 = 2 ridge - 2.
+    ratio = (2.0 * ridge.max(axis=-1) - 2.0) / w[:, None]
+    return ratio[free], np.broadcast_to(_KIND[:, None], free.shape)[free]
 
 
 def posture_sequence(silhouettes: list[np.ndarray | None], boxes: np.ndarray, starts: np.ndarray, *,
@@ -651,12 +757,18 @@ def measure_postures(estimate: WalkEstimate, config: MNBPConfig = MNBPConfig()) 
             cameras[name] = replace(cam, notes=cam.notes + ["joints2d: the model's placement (no full-frame boxes)"])
         else:
             measured.append((k, name, cam, track))
-    joints, _ = posture_sequences([tr.silhouettes for _, _, _, tr in measured], [tr.boxes for *_, tr in measured],
-                                  [cam.joints2d for _, _, cam, _ in measured], config=config,
+    sils, boxes = [tr.silhouettes for *_, tr in measured], [tr.boxes for *_, tr in measured]
+    starts = [cam.joints2d for _, _, cam, _ in measured]
+    widths = person_widths(sils, boxes, starts) if config.fit_widths and measured else None
+    joints, _ = posture_sequences(sils, boxes, starts, config=config, widths=widths,
                                   seeds=[config.seed + 1000 * k for k, *_ in measured])
     for (_, name, cam, _), j in zip(measured, joints):
         cameras[name] = replace(cam, joints2d=j, model_joints2d=cam.joints2d)
     cameras = {name: cameras[name] for name in estimate.cameras}
-    return replace(estimate, cameras=cameras,
-                   notes=estimate.notes + ["joints2d measured on each silhouette by mNBP (Wang-Leow §3); "
-                                           "model_joints2d: the gait model's placement"])
+    notes = ["joints2d measured on each silhouette by mNBP (Wang-Leow §3); model_joints2d: the gait model's placement"]
+    if widths is not None:
+        ratio = widths / MODEL_WIDTHS
+        notes.append("mNBP limb capsules from the widths measured on the silhouettes: " + ", ".join(
+            f"{kind.replace('_', ' ')} x{ratio[_LIMBS[list(_KIND).index(k)]]:.2f}" for k, kind in enumerate(_KINDS))
+            + " of the model's" + (" (too few free limbs: the model's)" if np.all(ratio == 1.0) else ""))
+    return replace(estimate, cameras=cameras, notes=estimate.notes + notes)
