@@ -257,6 +257,13 @@ class Segmentation:
         return cls(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), size, 0, used_prior, n_candidates)
 
 
+def _padded(rect: tuple[int, int, int, int], pad: int, size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: ``rect`` (x, y, w, h) grown by ``pad`` pixels on every side,
+    clipped to an image of ``size`` (width, height)."""
+    x, y, w, h = rect
+    return max(0, x - pad), max(0, y - pad), min(size[0], x + w + pad), min(size[1], y + h + pad)
+
+
 def _kernel(size: float) -> np.ndarray | None:
     """An elliptic kernel about ``size`` pixels wide, made odd so that it is centred
     (an even kernel's anchor is off centre and closing would shift the mask)."""
@@ -278,6 +285,7 @@ class _Geometry:
     guard: np.ndarray | None  # update guard kernel, model resolution
     near: np.ndarray | None  # refinement band kernel, full resolution
     close: np.ndarray | None  # closing kernel, full resolution
+    close_wide: np.ndarray | None  # a (2 close_px + 1) disc: the closing that gives shadow pixels back
 
     @property
     def downscaled(self) -> bool:
@@ -297,7 +305,7 @@ class _Geometry:
                    max(1, round(settings.min_area * k * k)), settings.min_width * k, scale,
                    _kernel(max(1.0, settings.update_guard_px * k * scale)),
                    _kernel(2 * refine + 1) if refine else None,
-                   close)
+                   close, None if close is None else _kernel(2 * close.shape[0] + 1))
 
 
 @dataclass(slots=True)
@@ -795,8 +803,7 @@ class Segmenter:
         if rw == 0 or rh == 0:
             return fg
         pad = 2 * g.refine_px + g.close_px  # room for the dilation, the noise sample, closing
-        x0, y0 = max(0, rx - pad), max(0, ry - pad)
-        x1, y1 = min(fg.shape[1], rx + rw + pad), min(fg.shape[0], ry + rh + pad)
+        x0, y0, x1, y1 = _padded((rx, ry, rw, rh), pad, fg.shape[1::-1])
         coarse = fg[y0:y1, x0:x1]
         near = cv2.dilate(coarse, g.near)  # the pixels re-tested
         d = cv2.addWeighted(image[y0:y1, x0:x1], 1.0 / gain, self._full_bg[y0:y1, x0:x1], -1.0,
@@ -897,8 +904,7 @@ class Segmenter:
         if bw == 0:
             return None
         pad = 3  # Sobel's 1 px and the 5 px mean's 2 px
-        x0, y0 = max(0, bx - pad), max(0, by - pad)
-        x1, y1 = min(frame.shape[1], bx + bw + pad), min(frame.shape[0], by + bh + pad)
+        x0, y0, x1, y1 = _padded((bx, by, bw, bh), pad, frame.shape[1::-1])
         sub = (slice(y0, y1), slice(x0, x1))
         gi, gb = cv2.cvtColor(frame[sub], cv2.COLOR_BGR2GRAY), cv2.cvtColor(background[sub], cv2.COLOR_BGR2GRAY)
         rs = r[sub]
@@ -956,9 +962,8 @@ class Segmenter:
         if not g.close_px:
             return body, feet
         reach = 2 * g.close_px  # a closing by a (2 close_px + 1) disc looks this far
-        x0, y0 = max(0, bx - reach), max(0, by - reach)
-        x1, y1 = min(fg.shape[1], bx + bw + reach), min(fg.shape[0], by + bh + reach)
-        enclosed = cv2.morphologyEx(body[y0:y1, x0:x1], cv2.MORPH_CLOSE, _kernel(2 * g.close_px + 1))
+        x0, y0, x1, y1 = _padded((bx, by, bw, bh), reach, fg.shape[1::-1])
+        enclosed = cv2.morphologyEx(body[y0:y1, x0:x1], cv2.MORPH_CLOSE, g.close_wide)
         box = (slice(by, by + bh), slice(bx, bx + bw))
         back = (removed[box] > 0) & (enclosed[by - y0:by - y0 + bh, bx - x0:bx - x0 + bw] > 0)
         if feet is not None:
@@ -1015,8 +1020,7 @@ class Segmenter:
             return self._nobody(size, used_prior, 0)
         if g.close is not None:
             m = g.close_px
-            x0, y0 = max(0, rx - m), max(0, ry - m)
-            x1, y1 = min(size[0], rx + rw + m), min(size[1], ry + rh + m)
+            x0, y0, x1, y1 = _padded((rx, ry, rw, rh), m, size)
             region = cv2.morphologyEx(fg[y0:y1, x0:x1], cv2.MORPH_CLOSE, g.close)
             rx, ry = x0, y0
         else:
@@ -1062,8 +1066,7 @@ class Segmenter:
         if self.settings.fill_holes is not None:
             blob = filled(blob, self.settings.fill_holes)
         m = self.settings.margin_px
-        x0, y0 = max(0, x - m), max(0, y - m)  # the crop: the box and the margin, in the frame
-        x1, y1 = min(size[0], x + w + m), min(size[1], y + h + m)
+        x0, y0, x1, y1 = _padded((x, y, w, h), m, size)  # the crop: the box and the margin, in the frame
         crop = cv2.copyMakeBorder(blob, y - y0, y1 - y - h, x - x0, x1 - x - w, cv2.BORDER_CONSTANT, value=0)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, cv2.countNonZero(blob), used_prior,
                             len(candidates), tuple(boxes[k] for k in candidates))

@@ -647,8 +647,9 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
 
 
 _LIMBS = tuple(i for i, p in enumerate(PARTS_2D) if i > 0 and p.name != "head")
-_KINDS = tuple(dict.fromkeys(PARTS_2D[i].name.split("_", 1)[1] for i in _LIMBS))  # upper_arm, forearm, thigh, shin
-_KIND = np.array([_KINDS.index(PARTS_2D[i].name.split("_", 1)[1]) for i in _LIMBS])
+_LIMB_KINDS = [PARTS_2D[i].name.split("_", 1)[1] for i in _LIMBS]  # each limb's kind, left and right alike
+_KINDS = tuple(dict.fromkeys(_LIMB_KINDS))  # upper_arm, forearm, thigh, shin
+_KIND = np.array([_KINDS.index(k) for k in _LIMB_KINDS])
 _ALONG = np.linspace(0.25, 0.75, 7)  # where along a limb its width is read
 
 
