@@ -761,10 +761,10 @@ def measure_postures(estimate: WalkEstimate, config: MNBPConfig = MNBPConfig()) 
     sils, boxes = [tr.silhouettes for *_, tr in measured], [tr.boxes for *_, tr in measured]
     starts = [cam.joints2d for _, _, cam, _ in measured]
     widths = person_widths(sils, boxes, starts) if config.fit_widths and measured else None
-    joints, _ = posture_sequences(sils, boxes, starts, config=config, widths=widths,
-                                  seeds=[config.seed + 1000 * k for k, *_ in measured])
-    for (_, name, cam, _), j in zip(measured, joints):
-        cameras[name] = replace(cam, joints2d=j, model_joints2d=cam.joints2d)
+    joints, scores = posture_sequences(sils, boxes, starts, config=config, widths=widths,
+                                       seeds=[config.seed + 1000 * k for k, *_ in measured])
+    for (_, name, cam, _), j, s in zip(measured, joints, scores):
+        cameras[name] = replace(cam, joints2d=j, model_joints2d=cam.joints2d, posture_score=s)
     cameras = {name: cameras[name] for name in estimate.cameras}
     notes = ["joints2d measured on each silhouette by mNBP (Wang-Leow §3); model_joints2d: the gait model's placement"]
     if widths is not None:

@@ -271,6 +271,7 @@ class CameraEstimate:
     notes: list[str]
     cleanup: CleanupReport | None = None
     model_joints2d: np.ndarray | None = None  # the model's placement, when joints2d was measured
+    posture_score: np.ndarray | None = None  # (T,) how well each measured posture explains its silhouette
 
 
 @dataclass
@@ -388,7 +389,8 @@ def take_frames(estimate: WalkEstimate, frames: np.ndarray) -> WalkEstimate:
         return None if a is None else np.asarray(a)[idx]
 
     cams = {n: replace(c, labels=cut(c.labels), observations=cut(c.observations), joints2d=cut(c.joints2d),
-                       model_joints2d=cut(c.model_joints2d)) for n, c in estimate.cameras.items()}
+                       model_joints2d=cut(c.model_joints2d), posture_score=cut(c.posture_score))
+            for n, c in estimate.cameras.items()}
     tracks = None if estimate.tracks is None else {n: t.take(idx) for n, t in estimate.tracks.items()}
     return replace(estimate, phase=cut(estimate.phase), states=cut(estimate.states), joints3d=cut(estimate.joints3d),
                    cameras=cams, tracks=tracks, phase_posterior=cut(estimate.phase_posterior), rig=None)
@@ -422,7 +424,8 @@ def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
             labels=per_camera(name, lambda c: c.labels, (), -1).astype(int),
             observations=per_camera(name, lambda c: c.observations, ()),
             joints2d=per_camera(name, lambda c: c.joints2d, (N_JOINTS, 2)),
-            model_joints2d=per_camera(name, lambda c: c.model_joints2d, (N_JOINTS, 2)) if measured else None)
+            model_joints2d=per_camera(name, lambda c: c.model_joints2d, (N_JOINTS, 2)) if measured else None,
+            posture_score=per_camera(name, lambda c: c.posture_score, ()) if measured else None)
     tracks = None
     if all(e.tracks is not None for e in estimates):
         tracks = {}

@@ -103,6 +103,35 @@ def test_the_reported_2d_postures_are_the_rigs_projection_and_nearer_the_truth(w
     assert all(np.array_equal(attach_rig(measured, plain).cameras[c].joints2d, before[c]) for c in seq.cameras)
 
 
+def test_postures_that_explain_their_silhouette_badly_weigh_little(walk):
+    """A camera whose postures are wrong on some frames, and say so by their mNBP score (a ghost
+    or a passer-by in the silhouette), hardly moves the pinhole adjustment there: that camera's
+    reported joints come from the other views, nearer the truth than with every frame weighing
+    the same; every posture keeps its score, and frames scored well are weighed as before."""
+    seq, _, measured = walk
+    assert all(c.posture_score is not None and c.posture_score.shape == (seq.n_frames,)
+               for c in measured.cameras.values())
+    assert np.nanmedian(np.concatenate([c.posture_score for c in measured.cameras.values()])) > 0.3
+    bad, frames = seq.cameras[1], np.arange(6, 16)
+    cam = measured.cameras[bad]
+    height = np.ptp(cam.joints2d[:, :, 1], axis=1).max()
+    joints = cam.joints2d.copy()
+    joints[frames] += np.random.default_rng(3).normal(0.0, 0.1 * height, (len(frames), N_JOINTS, 2))
+    score = cam.posture_score.copy()
+    score[frames] = 0.1
+    damaged = replace(measured, cameras={**measured.cameras, bad: replace(cam, joints2d=joints, posture_score=score)})
+    truth = np.array([f["joints2d"][bad] for f in seq.truth["frames"]], float)[frames]
+    errors = {}
+    for below in (0.3, None):
+        rig = calibrate_rig(damaged, RigConfig(posture_weight_below=below))
+        assert rig.joints2d is not None
+        errors[below] = np.median(np.linalg.norm(rig.joints2d[1, frames] - truth, axis=-1))
+    assert errors[0.3] < 0.7 * errors[None], errors
+    # Scores over the threshold everywhere: the same adjustment as without weights.
+    same = [calibrate_rig(measured, RigConfig(posture_weight_below=b)).rotations for b in (0.05, None)]
+    assert np.allclose(same[0], same[1])
+
+
 def test_the_posture_is_smoothed_only_across_neighbouring_frames():
     """[1, 2, 1] / 4 where a frame has both neighbours one frame away; a gap, an end or a NaN
     neighbour leaves the frame as it was; a straight-line motion is unchanged."""
