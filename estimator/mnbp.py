@@ -769,7 +769,8 @@ def measure_postures(estimate: WalkEstimate, config: MNBPConfig = MNBPConfig()) 
     notes = ["joints2d measured on each silhouette by mNBP (Wang-Leow §3); model_joints2d: the gait model's placement"]
     if widths is not None:
         ratio = widths / MODEL_WIDTHS
+        per_kind = dict(zip(_LIMB_KINDS, ratio[list(_LIMBS)]))  # left and right alike
         notes.append("mNBP limb capsules from the widths measured on the silhouettes: " + ", ".join(
-            f"{kind.replace('_', ' ')} x{ratio[_LIMBS[list(_KIND).index(k)]]:.2f}" for k, kind in enumerate(_KINDS))
+            f"{kind.replace('_', ' ')} x{per_kind[kind]:.2f}" for kind in _KINDS)
             + " of the model's" + (" (too few free limbs: the model's)" if np.all(ratio == 1.0) else ""))
     return replace(estimate, cameras=cameras, notes=estimate.notes + notes)

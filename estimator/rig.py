@@ -558,15 +558,15 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
     fused, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, views, config.viewpoint_sigma_deg)
     weights = None if keypoints is not None else _posture_weights(estimate, names, config)
     weights = None if weights is None else weights[use][:, frames, None]
-    pinhole, why_not = _pinhole(estimate, [names[c] for c in use], tracks[use][:, frames], fused, cal.scales, config,
-                                views, weights)
+    used = tracks[use][:, frames]  # the postures the pinhole stages fit
+    pinhole, why_not = _pinhole(estimate, [names[c] for c in use], used, fused, cal.scales, config, views, weights)
     changes = None
     if pinhole is not None and config.rounds > 1:
         pinhole, changes = iterate_rounds(estimate, [names[c] for c in use], frames, pinhole, config, views)
     tangent_note, tangents = "", None
     if pinhole is not None and config.tangents is not None:
-        pinhole, tangent_note, tangents = _on_tangents(estimate, [names[c] for c in use], frames,
-                                                       tracks[use][:, frames], pinhole, config, weights)
+        pinhole, tangent_note, tangents = _on_tangents(estimate, [names[c] for c in use], frames, used, pinhole,
+                                                       config, weights)
     final = fused if pinhole is None else pinhole.rotations
     if pinhole is None:
         frames = start  # the posture is the scaled-orthographic adjustment's
@@ -616,8 +616,8 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
                + f", then pinhole cameras (reprojection {pinhole.rmse_px:.1f} px rms"
                + ("" if weights is None or np.all(weights == 1.0) else
                   f"; {int(np.sum(weights < 1.0))} camera-frames whose posture explained its silhouette with a "
-                  f"score under {config.posture_weight_below} weighed 0.05, {_rms(pinhole, tracks[use][:, frames], weights):.1f} px "
-                  "rms as weighed")
+                  f"score under {config.posture_weight_below} weighed {_LOW_WEIGHT}, "
+                  f"{_rms(pinhole, used, weights):.1f} px rms as weighed")
                + ")"
                + (f"; {tangent_note}" if tangent_note else "")
                + ("; the posture filtered [1, 2, 1] / 4 over neighbouring frames" if smooth else ""))
@@ -667,17 +667,21 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
     return (None, why_not) if why_not else (pin, "")
 
 
+_LOW_WEIGHT = 0.05  # a camera-frame whose posture explains its silhouette badly (RigConfig.posture_weight_below)
+
+
 def _posture_weights(estimate: WalkEstimate, names: tuple[str, ...], config: RigConfig) -> np.ndarray | None:
-    """Each camera-frame's weight (C, T) in the pinhole adjustment: ``score / posture_weight_below``
-    where mNBP's posture explains its silhouette with a score under ``posture_weight_below``
-    (:attr:`estimator.mnbp.Posture2D.score`), at least 0.05; 1 elsewhere. None when off or unscored."""
+    """Each camera-frame's weight (C, T) in the pinhole adjustment: ``_LOW_WEIGHT`` where mNBP's
+    posture explains its silhouette with a score under ``posture_weight_below``
+    (:attr:`estimator.mnbp.Posture2D.score`), 1 elsewhere and where unscored. None when off or
+    nothing is scored."""
     below = config.posture_weight_below
     scores = [estimate.cameras[n].posture_score for n in names]
     if below is None or all(s is None for s in scores):
         return None
     t = len(estimate.phase)
     s = np.stack([np.full(t, np.nan) if v is None else np.asarray(v, float) for v in scores])
-    return np.where(s < below, 0.05, 1.0)  # NaN (no score): 1
+    return np.where(s < below, _LOW_WEIGHT, 1.0)  # NaN (no score): 1
 
 
 def _num(value, digits: int):
@@ -734,6 +738,7 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     # from the triangulated joints, and should that fit diverge (a joint triangulated behind a camera),
     # from the old posture moved as a whole
     why_not, whole = "", scaled + np.nan_to_num(shift)
+    limit = 1.25 * _rms(pinhole, tracks, weights)  # see below
     for start in (np.where(good[..., None], tri, whole), whole):
         try:
             new = perspective_refine(tracks, sizes, None, None, list(RIGID_LINKS), config=held,
@@ -745,8 +750,7 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
         # cameras held cannot follow the postures' own faults as free ones did: a refit up to a quarter
         # worse than the pinhole adjustment's is not a diverged one (cut limbs: 10.6 -> 11.2 px rms, while
         # the tangents took the cameras from 5.4 / 4.0 / 18.1 deg off to 0.2 / 0.2 / 1.4)
-        why_not = _insane(new, estimate, names, config, 1.25 * _rms(pinhole, tracks, weights),
-                          rms=_rms(new, tracks, weights))
+        why_not = _insane(new, estimate, names, config, limit, rms=_rms(new, tracks, weights))
         if not why_not:
             break
     if why_not:
