@@ -874,6 +874,12 @@ def predict_priors(
     The silhouettes are the estimate's cleaned ones (:func:`walker_tracks`); with
     ``config.trust`` a camera whose estimate fails :func:`trust_test` on the
     window's last ``config.trust_window`` frames gets no priors.
+
+    The evidence gate reaches its widest (``reach_max``) whatever the last
+    silhouette's completeness: that silhouette is the only evidence and its limbs
+    are elsewhere by the predicted frame, so a tight gate cut the predicted legs
+    and arms. The agent checks each prior against its own frame before use
+    (``capture.segment``).
     """
     if skip < 0:
         raise ValueError(f"skip must be >= 0, got {skip}")
@@ -883,6 +889,7 @@ def predict_priors(
         renderer.set_shape(config.body)
     phases = predict_phases(estimate, skip + n_ahead)[skip:]
     T = len(estimate.phase)
+    ahead = dataclasses.replace(config, reach_min=config.reach_max)
     out: dict[str, list[Prior]] = {}
     for name, track in walker_tracks(estimate, tracks).items():
         size = image_sizes[name] if isinstance(image_sizes, dict) else image_sizes
@@ -909,7 +916,7 @@ def predict_priors(
         extent = None if extent is None else tuple(extent[last])
         for k, r in enumerate(renders):
             p = prior_from_render(r, track.silhouettes[last], lb, size, frame_index=first_index + T + skip + k,
-                                  config=config, shift=(float(shifts[k, 0]), float(shifts[k, 1])), extent=extent)
+                                  config=ahead, shift=(float(shifts[k, 0]), float(shifts[k, 1])), extent=extent)
             if p is not None:
                 out[name].append(p)
     return out

@@ -12,7 +12,7 @@ import pytest
 
 from capture.scene import iou
 from estimator.camera import Camera
-from estimator.gait import load_gait
+from estimator.gait import GaitStyle, load_gait
 from estimator.joints import N_JOINTS
 from estimator.pipeline import CameraTrack, WalkEstimate, crop_to_box, estimate_walk, tracks_from_sequence
 from estimator.prior import (
@@ -191,8 +191,10 @@ def test_predicted_priors_after_torn_frames_cover_the_walker(small_model, sequen
     complete = predicted(whole, 0.1)
     placed, registered = predicted(torn, 0.1), predicted(torn, float("inf"))
     # After a torn last frame the prediction placed by the window's extent is nearly
-    # as good as after a complete one; registered onto the fragment it is not.
-    assert placed > 0.7 * complete and placed > registered + 0.15, (placed, registered, complete)
+    # as good as after a complete one; registered onto the fragment it is not. (Since
+    # predicted frames are gated at the widest reach, session 37, the complete one
+    # went from IoU 0.49 to 0.60 and the placed one stayed at 0.41-0.42: 0.7 -> 0.65.)
+    assert placed > 0.65 * complete and placed > registered + 0.15, (placed, registered, complete)
 
 
 def test_prior_checks_its_box():
@@ -217,6 +219,28 @@ def test_priors_for_window_cover_the_observed_walker(small_model, sequence, rend
     dx = (ahead["c0"][0].box[0] + ahead["c0"][0].box[2] / 2) - (last.box[0] + last.box[2] / 2)
     step = np.nanmedian(np.diff(tracks["c0"].boxes[:, 0] + tracks["c0"].boxes[:, 2] / 2))
     assert abs(dx - step) < max(3.0, abs(step))
+
+
+def test_predicted_priors_keep_the_limbs_of_frames_not_seen_yet(small_model, renderer):
+    """A prediction's only evidence is the window's last silhouette, whose legs and arms are
+    elsewhere by the predicted frame: gated tightly by it (as a complete frame of the window
+    is), the priors lost the swinging limbs (mean coverage of the true silhouette 0.55, IoU
+    0.47 here)."""
+    style, shape = GaitStyle(stride=1.15, arm_swing=1.4, leg_lift=1.2), BodyShape(height=1.8, girth=0.9)
+    covered, ious = [], []
+    for seed in (1, 2, 3):  # a walker whose body and gait are not the model's
+        seq = synthesize(SynthSpec(n_cameras=2, n_frames=26, seed=seed, image_size=SIZE, style=style, shape=shape))
+        head = {c: CameraTrack(t.silhouettes[:16], t.boxes[:16], full_frame=True)
+                for c, t in tracks_from_sequence(seq).items()}
+        ahead = predict_priors(estimate_walk(head, small_model), head, SIZE, 10, renderer=renderer)
+        for cam, priors in ahead.items():
+            assert [p.frame_index for p in priors] == list(range(16, 26))
+            for p in priors:
+                mask, truth = p.full_mask() >= 128, seq.silhouettes[cam][p.frame_index] > 0
+                covered.append(np.count_nonzero(mask & truth) / np.count_nonzero(truth))
+                ious.append(iou(mask, truth))
+    # Medians per camera and seed: 0.61-0.94 covered, IoU 0.45-0.70 (not a blob over everything).
+    assert np.mean(covered) > 0.65 and np.mean(ious) > 0.5, (np.mean(covered), np.mean(ious))
 
 
 def _true_prior(sequence, renderer, k: int):

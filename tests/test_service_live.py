@@ -19,7 +19,7 @@ from capture.agent import main as agent_main
 from capture.segment import SegmentSettings
 from capture.sources import FrameSource
 from capture.synthetic import SyntheticSource
-from capture.wire import Box, SilhouetteMessage, estimate_key
+from capture.wire import Box, FeedbackMessage, SilhouetteMessage, decode, estimate_key, feedback_key
 from capture.zconfig import build_config
 from conftest_service import ServerThread, make_settings, wait_for
 from estimator.windows import ViewpointTrack
@@ -170,12 +170,47 @@ class _Replay(FrameSource):
     live = False
     hardware_sync = True
 
-    def __init__(self, frames, fps: float) -> None:
-        self.frames, self.fps = frames, fps
+    def __init__(self, frames, fps: float, hold=None) -> None:
+        self.frames, self.fps, self.hold = frames, fps, hold
 
     def __iter__(self):
         for f in self.frames:
+            if self.hold is not None:
+                self.hold(f.index)
             yield type(f)(f.image.copy(), f.index, 0, None)
+
+
+class _PriorsAhead:
+    """Holds the replay's last frames until the service's priors for them have been
+    published (seen by the test's own subscriber), at most ``budget_s`` in all.
+
+    Whether priors come before their frames is a timing figure (bench/bench_feedback_live.py),
+    not asserted: the feedback renders run at the lowest priority and, on CI's two loaded
+    cores, one run's priors came after every frame they were for (c0: 47 received, none
+    used). Holding the frames makes the test about what the agents do with priors that
+    arrive in time; both cameras wait for the same condition, so they stay in step.
+    """
+
+    def __init__(self, session, cameras, hold_from: int, budget_s: float = 15.0) -> None:
+        self.seen = {cam: -1 for cam in cameras}
+        self.hold_from, self.budget_s, self.started = hold_from, budget_s, None
+        self.ready = threading.Condition()
+        self.sub = session.declare_subscriber(feedback_key(RIG, "*"), self._heard)
+
+    def _heard(self, sample) -> None:
+        msg = decode(sample.payload.to_bytes(), expect=FeedbackMessage)
+        with self.ready:
+            self.seen[msg.camera] = max(self.seen[msg.camera], msg.frame_index)
+            self.ready.notify_all()
+
+    def __call__(self, index: int) -> None:
+        if index < self.hold_from:
+            return
+        with self.ready:
+            self.started = self.started or time.monotonic()
+            deadline = self.started + self.budget_s
+            self.ready.wait_for(lambda: min(self.seen.values()) >= index, timeout=max(0.0, deadline - time.monotonic()))
+        time.sleep(0.05)  # the agent's own subscriber hears the same put
 
 
 @pytest.fixture(scope="module")
@@ -190,10 +225,10 @@ def rendered():
 
 
 def _run_agents(endpoint: str, cameras: dict[str, list], keypoints: dict[str, dict] | None = None,
-                **settings) -> dict[str, AgentStats]:
+                hold=None, **settings) -> dict[str, AgentStats]:
     """Stream each camera's pre-rendered frames through a real agent (one thread each) at
-    ``FPS``, with its ``keypoints`` (frame index -> (13, 2)) when given; returns the agents'
-    stats once every source has run out."""
+    ``FPS``, with its ``keypoints`` (frame index -> (13, 2)) when given, each frame first
+    passed to ``hold`` when given; returns the agents' stats once every source has run out."""
     stats: dict[str, AgentStats] = {}
 
     def run(cam: str, frames) -> None:
@@ -201,7 +236,7 @@ def _run_agents(endpoint: str, cameras: dict[str, list], keypoints: dict[str, di
             build_config(connect=[endpoint]),
             AgentSettings(rig=RIG, camera=cam, source="synthetic:", fps=FPS, stats_interval_s=60,
                           segment=SegmentSettings(warmup_frames=WARMUP), **settings),
-            source=_Replay(frames, FPS), keypoints=None if keypoints is None else keypoints[cam])
+            source=_Replay(frames, FPS, hold), keypoints=None if keypoints is None else keypoints[cam])
 
     agents = [threading.Thread(target=run, args=item) for item in cameras.items()]
     for a in agents:
@@ -227,7 +262,8 @@ def test_agents_stream_windows_estimated_published_and_served(tmp_path, rendered
         # A malformed message on the key space is rejected and counted; nothing else is disturbed.
         session.put(f"posecal/{RIG}/c0/silhouette", b"not a posecal message")
         time.sleep(0.5)  # let the agents' sessions find the service
-        stats = _run_agents(endpoint, rendered)
+        hold = _PriorsAhead(session, rendered, hold_from=EMPTY + WALK - 24) if feedback else None
+        stats = _run_agents(endpoint, rendered, hold=hold)
         rig = wait_for(lambda: (r := srv.rig(RIG)) and r["windows"]["estimated"] >= 3 and r,
                        timeout=20, what="three estimated windows")
         sent = EMPTY + WALK - WARMUP
