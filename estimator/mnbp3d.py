@@ -174,7 +174,7 @@ def part_lengths(joints3d: np.ndarray) -> np.ndarray:
 
 def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, cameras: PinholeCameras,
                starts: np.ndarray, *, stature: float, lengths: np.ndarray, config: MNBP3DConfig = MNBP3DConfig(),
-               seeds: list[int]) -> list[Posture3D]:
+               seeds: list[int], widths: np.ndarray | None = None) -> list[Posture3D]:
     """3D postures of several frames at once, each from every view's silhouette (one batch).
 
     Parameters
@@ -192,6 +192,10 @@ def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, 
         Each part's own length (:func:`part_lengths`).
     seeds : list of int
         One per frame: a frame's answer depends on its seed alone, not on the batch.
+    widths : ndarray of shape (P,), optional
+        The parts' widths as fractions of the walker's image height, the same in
+        every view (the person's, :func:`estimator.mnbp.person_widths`); the
+        model's by default.
     """
     starts = np.asarray(starts, float)
     views = [(b, c) for b, sils in enumerate(silhouettes) for c, sil in enumerate(sils)
@@ -218,7 +222,7 @@ def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, 
 
     beliefs = _Beliefs3D(start_states, stature, lengths, config, [np.random.default_rng(seeds[b]) for b in posed])
     view = SilhouetteView([silhouettes[b][c] for b, c in views], heights,
-                          [to_views(i, s[:, None])[:, 0] for i, s in enumerate(start_states)])
+                          [to_views(i, s[:, None])[:, 0] for i, s in enumerate(start_states)], widths)
     anneal(beliefs, lambda i, x: np.add.reduceat(view.log_phi(i, to_views(i, x)), first, axis=0),
            lambda i, best: view.redraw(i, to_views(i, best[:, None])[:, 0]),
            lambda i, x: _prior_energy3d(i, x, start_states[i], stature, config), config.mnbp, stature)
@@ -240,9 +244,9 @@ def estimate_posture3d(silhouettes: list[np.ndarray | None], origins: np.ndarray
 
 def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.ndarray, cameras: PinholeCameras,
                        starts: np.ndarray, *, stature: float, config: MNBP3DConfig = MNBP3DConfig(),
-                       seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                       seed: int = 0, widths: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """3D postures (T, 13, 3) and scores (T,) of a segment, its frames solved as one batch
-    (:func:`postures3d`, frame *t* with seed ``seed + t``).
+    (:func:`postures3d`, frame *t* with seed ``seed + t``, the parts ``widths`` wide).
 
     ``silhouettes[c][t]`` are crops at ``boxes[c, t]`` (x, y, w, h, full frame),
     ``starts`` (T, 13, 3) round one's joints; a frame whose start is not
@@ -256,7 +260,7 @@ def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.nda
         return out, scores
     sils = [[s[t] if np.all(np.isfinite(boxes[c, t])) else None for c, s in enumerate(silhouettes)] for t in frames]
     posts = postures3d(sils, np.moveaxis(boxes[:, frames, :2], 0, 1), cameras, starts[frames], stature=stature,
-                       lengths=lengths, config=config, seeds=[seed + t for t in frames])
+                       lengths=lengths, config=config, seeds=[seed + t for t in frames], widths=widths)
     for t, post in zip(frames, posts):
         out[t], scores[t] = post.joints, post.score
     return out, scores

@@ -33,7 +33,7 @@ from .frontier import FrontierConfig, outlines, refine_on_tangents
 from .gait import load_gait
 from ._selfcal_core import geodesic_deg
 from .joints import JOINT_INDEX, N_JOINTS
-from .mnbp import MNBPConfig, measure_postures, posture_sequences
+from .mnbp import MNBPConfig, measure_postures, person_widths, posture_sequences
 from .mnbp3d import MNBP3DConfig, posture_sequence3d
 from .pipeline import WalkEstimate, concat_estimates, take_frames
 from .perspective import KEYPOINT_REWEIGHT, KEYPOINT_UPRIGHT, PerspectiveConfig, PerspectiveRig, perspective_refine
@@ -934,15 +934,20 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
     sils = [t.silhouettes for t in taken]
     boxes = np.stack([t.boxes for t in taken]).astype(float)
     stature = config.height_m / stature_scale(pinhole.joints3d, config.height_m)
+    # The person's part widths, read once where round one's posture projects (as the 2D round
+    # reads them on its starts), serve every view of the 3D round and each view's polish.
+    widths = (person_widths(sils, list(boxes), list(project(pinhole.cameras(), pinhole.joints3d)))
+              if config.round3d.mnbp.fit_widths else None)
     changes = []
     for r in range(1, config.rounds):
         cams = pinhole.cameras()
         joints3d, _ = posture_sequence3d(sils, boxes, cams, pinhole.joints3d, stature=stature,
-                                         config=config.round3d, seed=1000 * r)
+                                         config=config.round3d, seed=1000 * r, widths=widths)
         tracks = project(cams, joints3d)
         if config.polish is not None:
             tracks = np.stack(posture_sequences(sils, list(boxes), list(tracks), carry=0.0, config=config.polish,
-                                                seeds=[1000 * r + 100 * c for c in range(len(names))])[0])
+                                                seeds=[1000 * r + 100 * c for c in range(len(names))],
+                                                widths=widths)[0])
         try:
             new = perspective_refine(tracks, sizes, pinhole.rotations, pinhole.scales, list(RIGID_LINKS),
                                      config=config.pinhole, initial=replace(pinhole, joints3d=joints3d),
