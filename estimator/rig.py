@@ -675,13 +675,19 @@ def _posture_weights(estimate: WalkEstimate, names: tuple[str, ...], config: Rig
     posture explains its silhouette with a score under ``posture_weight_below``
     (:attr:`estimator.mnbp.Posture2D.score`), 1 elsewhere and where unscored. None when off or
     nothing is scored."""
-    below = config.posture_weight_below
     scores = [estimate.cameras[n].posture_score for n in names]
-    if below is None or all(s is None for s in scores):
+    if all(s is None for s in scores):
         return None
     t = len(estimate.phase)
-    s = np.stack([np.full(t, np.nan) if v is None else np.asarray(v, float) for v in scores])
-    return np.where(s < below, _LOW_WEIGHT, 1.0)  # NaN (no score): 1
+    return _low_weights(np.stack([np.full(t, np.nan) if v is None else np.asarray(v, float) for v in scores]),
+                        config)
+
+
+def _low_weights(scores: np.ndarray, config: RigConfig) -> np.ndarray | None:
+    """``_LOW_WEIGHT`` where a posture's score (any shape) is under ``posture_weight_below``, 1 elsewhere
+    and where unscored (NaN); None when off."""
+    below = config.posture_weight_below
+    return None if below is None else np.where(scores < below, _LOW_WEIGHT, 1.0)
 
 
 def _num(value, digits: int):
@@ -924,7 +930,10 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
     projection on its own silhouette (``config.polish``, a short 2D mNBP
     centred on it; without it the projections fit the current cameras
     exactly and the rig could not move) and adjusts the pinhole cameras to
-    those 2D joints from the current ones. Stops after ``config.rounds``
+    those 2D joints from the current ones, each view-frame weighed by its
+    polished posture's score as round one's are (``posture_weight_below``);
+    the parts are the person's width (:func:`estimator.mnbp.person_widths`,
+    read once). Stops after ``config.rounds``
     (counting the 2D round) or when no camera turns by ``converged_deg``.
     Returns the last pinhole result and each round's largest rotation change.
     """
@@ -943,18 +952,22 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
         cams = pinhole.cameras()
         joints3d, _ = posture_sequence3d(sils, boxes, cams, pinhole.joints3d, stature=stature,
                                          config=config.round3d, seed=1000 * r, widths=widths)
-        tracks = project(cams, joints3d)
+        tracks, weights = project(cams, joints3d), None
         if config.polish is not None:
-            tracks = np.stack(posture_sequences(sils, list(boxes), list(tracks), carry=0.0, config=config.polish,
-                                                seeds=[1000 * r + 100 * c for c in range(len(names))],
-                                                widths=widths)[0])
+            polished, scores = posture_sequences(sils, list(boxes), list(tracks), carry=0.0, config=config.polish,
+                                                 seeds=[1000 * r + 100 * c for c in range(len(names))],
+                                                 widths=widths)
+            tracks = np.stack(polished)
+            weights = _low_weights(np.stack(scores), config)  # as round one's (_posture_weights)
+            weights = None if weights is None else weights[..., None]
         try:
             new = perspective_refine(tracks, sizes, pinhole.rotations, pinhole.scales, list(RIGID_LINKS),
                                      config=config.pinhole, initial=replace(pinhole, joints3d=joints3d),
-                                     rotation_prior=_viewpoint_prior(estimate, names, views, config))
+                                     rotation_prior=_viewpoint_prior(estimate, names, views, config),
+                                     weights=weights)
         except (ValueError, np.linalg.LinAlgError):
             break
-        if _insane(new, estimate, names, config):
+        if _insane(new, estimate, names, config, rms=_rms(new, tracks, weights)):
             break
         changes.append(max(float(geodesic_deg(a, b)) for a, b in zip(new.rotations, pinhole.rotations)))
         pinhole = new
