@@ -182,7 +182,9 @@ class _Replay(FrameSource):
 
 class _PriorsAhead:
     """Holds the replay's last frames until the service's priors for them have been
-    published (seen by the test's own subscriber), at most ``budget_s`` in all.
+    published (seen by the test's own subscriber): each hold at most ``wait_s``, under the
+    service's ``camera_timeout_s`` (3 s: a longer silence would close the next frame set
+    without the other camera), and at most ``budget_s`` in all (the agents' join).
 
     Whether priors come before their frames is a timing figure (bench/bench_feedback_live.py),
     not asserted: the feedback renders run at the lowest priority and, on CI's two loaded
@@ -191,9 +193,9 @@ class _PriorsAhead:
     arrive in time; both cameras wait for the same condition, so they stay in step.
     """
 
-    def __init__(self, session, cameras, hold_from: int, budget_s: float = 15.0) -> None:
+    def __init__(self, session, cameras, hold_from: int, wait_s: float = 2.5, budget_s: float = 8.0) -> None:
         self.seen = {cam: -1 for cam in cameras}
-        self.hold_from, self.budget_s, self.started = hold_from, budget_s, None
+        self.hold_from, self.wait_s, self.budget_s, self.started = hold_from, wait_s, budget_s, None
         self.ready = threading.Condition()
         self.sub = session.declare_subscriber(feedback_key(RIG, "*"), self._heard)
 
@@ -207,9 +209,10 @@ class _PriorsAhead:
         if index < self.hold_from:
             return
         with self.ready:
-            self.started = self.started or time.monotonic()
-            deadline = self.started + self.budget_s
-            self.ready.wait_for(lambda: min(self.seen.values()) >= index, timeout=max(0.0, deadline - time.monotonic()))
+            now = time.monotonic()
+            self.started = self.started or now
+            timeout = min(self.wait_s, self.started + self.budget_s - now)
+            self.ready.wait_for(lambda: min(self.seen.values()) >= index, timeout=max(0.0, timeout))
         time.sleep(0.05)  # the agent's own subscriber hears the same put
 
 
