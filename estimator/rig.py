@@ -663,7 +663,7 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
                                      rotation_prior=prior, weights=weights)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return None, f"the pinhole adjustment failed ({exc})"
-    why_not = _insane(pin, estimate, names, config, rms=_rms(pin, tracks, weights))
+    why_not = _insane(pin, estimate, names, config, tracks, weights)
     return (None, why_not) if why_not else (pin, "")
 
 
@@ -756,7 +756,7 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
         # cameras held cannot follow the postures' own faults as free ones did: a refit up to a quarter
         # worse than the pinhole adjustment's is not a diverged one (cut limbs: 10.6 -> 11.2 px rms, while
         # the tangents took the cameras from 5.4 / 4.0 / 18.1 deg off to 0.2 / 0.2 / 1.4)
-        why_not = _insane(new, estimate, names, config, limit, rms=_rms(new, tracks, weights))
+        why_not = _insane(new, estimate, names, config, tracks, weights, max_rms_px=limit)
         if not why_not:
             break
     if why_not:
@@ -793,11 +793,12 @@ def _rms(pin: PerspectiveRig, tracks: np.ndarray, weights: np.ndarray | None) ->
 
 
 def _insane(pin: PerspectiveRig, estimate: WalkEstimate, names: list[str], config: RigConfig,
-            max_rms_px: float = 0.0, rms: float | None = None) -> str:
+            tracks: np.ndarray | None = None, weights: np.ndarray | None = None, *,
+            max_rms_px: float = 0.0) -> str:
     """Why a pinhole result is refused (a diverged fit), or "" when it is sane; its reprojection
-    (``rms``, default ``pin.rmse_px``) may reach ``config.pinhole_max_rms`` of the walker's height
-    or ``max_rms_px``, the larger."""
-    rms = pin.rmse_px if rms is None else rms
+    onto ``tracks`` as the adjustment weighed it (:func:`_rms`; ``pin.rmse_px`` without tracks) may
+    reach ``config.pinhole_max_rms`` of the walker's height or ``max_rms_px``, the larger."""
+    rms = pin.rmse_px if tracks is None else _rms(pin, tracks, weights)
     tr = estimate.tracks
     height = _walker_height(estimate, names)
     widths = pin.focal_px / np.array([tr[n].image_size[0] for n in names], float)
@@ -967,7 +968,7 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
                                      weights=weights)
         except (ValueError, np.linalg.LinAlgError):
             break
-        if _insane(new, estimate, names, config, rms=_rms(new, tracks, weights)):
+        if _insane(new, estimate, names, config, tracks, weights):
             break
         changes.append(max(float(geodesic_deg(a, b)) for a, b in zip(new.rotations, pinhole.rotations)))
         pinhole = new
