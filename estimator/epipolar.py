@@ -108,7 +108,8 @@ def epipolar_start(tracks: np.ndarray, image_sizes: np.ndarray, *, focal_px: np.
 def refine_from_starts(tracks: np.ndarray, image_sizes: np.ndarray, rotations: np.ndarray, scales: np.ndarray,
                        links: list[tuple[int, int]], *, config: PerspectiveConfig = PerspectiveConfig(),
                        epipolar: EpipolarConfig | None = EpipolarConfig(),
-                       race_nfev: int | None = 15) -> tuple[PerspectiveRig, str]:
+                       race_nfev: int | None = 15, frame_times: np.ndarray | None = None
+                       ) -> tuple[PerspectiveRig, str]:
     """The pinhole bundle adjustment from the scaled-orthographic rig and from the epipolar start; the
     one whose joints reproject best is kept.
 
@@ -132,13 +133,14 @@ def refine_from_starts(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         if start is not None:
             starts["epipolar"] = start
     short = (config if race_nfev is None or len(starts) == 1
-             else replace(config, max_nfev=race_nfev, reweight=0, upright=0.0))
-    found = {name: perspective_refine(tracks, image_sizes, rotations, scales, links, config=short, initial=start)
+             else replace(config, max_nfev=race_nfev, reweight=0, upright=0.0, smooth=0.0))
+    found = {name: perspective_refine(tracks, image_sizes, rotations, scales, links, config=short, initial=start,
+                                      frame_times=frame_times)
              for name, start in starts.items()}
     name = min(found, key=lambda k: found[k].rmse_px if np.isfinite(found[k].rmse_px) else np.inf)
     if short is not config:
         found[name] = perspective_refine(tracks, image_sizes, rotations, scales, links, config=config,
-                                         initial=found[name])
+                                         initial=found[name], frame_times=frame_times)
     return found[name], name
 
 

@@ -29,6 +29,7 @@ has them on the frames' means, :data:`estimator.selfcal.UPRIGHT_PRIORS`).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,8 +42,8 @@ from .selfcal import UPRIGHT_PRIORS, _angle_prior, cosine_gradients
 from .bundle import levenberg_marquardt
 from .pinhole import PinholeCameras
 
-__all__ = ["KEYPOINT_REWEIGHT", "KEYPOINT_UPRIGHT", "UPRIGHT_FRAME_PRIORS", "WEAK_PERSPECTIVE", "PerspectiveConfig",
-           "PerspectiveRig", "perspective_refine"]
+__all__ = ["KEYPOINT_REWEIGHT", "KEYPOINT_SMOOTH", "KEYPOINT_UPRIGHT", "UPRIGHT_FRAME_PRIORS", "WEAK_PERSPECTIVE",
+           "PerspectiveConfig", "PerspectiveRig", "perspective_refine"]
 
 
 WEAK_PERSPECTIVE = 0.4
@@ -104,6 +105,23 @@ class PerspectiveConfig:
         other side of the threshold.) The scaled-orthographic adjustment has
         the same priors on the frames' means; here they hold the body's shape
         where the perspective is too weak to (docs/SELFCAL.md, "15 m").
+    smooth : float
+        Strength of the walker's smooth motion over frames (0: off): in each
+        camera, the acceleration of each joint's *predicted* image track (its
+        projection's second difference over three frames in a row) is a
+        residual weighted ``smooth * sigma / a_cj``, ``a_cj`` that camera's and
+        joint's acceleration as the tracks show it with the noise taken off
+        (:func:`_acceleration_power`), ``sigma`` the pixel noise: the MAP prior
+        of a motion whose accelerations have that spread, measured, not
+        assumed, so the frame rate and the joint (an ankle accelerates more
+        than the neck) set it. On the image tracks, as the scaled-orthographic
+        adjustment's temporal prior (:func:`estimator.selfcal._temporal_prior`),
+        not on the 3D joints: there it pulled two-camera rigs 11-26 deg (a rig
+        that flattens the noise in depth makes a smoother walk). In the
+        reweighting rounds, or in one more adjustment when there are none;
+        only across frames one step apart (``frame_times``); exact tracks
+        (``sigma`` at its floor) are left as they are. ``posecal selfcal`` uses
+        :data:`KEYPOINT_SMOOTH`.
     """
 
     focal_px: float | tuple[float, ...] | None = None
@@ -116,6 +134,7 @@ class PerspectiveConfig:
     robust_scale: float = 2.5
     upright: float = 0.0
     upright_spread: float = WEAK_PERSPECTIVE
+    smooth: float = 0.0
 
 
 UPRIGHT_FRAME_PRIORS = tuple((a, b, 3.0) for a, b, _ in UPRIGHT_PRIORS)
@@ -201,7 +220,8 @@ def _project(x: np.ndarray, rotvec: np.ndarray, centre: np.ndarray, focal: np.nd
 def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: np.ndarray, scales: np.ndarray,
                        links: list[tuple[int, int]], *, config: PerspectiveConfig = PerspectiveConfig(),
                        initial: PerspectiveRig | None = None, weights: np.ndarray | None = None,
-                       rotation_prior: tuple[np.ndarray, float] | None = None) -> PerspectiveRig:
+                       rotation_prior: tuple[np.ndarray, float] | None = None,
+                       frame_times: np.ndarray | None = None) -> PerspectiveRig:
     """Adjust pinhole cameras and 3D joints to 2D joint tracks, from a scaled-orthographic rig.
 
     Parameters
@@ -227,6 +247,10 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         Rotations ``R_c R_0^T`` known roughly and a weight: a camera's turn
         away from its prior (rotation vector, radians) times the weight is
         a residual beside the pixels (pixels per radian).
+    frame_times : ndarray of shape (T,), optional
+        When each frame was taken (frame numbers), for ``config.smooth``: its
+        prior joins only three frames in a row at the recording's commonest
+        step (a gap in the frames breaks the chain there). Default: evenly spaced.
     """
     y = np.asarray(tracks, float)
     n_cam, t, j, _ = y.shape
@@ -261,6 +285,9 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     a_up, b_up, per_tol = _angle_prior(UPRIGHT_FRAME_PRIORS, 1.0)  # per_tol: 1 / tolerance (radians)
     n_up = t * len(per_tol) if config.upright > 0 else 0
     up_w = np.zeros(len(per_tol))  # set once the first adjustment has read the noise
+    mids = _evenly_timed(np.arange(t) if frame_times is None else frame_times) if config.smooth > 0 else []
+    n_sm = 2 * n_cam * len(mids) * j
+    sm_w = np.zeros((n_cam, j))  # per camera and joint, set once the first adjustment has read the noise
 
     def _upright_cosines(x):
         return cosine_gradients(np.einsum("kj,tjd->tkd", a_up, x), np.einsum("kj,tjd->tkd", b_up, x))
@@ -288,9 +315,14 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
             res.append([GAUGE_WEIGHT * (lk.mean() / scale0 - 1.0)])
         if n_up:
             res.append((up_w * _upright_cosines(x)[0]).ravel())
+        if n_sm:
+            uv = _project(x, rv, ce, fo, principal)  # (C, T, J, 2)
+            res.append((sm_w[:, None, :, None] * (uv[:, mids - 1] - 2.0 * uv[:, mids] + uv[:, mids + 1])).ravel())
         return np.concatenate(res)
 
     n_obs = len(obs_c)
+    grid = [a.ravel() for a in np.meshgrid(np.arange(n_cam), np.arange(t), np.arange(j), indexing="ij")]
+    obs_flat = (obs_c * t + obs_t) * j + obs_j
     moved = obs_c > 0  # camera 0 is the frame: no rotation or centre of its own
     rows_p = np.repeat(2 * np.arange(n_obs), 2) + np.tile([0, 1], n_obs)  # (2N,) u then v
     jac_cols = [(o_x + 3 * (obs_t * j + obs_j))[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3)]
@@ -325,6 +357,22 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         jac_rows.append(np.repeat(n_res + tt_up * len(per_tol) + np.tile(kk_up, t), 3))
         jac_cols.append((o_x + 3 * (tt_up * j + np.tile(jj_up, t)))[:, None] + np.arange(3))
         n_res += n_up
+    if n_sm:  # camera c's image of joint j at frame t accelerates with frames t - 1, t and t + 1
+        sm_c, sm_m, sm_j = (a.ravel() for a in np.meshgrid(np.arange(n_cam), np.arange(len(mids)), np.arange(j),
+                                                           indexing="ij"))
+        sm_rows = n_res + 2 * np.arange(len(sm_c))[:, None] + np.arange(2)  # (P, 2) u then v
+        sm_moved = sm_c > 0
+        for k in (-1, 0, 1):
+            jac_rows.append(np.repeat(sm_rows.ravel(), 3))
+            jac_cols.append((o_x + 3 * ((mids[sm_m] + k) * j + sm_j))[:, None, None] + np.zeros((1, 2, 1), int)
+                            + np.arange(3))
+            if free_focal:
+                jac_rows.append(sm_rows.ravel())
+                jac_cols.append(o_f + sm_c[:, None] + np.zeros((1, 2), int))
+            sm_cam_cols = 3 * (sm_c[sm_moved] - 1)[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3)
+            jac_rows += [np.repeat(sm_rows[sm_moved].ravel(), 3)] * 2
+            jac_cols += [sm_cam_cols, o_c + sm_cam_cols]
+        n_res += n_sm
     jac_rows = np.concatenate(jac_rows)
     jac_cols = np.concatenate([c.ravel() for c in jac_cols])
     shape = (n_res, o_l + len(ln))
@@ -334,18 +382,14 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         d R(r) q / d r = -[R q]x J_l(r) for the rotation vector r (J_l: SO(3)'s left Jacobian)."""
         rv, ce, fo, x, lk = unpack(p)
         rot = Rotation.from_rotvec(rv).as_matrix()
-        cam = np.einsum("nab,nb->na", rot[obs_c], x[obs_t, obs_j] - ce[obs_c])  # (N, 3)
-        z = np.maximum(cam[:, 2], 1e-6)
-        g = (fo[obs_c] / z * w_obs[::2])[:, None]
-        d_cam = np.zeros((n_obs, 2, 3))  # d (u, v) / d camera coordinates
-        d_cam[:, 0, 0] = d_cam[:, 1, 1] = g[:, 0]
-        d_cam[:, :, 2] = -g * cam[:, :2] / z[:, None]
-        d_x = d_cam @ rot[obs_c]
-        vals = [d_x.ravel()]
-        if free_focal:
-            vals.append((g * cam[:, :2]).ravel())
-        d_rot = -d_cam[moved] @ _hat(cam[moved]) @ _left_jacobian(rv)[obs_c[moved]]
-        vals += [d_rot.ravel(), -d_x[moved].ravel()]
+        deriv = _projection_derivatives(rot, rv, ce, fo, x, *grid)  # every camera, frame and joint
+
+        def projected(at, scale, cams):
+            """The projection's entries at grid indices ``at``, times ``scale``, for cameras ``cams``."""
+            d_x, d_f, d_rot = (d[at] * scale.reshape(-1, *([1] * (d.ndim - 1))) for d in deriv)
+            return [d_x.ravel(), *([d_f.ravel()] if free_focal else []), d_rot[cams].ravel(), -d_x[cams].ravel()]
+
+        vals = projected(obs_flat, w_obs[::2], moved)
         if len(ln):
             d = x[:, ln[:, 0]] - x[:, ln[:, 1]]
             unit = bone_w * d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
@@ -361,6 +405,9 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
             _, ga, gb = _upright_cosines(x)  # (T, K, 3) each
             vals.append((up_w[kk_up, None] * (a_up[kk_up, jj_up, None] * ga[:, kk_up]
                                               + b_up[kk_up, jj_up, None] * gb[:, kk_up])).ravel())
+        if n_sm:
+            for k, coef in ((-1, 1.0), (0, -2.0), (1, 1.0)):
+                vals += projected((sm_c * t + mids[sm_m] + k) * j + sm_j, coef * sm_w[sm_c, sm_j], sm_moved)
         return scipy.sparse.csr_matrix((np.concatenate(vals), (jac_rows, jac_cols)), shape=shape)
 
     sol = levenberg_marquardt(residuals, jacobian, p0, block_start=o_x, block_size=3 * j, n_blocks=t,
@@ -370,13 +417,17 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     if n_up:  # only where the perspective is weak
         rv, ce, _, x, _ = unpack(sol.x)
         upright = np.nanmax(_depth_spread(Rotation.from_rotvec(rv).as_matrix(), ce, x)) < config.upright_spread
-    for k in range(max(config.reweight, 1 if upright else 0)):
+    for k in range(max(config.reweight, 1 if upright or n_sm else 0)):
         dist = np.linalg.norm(gap(*unpack(sol.x)[:4]), axis=-1)
         noise = max(np.median(dist) / 1.1774, 1e-6)  # 2D Gaussian: median 1.1774 sigma
         if k < config.reweight:
             w_obs[:] = base * np.repeat(1.0 / np.sqrt(1.0 + (dist / (config.robust_scale * noise)) ** 2), 2)  # Cauchy
         if upright:
             up_w[:] = config.upright * noise * per_tol
+        if n_sm:
+            power = _acceleration_power(y, mids, noise)
+            ok = np.isfinite(power) & (power > 0)
+            sm_w[:] = np.where(ok, config.smooth * noise / np.sqrt(np.where(ok, power, 1.0)), 0.0)
         sol = levenberg_marquardt(residuals, jacobian, sol.x, block_start=o_x, block_size=3 * j, n_blocks=t,
                                   max_nfev=config.max_nfev)
     rv, ce, fo, x, _ = unpack(sol.x)
@@ -410,11 +461,63 @@ detector's keypoints (``posecal selfcal``, and :meth:`estimator.rig.RigConfig.fo
 errors are systematic (the rig from silhouettes lost with them: docs/POSTURE.md)."""
 
 
+KEYPOINT_SMOOTH = 1.0
+"""Strength of the walker's smooth motion (:attr:`PerspectiveConfig.smooth`) for a pose detector's keypoints
+(``posecal selfcal``, :meth:`estimator.rig.RigConfig.for_keypoints`): a detector's errors are independent
+from frame to frame, a walker's joints are not (docs/SELFCAL.md, "A walker moves smoothly")."""
+
+
 GAUGE_WEIGHT = 1e4
 """Weight of the residual that holds the mean bone length at its start. Scaling the joints, the
 centres and the bone lengths together leaves every reprojection unchanged (camera 0 at the origin),
 but shrinks the bone residuals: unpinned, the exact solver let the whole scene shrink towards zero
 (from about 960 units to 0.18 on a test walk) and the bone constraint faded with it."""
+
+
+def _projection_derivatives(rot: np.ndarray, rotvec: np.ndarray, centres: np.ndarray, focal: np.ndarray,
+                            x: np.ndarray, cc: np.ndarray, tt: np.ndarray, jj: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Derivatives of the pixels of joint ``jj`` at frame ``tt`` in camera ``cc`` (N each): by the
+    joint (N, 2, 3), by the log focal length (N, 2), by the camera's rotation vector (N, 2, 3; by its
+    centre: minus the first). d R(r) q / d r = -[R q]x J_l(r)."""
+    cam = np.einsum("nab,nb->na", rot[cc], x[tt, jj] - centres[cc])  # (N, 3)
+    z = np.maximum(cam[:, 2], 1e-6)
+    g = (focal[cc] / z)[:, None]
+    d_cam = np.zeros((len(cc), 2, 3))  # d (u, v) / d camera coordinates
+    d_cam[:, 0, 0] = d_cam[:, 1, 1] = g[:, 0]
+    d_cam[:, :, 2] = -g * cam[:, :2] / z[:, None]
+    return d_cam @ rot[cc], g * cam[:, :2], -d_cam @ _hat(cam) @ _left_jacobian(rotvec)[cc]
+
+
+def _evenly_timed(times: np.ndarray) -> np.ndarray:
+    """Indices of the frames whose neighbours on both sides are one step away, the step being the
+    commonest between the frames ``times`` (T,)."""
+    gaps = np.diff(np.asarray(times, float))
+    if len(gaps) < 2:
+        return np.zeros(0, int)
+    values, counts = np.unique(gaps[gaps > 0], return_counts=True)
+    if not len(values):
+        return np.zeros(0, int)
+    even = np.isclose(gaps, values[np.argmax(counts)])
+    return np.flatnonzero(even[:-1] & even[1:]) + 1
+
+
+def _acceleration_power(tracks: np.ndarray, mids: np.ndarray, noise_px: float) -> np.ndarray:
+    """Each camera's and joint's mean squared acceleration (C, J), pixels squared per coordinate: the
+    tracks' (C, T, J, 2) second differences over the frames ``mids`` and their neighbours, the noise's
+    share taken off.
+
+    A second difference of a track carries ``6 noise^2`` of independent noise per coordinate; what is
+    above is the motion's. Robust to sparse gross errors: the median of the squares over frames and
+    coordinates, read as a Gaussian's (median of chi-square(1) = 0.455). Floored at the standard error
+    of the measured power, so that a joint whose motion drowns in the noise (a detector's 1-3 % of the
+    walker's height: most joints) is held, not frozen."""
+    d2 = tracks[:, mids - 1] - 2.0 * tracks[:, mids] + tracks[:, mids + 1]  # (C, M, J, 2) pixels
+    samples = np.sum(np.isfinite(d2[..., 0]), axis=1) * 2  # per camera and joint
+    with warnings.catch_warnings():  # a joint a camera never saw in three frames in a row: NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        power = np.nanmedian(np.moveaxis(d2, 2, 1).reshape(*samples.shape, -1) ** 2, axis=-1) / 0.455
+        return np.maximum(power - 6.0 * noise_px**2, power * np.sqrt(2.0 / np.maximum(samples, 1)))
 
 
 def _per_camera(value, shape: tuple[int, ...], name: str, default: np.ndarray | None) -> np.ndarray | None:

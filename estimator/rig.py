@@ -36,7 +36,8 @@ from .joints import JOINT_INDEX, N_JOINTS
 from .mnbp import MNBPConfig, measure_postures, person_widths, posture_sequences
 from .mnbp3d import MNBP3DConfig, posture_sequence3d
 from .pipeline import WalkEstimate, concat_estimates, take_frames
-from .perspective import KEYPOINT_REWEIGHT, KEYPOINT_UPRIGHT, PerspectiveConfig, PerspectiveRig, perspective_refine
+from .perspective import (KEYPOINT_REWEIGHT, KEYPOINT_SMOOTH, KEYPOINT_UPRIGHT, PerspectiveConfig, PerspectiveRig,
+                          perspective_refine)
 from .pinhole import project, triangulate
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
@@ -150,7 +151,8 @@ class RigConfig:
     consecutive : bool
         The estimate's frames are consecutive frames of one recording (false for frames gathered
         from many windows, :class:`RigAccumulator`): only then does the self-calibration use that
-        the tracks are a smooth motion (its temporal prior), and only on frames it takes in a row.
+        the tracks are a smooth motion (its temporal prior, and the pinhole adjustment's
+        ``pinhole.smooth``), and only on frames it takes in a row.
     tangents : FrontierConfig or None
         With pinhole cameras, adjust them to the silhouettes' epipolar
         tangents (:func:`estimator.frontier.refine_on_tangents`), a
@@ -236,7 +238,8 @@ class RigConfig:
         keypoints do not share), no 3D mNBP rounds and no epipolar tangents (both correct the mNBP
         postures); measured on a test walk: 0.20 / 0.51 deg, with the tangents 1.99 / 1.47, with the
         silhouettes' settings 1.26 / 1.16 (docs/POSTURE.md). The upright walker's priors where the
-        perspective is weak and the epipolar start with three cameras or more, as ``posecal selfcal``
+        perspective is weak, the walker's smooth motion (:data:`estimator.perspective.KEYPOINT_SMOOTH`,
+        over consecutive frames) and the epipolar start with three cameras or more, as ``posecal selfcal``
         (:attr:`pinhole_epipolar_start`), and no cross-check against the viewpoints' rig: keypoints
         calibrate better than the viewpoints tell, and a camera that sees the walker across a wide
         angle of view has viewpoints 50-70 deg from its rotation (``bench/bench_service_live.py``,
@@ -245,7 +248,8 @@ class RigConfig:
 
     def keypoint_settings(self) -> dict:
         """The fields :meth:`for_keypoints` sets, to apply to another configuration with ``replace``."""
-        return {"pinhole": replace(self.pinhole, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT),
+        return {"pinhole": replace(self.pinhole, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT,
+                                   smooth=KEYPOINT_SMOOTH),
                 "pinhole_viewpoint_weight": 0.0, "pinhole_epipolar_start": True, "max_disagreement_deg": 0.0,
                 "rounds": 1, "tangents": None}
 
@@ -536,6 +540,8 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
         return fallback
     frames = np.flatnonzero(seen)
     frames = frames[::int(np.ceil(len(frames) / config.max_frames))]  # evenly, at most max_frames
+    if config.pinhole.smooth and not config.consecutive:  # frames from many windows: no motion between them
+        config = replace(config, pinhole=replace(config.pinhole, smooth=0.0))
     views = from_views[use] @ from_views[use[0]].T
     start = frames
     if config.perspective and len(frames) > config.start_frames:  # the start: the middle frames in a row
@@ -559,7 +565,8 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
     weights = None if keypoints is not None else _posture_weights(estimate, names, config)
     weights = None if weights is None else weights[use][:, frames, None]
     used = tracks[use][:, frames]  # the postures the pinhole stages fit
-    pinhole, why_not = _pinhole(estimate, [names[c] for c in use], used, fused, cal.scales, config, views, weights)
+    pinhole, why_not = _pinhole(estimate, [names[c] for c in use], used, fused, cal.scales, config, views, weights,
+                                frames)
     changes = None
     if pinhole is not None and config.rounds > 1:
         pinhole, changes = iterate_rounds(estimate, [names[c] for c in use], frames, pinhole, config, views)
@@ -645,9 +652,11 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
 
 
 def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotations: np.ndarray,
-             scales: np.ndarray, config: RigConfig, views: np.ndarray, weights: np.ndarray | None = None):
+             scales: np.ndarray, config: RigConfig, views: np.ndarray, weights: np.ndarray | None = None,
+             frames: np.ndarray | None = None):
     """The pinhole adjustment when it can run and its result is sane; else (None, why not).
-    ``weights`` (C, T, 1): each camera-frame's (:func:`_posture_weights`)."""
+    ``weights`` (C, T, 1): each camera-frame's (:func:`_posture_weights`); ``frames``: the tracks'
+    frame numbers."""
     if not config.perspective:
         return None, ""
     tr = estimate.tracks or {}
@@ -657,10 +666,11 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
     prior = _viewpoint_prior(estimate, names, views, config)
     try:
         if config.pinhole_epipolar_start and prior is None and len(names) >= 3:
-            pin, _ = refine_from_starts(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole)
+            pin, _ = refine_from_starts(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole,
+                                        frame_times=frames)
         else:
             pin = perspective_refine(tracks, sizes, rotations, scales, list(RIGID_LINKS), config=config.pinhole,
-                                     rotation_prior=prior, weights=weights)
+                                     rotation_prior=prior, weights=weights, frame_times=frames)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return None, f"the pinhole adjustment failed ({exc})"
     why_not = _insane(pin, estimate, names, config, tracks, weights)
@@ -748,7 +758,7 @@ def _on_tangents(estimate: WalkEstimate, names: list[str], frames: np.ndarray, t
     for start in (np.where(good[..., None], tri, whole), whole):
         try:
             new = perspective_refine(tracks, sizes, None, None, list(RIGID_LINKS), config=held,
-                                     initial=replace(moved, joints3d=start), weights=weights,
+                                     initial=replace(moved, joints3d=start), weights=weights, frame_times=frames,
                                      rotation_prior=(found.rotations, config.tangent_hold * height * 180.0 / np.pi))
         except (ValueError, np.linalg.LinAlgError) as exc:
             why_not = f"the posture's fit failed: {exc}"
@@ -965,7 +975,7 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
             new = perspective_refine(tracks, sizes, pinhole.rotations, pinhole.scales, list(RIGID_LINKS),
                                      config=config.pinhole, initial=replace(pinhole, joints3d=joints3d),
                                      rotation_prior=_viewpoint_prior(estimate, names, views, config),
-                                     weights=weights)
+                                     weights=weights, frame_times=frames)
         except (ValueError, np.linalg.LinAlgError):
             break
         if _insane(new, estimate, names, config, tracks, weights):

@@ -26,9 +26,10 @@ from estimator.perspective import PerspectiveConfig, perspective_refine
 from estimator.selfcal import RIGID_LINKS
 
 
-def _circles(n_blocks: int, rng: np.random.Generator):
+def _circles(n_blocks: int, rng: np.random.Generator, chain: float = 0.0):
     """Noisy points on circles about one shared centre, a radius per block: each residual touches the
-    shared centre and one block."""
+    shared centre and one block; with ``chain``, also the offsets' second differences, which join each
+    block to the next two."""
     centre = np.array([1.0, -2.0])
     radius = rng.uniform(1.0, 3.0, n_blocks)
     angles = rng.uniform(0, 2 * np.pi, (n_blocks, 8))
@@ -37,7 +38,8 @@ def _circles(n_blocks: int, rng: np.random.Generator):
 
     def fun(p):  # per block a radius and an offset that a weak prior holds near 0
         c, r = p[:2], p[2:].reshape(n_blocks, 2)
-        return np.concatenate([(np.linalg.norm(pts - c, axis=-1) - r[:, :1] - r[:, 1:]).ravel(), 0.3 * r[:, 1]])
+        return np.concatenate([(np.linalg.norm(pts - c, axis=-1) - r[:, :1] - r[:, 1:]).ravel(), 0.3 * r[:, 1],
+                               chain * (r[:-2, 1] - 2.0 * r[1:-1, 1] + r[2:, 1])])
 
     def jac(p):
         return scipy.sparse.csr_matrix(approx_derivative(fun, p, method="3-point"))
@@ -54,6 +56,23 @@ def test_lm_reaches_the_least_squares_minimum():
     assert ours.cost == pytest.approx(ref.cost, rel=1e-6)
     np.testing.assert_allclose(ours.x, ref.x, atol=1e-4)
     assert ours.nfev < 30
+
+
+@pytest.mark.parametrize("n_blocks", [11, 12])
+def test_lm_solves_blocks_chained_over_time(n_blocks):
+    """A prior joining each block to the next two (a second difference) makes ``J^T J``
+    block-pentadiagonal: the blocks are eliminated two at a time along the chain (an odd count fills
+    the last pair) and the minimum is scipy's."""
+    fun, jac, x0 = _circles(n_blocks, np.random.default_rng(2), chain=2.0)
+    ours = levenberg_marquardt(fun, jac, x0, block_start=2, block_size=2, n_blocks=n_blocks, max_nfev=100)
+    ref = least_squares(fun, x0, jac=lambda p: jac(p).toarray(), method="lm", xtol=1e-12, ftol=1e-12)
+    assert ours.converged
+    assert ours.cost == pytest.approx(ref.cost, rel=1e-6)
+    np.testing.assert_allclose(ours.x, ref.x, atol=1e-4)
+    offsets = ours.x[2:].reshape(n_blocks, 2)[:, 1]
+    unchained = levenberg_marquardt(*_circles(n_blocks, np.random.default_rng(2))[:2], x0, block_start=2,
+                                    block_size=2, n_blocks=n_blocks, max_nfev=100).x[2:].reshape(n_blocks, 2)[:, 1]
+    assert np.abs(np.diff(offsets, 2)).sum() < 0.5 * np.abs(np.diff(unchained, 2)).sum()  # the chain held
 
 
 def test_lm_stops_at_max_nfev():
@@ -79,7 +98,7 @@ def _walk(n_frames: int = 8, seed: int = 0):
 
 
 @pytest.mark.parametrize("focal", [None, 800.0])
-@pytest.mark.parametrize("extras", ["none", "weights", "prior", "upright"])
+@pytest.mark.parametrize("extras", ["none", "weights", "prior", "upright", "smooth"])
 def test_pinhole_jacobian_matches_finite_differences(monkeypatch, focal, extras):
     y, rots, rng = _walk()
     y = y + rng.normal(0, 2.0, y.shape)
@@ -98,7 +117,8 @@ def test_pinhole_jacobian_matches_finite_differences(monkeypatch, focal, extras)
                                               for a in (0, 45, -60)]), 300.0)
     perspective_refine(y, np.tile([640.0, 480.0], (3, 1)), rots, np.ones(3), list(RIGID_LINKS),
                        config=PerspectiveConfig(focal_px=focal, upright=1.0 if extras == "upright" else 0.0,
-                                                upright_spread=np.inf), **kwargs)
+                                                upright_spread=np.inf, smooth=1.0 if extras == "smooth" else 0.0),
+                       **kwargs)
     p = seen["x0"] + rng.normal(0, 0.05, seen["x0"].size)
     analytic = seen["jac"](p).toarray()
     numeric = approx_derivative(seen["fun"], p, method="3-point")
@@ -153,3 +173,18 @@ def test_the_scene_keeps_its_scale():
     depth = np.linalg.norm(pin.joints3d.reshape(-1, 3).mean(axis=0))
     assert 0.5 * 800.0 < depth < 2.0 * 800.0, depth  # where the start put it: at camera 0's focal length
     assert np.all(lengths.std(axis=0) < 0.05 * lengths.mean(axis=0)), lengths.std(axis=0)
+
+
+def test_the_smooth_motion_joins_only_frames_one_step_apart():
+    """``frame_times``: the prior joins three frames only where both gaps are the commonest step; frames
+    with no such neighbours are adjusted as without it."""
+    assert perspective._evenly_timed(np.arange(5)).tolist() == [1, 2, 3]
+    assert perspective._evenly_timed([0, 2, 4, 6, 10, 12, 14, 16, 18, 24]).tolist() == [1, 2, 5, 6, 7]
+    y, rots, rng = _walk(n_frames=12, seed=6)
+    y = y + rng.normal(0, 2.0, y.shape)
+    run = {}
+    for name, smooth, times in (("off", 0.0, None), ("on", 1.0, None), ("apart", 1.0, np.cumsum(np.arange(1, 13)))):
+        run[name] = perspective_refine(y, np.tile([640.0, 480.0], (3, 1)), rots, np.ones(3), list(RIGID_LINKS),
+                                       config=PerspectiveConfig(focal_px=800.0, smooth=smooth), frame_times=times)
+    np.testing.assert_allclose(run["apart"].joints3d, run["off"].joints3d, atol=1e-6)
+    assert np.abs(run["on"].joints3d - run["off"].joints3d).max() > 1e-3

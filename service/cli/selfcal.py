@@ -28,7 +28,8 @@ from scipy.spatial.transform import Rotation
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 from estimator.keypoints import SKELETONS
 from estimator.epipolar import refine_from_starts
-from estimator.perspective import KEYPOINT_REWEIGHT, KEYPOINT_UPRIGHT, WEAK_PERSPECTIVE, PerspectiveConfig
+from estimator.perspective import (KEYPOINT_REWEIGHT, KEYPOINT_SMOOTH, KEYPOINT_UPRIGHT, WEAK_PERSPECTIVE,
+                                  PerspectiveConfig)
 from estimator.pinhole import floor_frame, image_height, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
@@ -260,7 +261,8 @@ def run(args: argparse.Namespace) -> int:
         out["notes"].append("image sizes (no --image-size) from the videos beside the keypoints: " + ", ".join(
             f"{c} {w}x{h} ({path.name})" for c, ((w, h), path) in found.items()))
     if sizes is not None:
-        out, pin, k = _with_pinhole(out, result, tracks[:, used], cameras, sizes, rig, pinhole_config)
+        times = used if keypoints is None else np.asarray(keypoints.frames)[used]  # for the smooth motion
+        out, pin, k = _with_pinhole(out, result, tracks[:, used], cameras, sizes, rig, pinhole_config, times)
         if exports:
             _export(args, pin, k, tracks, keypoints, cameras, sizes, rig)
     if sizes is None and keypoints is not None:
@@ -420,7 +422,8 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
             sizes = np.tile(np.array(size, float), (len(cameras), 1))
         else:
             sizes = None if found is None else np.array([found[c][0] for c in cameras], float)
-        return sizes, PerspectiveConfig(focal_px=focal, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT)
+        return sizes, PerspectiveConfig(focal_px=focal, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT,
+                                        smooth=KEYPOINT_SMOOTH)
     intrinsics = _by_camera(intrinsics, cameras)
     missing = [c for c in cameras if c not in intrinsics]
     if missing:
@@ -430,17 +433,18 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
     sizes = np.array([intrinsics[c][1] for c in cameras], float)
     return sizes, PerspectiveConfig(focal_px=tuple(float(f) for f in (mats[:, 0, 0] + mats[:, 1, 1]) / 2),
                                     principal_px=tuple((float(u), float(v)) for u, v in mats[:, :2, 2]),
-                                    reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT)
+                                    reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT, smooth=KEYPOINT_SMOOTH)
 
 
 def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], sizes: np.ndarray,
-                  rig: RigConfig, config: PerspectiveConfig) -> tuple[dict, Any, float]:
+                  rig: RigConfig, config: PerspectiveConfig, frame_times: np.ndarray | None = None
+                  ) -> tuple[dict, Any, float]:
     """The calibration with pinhole cameras (:func:`estimator.epipolar.refine_from_starts`: the
     bundle adjustment from the refined scaled-orthographic rig and from the epipolar start, the
     better kept): rotations, focal lengths and centres per camera, 3D joints in metres at the
-    stature (:func:`estimator.rig.stature_scale`)."""
+    stature (:func:`estimator.rig.stature_scale`); ``frame_times``: the frames' numbers."""
     pin, start = refine_from_starts(tracks, sizes, result.rotations, result.scales, list(RIGID_LINKS),
-                                    config=config)
+                                    config=config, frame_times=frame_times)
     k = stature_scale(pin.joints3d, rig.height_m)
     if not np.isfinite(k):
         raise CliFailure("the pinhole adjustment gave a body without length")
