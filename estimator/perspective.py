@@ -248,7 +248,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         away from its prior (rotation vector, radians) times the weight is
         a residual beside the pixels (pixels per radian).
     frame_times : ndarray of shape (T,), optional
-        When each frame was taken (frame numbers), for ``config.smooth``: its
+        When each frame was taken (frame numbers, not jittered timestamps:
+        gaps are matched to the commonest one), for ``config.smooth``: its
         prior joins only three frames in a row at the recording's commonest
         step (a gap in the frames breaks the chain there). Default: evenly spaced.
     """
@@ -285,6 +286,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     a_up, b_up, per_tol = _angle_prior(UPRIGHT_FRAME_PRIORS, 1.0)  # per_tol: 1 / tolerance (radians)
     n_up = t * len(per_tol) if config.upright > 0 else 0
     up_w = np.zeros(len(per_tol))  # set once the first adjustment has read the noise
+    if frame_times is not None and np.shape(frame_times) != (t,):
+        raise ValueError(f"frame_times must give one time per frame ({t}), got shape {np.shape(frame_times)}")
     mids = _evenly_timed(np.arange(t) if frame_times is None else frame_times) if config.smooth > 0 else []
     n_sm = 2 * n_cam * len(mids) * j
     sm_w = np.zeros((n_cam, j))  # per camera and joint, set once the first adjustment has read the noise

@@ -188,3 +188,6 @@ def test_the_smooth_motion_joins_only_frames_one_step_apart():
                                        config=PerspectiveConfig(focal_px=800.0, smooth=smooth), frame_times=times)
     np.testing.assert_allclose(run["apart"].joints3d, run["off"].joints3d, atol=1e-6)
     assert np.abs(run["on"].joints3d - run["off"].joints3d).max() > 1e-3
+    with pytest.raises(ValueError, match="frame_times"):
+        perspective_refine(y, np.tile([640.0, 480.0], (3, 1)), rots, np.ones(3), list(RIGID_LINKS),
+                           config=PerspectiveConfig(focal_px=800.0, smooth=1.0), frame_times=np.arange(5))
