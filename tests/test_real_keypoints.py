@@ -4,7 +4,7 @@ OpenPose BODY_25B keypoints of a person balancing on a beam, seen by 4 cameras
 3-4.5 m away, a second person at the edge of two views; the truth is the
 rig's Qualisys calibration. Nothing of posecal made them (the fixture's README
 says where they come from). The bounds are the issue's target for real
-keypoints (camera pairs within 5 deg in the median); measured 1.6 / 2.4 deg
+keypoints (camera pairs within 5 deg in the median); measured 1.7 / 2.5 deg
 (median / max, docs/SELFCAL.md "Real keypoints").
 """
 
