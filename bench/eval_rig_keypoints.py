@@ -39,7 +39,7 @@ from estimator._selfcal_core import geodesic_deg  # noqa: E402
 from estimator.damage import detector_keypoints  # noqa: E402
 from estimator.epipolar import refine_from_starts  # noqa: E402
 from estimator.mocap import read_motion  # noqa: E402
-from estimator.perspective import KEYPOINT_REWEIGHT, KEYPOINT_SMOOTH, KEYPOINT_UPRIGHT, PerspectiveConfig  # noqa: E402
+from estimator.perspective import KEYPOINT_REWEIGHT, KEYPOINT_SETTINGS, PerspectiveConfig  # noqa: E402
 from estimator.pipeline import estimate_walk, tracks_from_sequence  # noqa: E402
 from estimator.rig import RigConfig, calibrate_rig, rotations_from_viewpoints, viewpoint_rotations  # noqa: E402
 from estimator.selfcal import RIGID_LINKS, self_calibrate  # noqa: E402
@@ -54,8 +54,7 @@ def keypoints_alone(kp: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     cal = self_calibrate(kp, refine=False, temporal_prior=True) or self_calibrate(kp, refine=True, upright=True)
     sizes = np.tile(np.array(image_size, float), (len(kp), 1))
     pin, _ = refine_from_starts(kp, sizes, cal.rotations, cal.scales, list(RIGID_LINKS),
-                                config=PerspectiveConfig(reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT,
-                                                         smooth=KEYPOINT_SMOOTH))
+                                config=PerspectiveConfig(**KEYPOINT_SETTINGS))
     return pin.rotations
 
 

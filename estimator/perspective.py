@@ -42,7 +42,7 @@ from .selfcal import UPRIGHT_PRIORS, _angle_prior, cosine_gradients
 from .bundle import levenberg_marquardt
 from .pinhole import PinholeCameras
 
-__all__ = ["KEYPOINT_REWEIGHT", "KEYPOINT_SMOOTH", "KEYPOINT_UPRIGHT", "UPRIGHT_FRAME_PRIORS", "WEAK_PERSPECTIVE",
+__all__ = ["KEYPOINT_REWEIGHT", "KEYPOINT_SETTINGS", "KEYPOINT_SMOOTH", "KEYPOINT_UPRIGHT", "UPRIGHT_FRAME_PRIORS", "WEAK_PERSPECTIVE",
            "PerspectiveConfig", "PerspectiveRig", "perspective_refine"]
 
 
@@ -326,15 +326,21 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     n_obs = len(obs_c)
     grid = [a.ravel() for a in np.meshgrid(np.arange(n_cam), np.arange(t), np.arange(j), indexing="ij")]
     obs_flat = (obs_c * t + obs_t) * j + obs_j
-    moved = obs_c > 0  # camera 0 is the frame: no rotation or centre of its own
-    rows_p = np.repeat(2 * np.arange(n_obs), 2) + np.tile([0, 1], n_obs)  # (2N,) u then v
-    jac_cols = [(o_x + 3 * (obs_t * j + obs_j))[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3)]
-    if free_focal:
-        jac_cols.append(o_f + obs_c[:, None] + np.zeros((1, 2), int))
-    cam_cols = 3 * (obs_c[moved] - 1)[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3)
-    jac_cols += [cam_cols, o_c + cam_cols]
-    cam_rows = np.repeat(rows_p[np.repeat(moved, 2)], 3)  # the rotation's and the centre's
-    jac_rows = [np.repeat(rows_p, 3), *([rows_p] if free_focal else []), cam_rows, cam_rows]
+
+    def projection_entries(at, first_row):
+        """Rows and columns of the projection's derivatives (:func:`_projection_derivatives`) at grid
+        indices ``at`` (camera, frame, joint), residual rows ``first_row + 2 i`` (u) and ``+ 1`` (v), in
+        the order ``projected`` gives their values."""
+        cc, tt, jj = (g[at] for g in grid)
+        rows = first_row + 2 * np.arange(len(at))[:, None] + np.arange(2)  # (N, 2) u then v
+        moved = cc > 0  # camera 0 is the frame: no rotation or centre of its own
+        cam_cols = 3 * (cc[moved] - 1)[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3)
+        cam_rows = np.repeat(rows[moved].ravel(), 3)  # the rotation's and the centre's
+        return ([np.repeat(rows.ravel(), 3), *([rows.ravel()] if free_focal else []), cam_rows, cam_rows],
+                [(o_x + 3 * (tt * j + jj))[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3),
+                 *([o_f + cc[:, None] + np.zeros((1, 2), int)] if free_focal else []), cam_cols, o_c + cam_cols])
+
+    jac_rows, jac_cols = projection_entries(obs_flat, 0)
     tt, kk = np.divmod(np.arange(t * len(ln)), max(len(ln), 1))
     bone_rows = 2 * n_obs + np.arange(t * len(ln))
     if len(ln):
@@ -363,18 +369,11 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     if n_sm:  # camera c's image of joint j at frame t accelerates with frames t - 1, t and t + 1
         sm_c, sm_m, sm_j = (a.ravel() for a in np.meshgrid(np.arange(n_cam), np.arange(len(mids)), np.arange(j),
                                                            indexing="ij"))
-        sm_rows = n_res + 2 * np.arange(len(sm_c))[:, None] + np.arange(2)  # (P, 2) u then v
-        sm_moved = sm_c > 0
-        for k in (-1, 0, 1):
-            jac_rows.append(np.repeat(sm_rows.ravel(), 3))
-            jac_cols.append((o_x + 3 * ((mids[sm_m] + k) * j + sm_j))[:, None, None] + np.zeros((1, 2, 1), int)
-                            + np.arange(3))
-            if free_focal:
-                jac_rows.append(sm_rows.ravel())
-                jac_cols.append(o_f + sm_c[:, None] + np.zeros((1, 2), int))
-            sm_cam_cols = 3 * (sm_c[sm_moved] - 1)[:, None, None] + np.zeros((1, 2, 1), int) + np.arange(3)
-            jac_rows += [np.repeat(sm_rows[sm_moved].ravel(), 3)] * 2
-            jac_cols += [sm_cam_cols, o_c + sm_cam_cols]
+        sm_at = [(sm_c * t + mids[sm_m] + k) * j + sm_j for k in (-1, 0, 1)]
+        for at in sm_at:
+            rows, cols = projection_entries(at, n_res)
+            jac_rows += rows
+            jac_cols += cols
         n_res += n_sm
     jac_rows = np.concatenate(jac_rows)
     jac_cols = np.concatenate([c.ravel() for c in jac_cols])
@@ -387,12 +386,14 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         rot = Rotation.from_rotvec(rv).as_matrix()
         deriv = _projection_derivatives(rot, rv, ce, fo, x, *grid)  # every camera, frame and joint
 
-        def projected(at, scale, cams):
-            """The projection's entries at grid indices ``at``, times ``scale``, for cameras ``cams``."""
+        def projected(at, scale):
+            """The projection's derivatives at grid indices ``at``, times ``scale``, as
+            ``projection_entries`` places them."""
             d_x, d_f, d_rot = (d[at] * scale.reshape(-1, *([1] * (d.ndim - 1))) for d in deriv)
-            return [d_x.ravel(), *([d_f.ravel()] if free_focal else []), d_rot[cams].ravel(), -d_x[cams].ravel()]
+            moved = grid[0][at] > 0
+            return [d_x.ravel(), *([d_f.ravel()] if free_focal else []), d_rot[moved].ravel(), -d_x[moved].ravel()]
 
-        vals = projected(obs_flat, w_obs[::2], moved)
+        vals = projected(obs_flat, w_obs[::2])
         if len(ln):
             d = x[:, ln[:, 0]] - x[:, ln[:, 1]]
             unit = bone_w * d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
@@ -409,8 +410,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
             vals.append((up_w[kk_up, None] * (a_up[kk_up, jj_up, None] * ga[:, kk_up]
                                               + b_up[kk_up, jj_up, None] * gb[:, kk_up])).ravel())
         if n_sm:
-            for k, coef in ((-1, 1.0), (0, -2.0), (1, 1.0)):
-                vals += projected((sm_c * t + mids[sm_m] + k) * j + sm_j, coef * sm_w[sm_c, sm_j], sm_moved)
+            for at, coef in zip(sm_at, (1.0, -2.0, 1.0)):
+                vals += projected(at, coef * sm_w[sm_c, sm_j])
         return scipy.sparse.csr_matrix((np.concatenate(vals), (jac_rows, jac_cols)), shape=shape)
 
     sol = levenberg_marquardt(residuals, jacobian, p0, block_start=o_x, block_size=3 * j, n_blocks=t,
@@ -468,6 +469,11 @@ KEYPOINT_SMOOTH = 1.0
 """Strength of the walker's smooth motion (:attr:`PerspectiveConfig.smooth`) for a pose detector's keypoints
 (``posecal selfcal``, :meth:`estimator.rig.RigConfig.for_keypoints`): a detector's errors are independent
 from frame to frame, a walker's joints are not (docs/SELFCAL.md, "A walker moves smoothly")."""
+
+
+KEYPOINT_SETTINGS = {"reweight": KEYPOINT_REWEIGHT, "upright": KEYPOINT_UPRIGHT, "smooth": KEYPOINT_SMOOTH}
+"""The :class:`PerspectiveConfig` fields for a pose detector's keypoints, one place for ``posecal selfcal``
+and :meth:`estimator.rig.RigConfig.for_keypoints`."""
 
 
 GAUGE_WEIGHT = 1e4

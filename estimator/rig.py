@@ -36,8 +36,7 @@ from .joints import JOINT_INDEX, N_JOINTS
 from .mnbp import MNBPConfig, measure_postures, person_widths, posture_sequences
 from .mnbp3d import MNBP3DConfig, posture_sequence3d
 from .pipeline import WalkEstimate, concat_estimates, take_frames
-from .perspective import (KEYPOINT_REWEIGHT, KEYPOINT_SMOOTH, KEYPOINT_UPRIGHT, PerspectiveConfig, PerspectiveRig,
-                          perspective_refine)
+from .perspective import KEYPOINT_SETTINGS, PerspectiveConfig, PerspectiveRig, perspective_refine
 from .pinhole import project, triangulate
 from .selfcal import RIGID_LINKS, self_calibrate
 from .skeleton import BodyShape, forward_kinematics
@@ -248,8 +247,7 @@ class RigConfig:
 
     def keypoint_settings(self) -> dict:
         """The fields :meth:`for_keypoints` sets, to apply to another configuration with ``replace``."""
-        return {"pinhole": replace(self.pinhole, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT,
-                                   smooth=KEYPOINT_SMOOTH),
+        return {"pinhole": replace(self.pinhole, **KEYPOINT_SETTINGS),
                 "pinhole_viewpoint_weight": 0.0, "pinhole_epipolar_start": True, "max_disagreement_deg": 0.0,
                 "rounds": 1, "tangents": None}
 

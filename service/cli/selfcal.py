@@ -28,8 +28,7 @@ from scipy.spatial.transform import Rotation
 from estimator.joints import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 from estimator.keypoints import SKELETONS
 from estimator.epipolar import refine_from_starts
-from estimator.perspective import (KEYPOINT_REWEIGHT, KEYPOINT_SMOOTH, KEYPOINT_UPRIGHT, WEAK_PERSPECTIVE,
-                                  PerspectiveConfig)
+from estimator.perspective import KEYPOINT_SETTINGS, WEAK_PERSPECTIVE, PerspectiveConfig
 from estimator.pinhole import floor_frame, image_height, triangulate
 from estimator.rig import RigConfig, stature_scale
 from estimator.selfcal import RIGID_LINKS, self_calibrate
@@ -422,8 +421,7 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
             sizes = np.tile(np.array(size, float), (len(cameras), 1))
         else:
             sizes = None if found is None else np.array([found[c][0] for c in cameras], float)
-        return sizes, PerspectiveConfig(focal_px=focal, reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT,
-                                        smooth=KEYPOINT_SMOOTH)
+        return sizes, PerspectiveConfig(focal_px=focal, **KEYPOINT_SETTINGS)
     intrinsics = _by_camera(intrinsics, cameras)
     missing = [c for c in cameras if c not in intrinsics]
     if missing:
@@ -433,7 +431,7 @@ def _pinhole_setup(cameras: list[str], size: tuple[int, int] | None, focal: floa
     sizes = np.array([intrinsics[c][1] for c in cameras], float)
     return sizes, PerspectiveConfig(focal_px=tuple(float(f) for f in (mats[:, 0, 0] + mats[:, 1, 1]) / 2),
                                     principal_px=tuple((float(u), float(v)) for u, v in mats[:, :2, 2]),
-                                    reweight=KEYPOINT_REWEIGHT, upright=KEYPOINT_UPRIGHT, smooth=KEYPOINT_SMOOTH)
+                                    **KEYPOINT_SETTINGS)
 
 
 def _with_pinhole(doc: dict, result, tracks: np.ndarray, cameras: list[str], sizes: np.ndarray,
