@@ -39,7 +39,14 @@ about the image centre), where which person the segmenter follows matters
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_composite.py [--sequences 8] [--seed 5] \
         [--plot docs/img/composite_errors.png] [--montage docs/img/composite_frames.jpg] [--keep DIR] \
-        [--walker-scale 0.5]
+        [--walker-scale 0.5] [--plates]
+
+``--plates`` puts an image of the empty scene beside each video (the median of
+the whole of ``vtest.avi``, mirrored as the camera's stretch), which
+``posecal estimate`` takes as the background: a walker who stays in the same
+place in the image (walking towards or away from a camera) is otherwise in
+the background learned from the clip (docs/ROBUSTNESS.md, "A walker held in
+the background").
 """
 
 from __future__ import annotations
@@ -62,7 +69,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_estimate import az_err, ph_err  # noqa: E402
 from eval_mnbp import MOCAP, body  # noqa: E402
 from eval_real_video import VIDEO, load_video  # noqa: E402
-from capture.refine import segment_clip  # noqa: E402
+from capture.refine import plate_for, segment_clip  # noqa: E402
 from capture.scene import iou  # noqa: E402
 from capture.segment import SegmentSettings  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
@@ -156,11 +163,20 @@ def composite(background: np.ndarray, mask: np.ndarray, joints2d: np.ndarray, ou
     return np.clip(frame, 0, 255).astype(np.uint8)
 
 
-def backgrounds(video: np.ndarray, n_frames: int, rng: np.random.Generator) -> np.ndarray:
-    """A stretch of ``n_frames`` real frames at a random start, scaled to 640x480, mirrored half the time."""
+def backgrounds(video: np.ndarray, n_frames: int, rng: np.random.Generator) -> tuple[np.ndarray, bool]:
+    """A stretch of ``n_frames`` real frames at a random start, scaled to 640x480, mirrored half the time
+    (and whether it was)."""
     start = int(rng.integers(0, len(video) - n_frames))
     clip = np.stack([cv2.resize(f, SIZE, interpolation=cv2.INTER_LINEAR) for f in video[start:start + n_frames]])
-    return clip[:, :, ::-1] if rng.random() < 0.5 else clip
+    mirrored = bool(rng.random() < 0.5)
+    return (clip[:, :, ::-1] if mirrored else clip), mirrored
+
+
+def empty_scene(video: np.ndarray) -> np.ndarray:
+    """The scene without its walkers, as a user would photograph it: the temporal median of every
+    third frame of the whole video, scaled to 640x480."""
+    return np.median(np.stack([cv2.resize(f, SIZE, interpolation=cv2.INTER_LINEAR) for f in video[::3]]),
+                     axis=0).astype(np.uint8)
 
 
 def scaled(seq: Sequence, k: float) -> Sequence:
@@ -191,13 +207,17 @@ def scaled(seq: Sequence, k: float) -> Sequence:
     return dataclasses.replace(seq, silhouettes=sils, truth=truth)
 
 
-def write_videos(folder: Path, seq: Sequence, video: np.ndarray, rng: np.random.Generator, *, cast_shadow: bool
-                 ) -> Outfit:
-    """Each camera's composite as ``<camera>.avi`` (MJPG, 15 fps); returns the outfit."""
+def write_videos(folder: Path, seq: Sequence, video: np.ndarray, rng: np.random.Generator, *, cast_shadow: bool,
+                 plate: np.ndarray | None = None) -> Outfit:
+    """Each camera's composite as ``<camera>.avi`` (MJPG, 15 fps), and ``plate`` (:func:`empty_scene`)
+    as ``<camera>.background.png``, mirrored as the camera's stretch, when given; returns the outfit."""
     folder.mkdir(parents=True, exist_ok=True)
     outfit = Outfit.random(rng, shadow=cast_shadow)
     for cam in seq.cameras:
-        bg = backgrounds(video, len(seq.silhouettes[cam]), rng)
+        bg, mirrored = backgrounds(video, len(seq.silhouettes[cam]), rng)
+        if plate is not None:
+            cv2.imwrite(str(folder / f"{cam}.background.png"), np.ascontiguousarray(plate[:, ::-1] if mirrored
+                                                                                   else plate))
         writer = cv2.VideoWriter(str(folder / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), FPS, SIZE)
         for k, sil in enumerate(seq.silhouettes[cam]):
             mask = np.zeros(SIZE[::-1], np.uint8) if sil is None else sil
@@ -311,8 +331,12 @@ def main() -> None:
     parser.add_argument("--walker-scale", type=float, default=1.0,
                         help="the walker this many times as tall (the focal length scaled; 0.5: 100-150 px, "
                              "the size of the real people around them)")
+    parser.add_argument("--plates", action="store_true",
+                        help="give each video an image of the empty scene (<camera>.background.png), as a user "
+                             "who photographed it would; the command uses it as the background")
     args = parser.parse_args()
     video = load_video(VIDEO)
+    plate = empty_scene(video) if args.plates else None
     motions = [read_motion(MOCAP / "16_15.bvh"), read_motion(MOCAP / "07_05.amc")]
     rng = np.random.default_rng(args.seed)
     runs = [("videos, no flags", "videos", ()), ("videos, --feedback off", "videos", ("--feedback", "off")),
@@ -328,7 +352,7 @@ def main() -> None:
         seq = scaled(synthesize(spec, motion=motions[i % 2]), args.walker_scale)
         walk_rng = np.random.default_rng([args.seed, i])
         videos, exact = work / f"walk{i}" / "videos", work / f"walk{i}" / "exact"
-        outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1)
+        outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1, plate=plate)
         shadows += outfit.shadow_gain < 1.0
         write_sequence(exact, seq)
         for name, kind, flags in runs:
@@ -339,7 +363,8 @@ def main() -> None:
                 rows[name].setdefault(k, []).extend(v)
         for cam in seq.cameras:
             frames = load_video(videos / f"{cam}.avi")
-            segs, _ = segment_clip(lambda: list(frames), SegmentSettings(), fps=FPS)
+            segs, _ = segment_clip(lambda: list(frames), SegmentSettings(), fps=FPS,
+                                   plate=plate_for(videos / f"{cam}.avi"))
             ious.extend(segmentation_iou(segs, seq, cam))
             if i == 0:
                 mid = len(frames) // 2

@@ -39,7 +39,7 @@ from .choose import LiveChoice
 from .receiver import ValidatingSubscriber
 from .scene import iou
 from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
-from .sources import Frame, FrameSource, make_source, paced
+from .sources import Frame, FrameSource, SourceError, make_source, paced, read_plate
 from .wire import (N_JOINTS, FeedbackMessage, Quality, SilhouetteMessage, encode, feedback_key,
                    keypoints_for_frame, silhouette_key)
 
@@ -77,6 +77,10 @@ class AgentSettings(BaseSettings):
     rerun_every: int = Field(10, ge=1, description="segmented frames between views logged to "
                              "Rerun (raw frame, background, silhouette), so viewing never slows "
                              "capture")
+    background_image: str | None = Field(None, description="an image of the empty scene (a file of the "
+                                         "source's frame size): the background, where the walker stays in "
+                                         "the same place in the view for most of the time it is learned "
+                                         "over (a treadmill, a walk straight at the camera)")
     segment: SegmentSettings = SegmentSettings()
 
 
@@ -108,6 +112,7 @@ class AgentStats:
     with_walker: int = 0  # ... in which a walker was found
     candidates: int = 0  # person-sized candidates seen in the last frame
     walker_moves: int = 0  # the track moved to another person by a look back (capture.choose.LiveChoice)
+    walker_held: bool = False  # a look back found the walker held in place with no background image (warned)
     areas: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
     stability: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
     _last_box: tuple | None = None
@@ -326,9 +331,14 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
     # (its number, c0, c1, ..., else a hash of its name).
     number = re.search(r"(\d+)$", settings.camera)
     phase = (int(number.group(1)) if number else zlib.crc32(settings.camera.encode())) % settings.segment.update_every
-    segmenter = Segmenter(settings.segment.model_copy(update={"update_phase": phase}))
     source_name = settings.source if source is None else type(source).__name__
     source = source if source is not None else make_source(settings.source)
+    try:
+        plate = None if settings.background_image is None else read_plate(settings.background_image, source.size)
+    except SourceError:
+        source.close()
+        raise
+    segmenter = Segmenter(settings.segment.model_copy(update={"update_phase": phase}), plate=plate)
     key = silhouette_key(settings.rig, settings.camera)
     sync = "index" if source.hardware_sync else "time"
 
@@ -407,6 +417,9 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
             if onto is not None:
                 stats.walker_moves += 1
                 log.info("%s/%s frame %d: %s", settings.rig, settings.camera, frame.index, choice.note)
+            if choice is not None and choice.held and plate is None and not stats.walker_held:
+                stats.walker_held = True
+                log.warning("%s/%s frame %d: %s", settings.rig, settings.camera, frame.index, choice.held)
             if view is not None and (stats.segmented - 1) % settings.rerun_every == 0:
                 view = view if _show(view, settings.camera, frame, seg, segmenter) else None
             if settings.score_truth and frame.mask is not None and frame.mask.any():

@@ -28,6 +28,11 @@ newest box for the frames to come.
 
 The choice is off with ``SegmentSettings.walker_choice = "first"`` (the
 person the track starts on).
+
+:func:`held_walker` reads the same path for a walker who hardly crosses the
+image (walking straight at the camera, a treadmill): a background learned
+from those frames holds them, and only an image of the empty scene can show
+what is behind them (docs/CAPTURE.md, "An image of the empty scene").
 """
 
 from __future__ import annotations
@@ -169,7 +174,8 @@ class LiveChoice:
     """The walker chosen live, looking back (module docstring): feed each frame's segmentation
     to :meth:`see`; it returns the box to guide the next frame onto
     (:meth:`capture.segment.Segmenter.apply`) when the track should move to another person,
-    else None. ``switches`` counts the moves, ``note`` says the last."""
+    else None. ``switches`` counts the moves, ``note`` says the last; ``held`` is
+    :func:`held_walker` of the frames of the last look back."""
 
     def __init__(self, settings: SegmentSettings, *, window: int = LIVE_WINDOW, every: int = LIVE_EVERY) -> None:
         if window < 2 or every < 1:
@@ -179,6 +185,7 @@ class LiveChoice:
         self._since = 0
         self.switches = 0
         self.note: str | None = None
+        self.held: str | None = None  # held_walker() of the last look back
 
     def see(self, seg: Segmentation | None) -> Box | None:
         self._recent.append(seg)
@@ -186,6 +193,7 @@ class LiveChoice:
         if self._since < self.every or len(self._recent) < 2 * self.every:  # a path of a few seconds at least
             return None
         self._since = 0
+        self.held = held_walker(list(self._recent))
         path, note = guide(list(self._recent), self.settings)
         if path is None or path[-1] is None:  # the track stands, or the walker is not in the newest frame
             return None
@@ -195,3 +203,31 @@ class LiveChoice:
         self.switches += 1
         self.note = note.replace("segmented again on it", "the track moved to it")
         return path[-1]
+
+
+HELD_TRAVEL = 0.5  # the walker's box centre crosses less than this many of its heights (p10-p90): held in place
+
+
+def held_walker(segs: list[Segmentation | None]) -> str | None:
+    """A note when the walker stayed in about the same place in the image over a clip (or the
+    frames a live agent looks back over) whose background was learned from it, else None.
+
+    A walker who walks towards or away from the camera and is in view in most
+    of the frames the median is taken over is in the median: only the outline
+    where they grew or shrank differs from it, and the silhouettes are partial
+    (docs/ROBUSTNESS.md, "A walker held in the background": on the composite
+    walks such cameras had a mean IoU of 0.60-0.68 against 0.84-0.95). Read from
+    the segmentation itself: boxes in at least half of the frames whose centres
+    cross less than ``HELD_TRAVEL`` of the box height between their 10th and
+    90th percentiles.
+    """
+    boxes = np.array([(s.box.x + s.box.w / 2, s.box.h) for s in segs if s is not None and s.area > 0], float)
+    if len(boxes) < max(5, len(segs) / 2):
+        return None
+    travel = float(np.subtract(*np.percentile(boxes[:, 0], [90, 10])) / np.median(boxes[:, 1]))
+    if travel >= HELD_TRAVEL:
+        return None
+    return (f"the walker stayed in about the same place in the image (crossed {travel:.2f} of their height) "
+            "in most of the clip, so the background learned from it holds them and their silhouettes are "
+            "partial: give an image of the empty scene (<camera>.background.png beside a video, posecal "
+            "capture --background-image), or record from before the walker comes into view")

@@ -14,6 +14,7 @@ import itertools
 import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -34,14 +35,15 @@ from estimator.prior import (
 from estimator.sequence import Sequence
 from estimator.windows import SegmentedWalk
 
-from .choose import guide, walker_boxes
+from .choose import guide, held_walker, walker_boxes
 from .segment import Segmentation, Segmenter, SegmentSettings, sample_indices
-from .sources import VideoFileSource
+from .sources import PLATE_SUFFIXES, VideoFileSource, read_plate
 from .wire import Box, FeedbackMessage
 
 __all__ = ["RefineResult", "RefinedSequence", "check_priors", "feedback_from_prior", "refine_cameras",
            "refine_sequence", "refine_videos", "second_pass", "segment", "track_from_segmentations", "trim",
-           "segment_clip", "video_frames"]
+           "segment_clip", "background_note", "plate_for", "plate_path", "plates_for",
+           "video_frames"]
 
 
 def feedback_from_prior(prior: Prior, *, rig: str = "offline", camera: str = "c0") -> FeedbackMessage:
@@ -52,18 +54,21 @@ def feedback_from_prior(prior: Prior, *, rig: str = "offline", camera: str = "c0
 
 def segment(frames: Iterable[np.ndarray], settings: SegmentSettings,
             priors: Iterable[Prior] = (), fps: float | None = None,
-            guide: list[tuple[int, int, int, int] | None] | None = None) -> list[Segmentation | None]:
+            guide: list[tuple[int, int, int, int] | None] | None = None,
+            plate: np.ndarray | None = None) -> list[Segmentation | None]:
     """Segment BGR frames (index = position) with a fresh segmenter and the given priors.
 
     With ``settings.background = "bootstrap"`` (the default) the background is
     bootstrapped from frames sampled over the first ones (``fps`` places
     ``bootstrap_seconds``; 15 when unknown) and every frame is segmented, as
-    the agent does a file. Each prior is installed just before its frame, as a
-    live agent would have received it. ``guide`` (a box or None per frame) is
-    the walker chosen over the whole clip (:func:`segment_clip`).
+    the agent does a file; ``plate``, an image of the empty scene, is the
+    background then (:meth:`capture.segment.Segmenter.bootstrap`). Each prior
+    is installed just before its frame, as a live agent would have received
+    it. ``guide`` (a box or None per frame) is the walker chosen over the
+    whole clip (:func:`segment_clip`).
     """
     by_frame: dict[int, Prior] = {p.frame_index: p for p in priors}
-    seg = Segmenter(settings)
+    seg = Segmenter(settings, plate=plate)
     if settings.background == "bootstrap":
         # The agent's default for files: the background from frames sampled over the start
         # (looked ahead: at most 3 per sample are held), then every frame from 0.
@@ -82,13 +87,38 @@ def segment(frames: Iterable[np.ndarray], settings: SegmentSettings,
 
 
 def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSettings,
-                 fps: float | None = None) -> tuple[list[Segmentation | None], str | None]:
+                 fps: float | None = None, plate: np.ndarray | None = None
+                 ) -> tuple[list[Segmentation | None], str | None]:
     """:func:`segment` a clip (``frames()`` yields its BGR frames, and can be called again) with its
     walker chosen over the whole clip (:mod:`capture.choose`): segmented again, guided, when the
-    first pass followed someone else; the note saying so, else None."""
+    first pass followed someone else; the note saying so, else None.
+
+    ``plate``, an image of the empty scene, is the background only where the walker stayed in
+    place (:func:`held_walker`; segmented once more then): where the walker crosses the view, the
+    background learned from the clip is the better one (it has the light of the moment and
+    whoever stood still in it: docs/ROBUSTNESS.md, "A walker held in the background").
+    """
     segs = segment(frames(), settings, fps=fps)
     boxes, note = guide(segs, settings)
-    return (segs, None) if boxes is None else (segment(frames(), settings, fps=fps, guide=boxes), note)
+    if boxes is not None:
+        segs = segment(frames(), settings, fps=fps, guide=boxes)
+    if plate is not None and held_walker(segs):
+        segs = segment(frames(), settings, fps=fps, guide=boxes, plate=plate)
+    return segs, note
+
+
+def background_note(segs: list[Segmentation | None], plate: Path | None) -> str | None:
+    """What a camera's background was, for the result's notes: the image of the empty scene
+    (``plate``, its file) where the walker stayed in place; a note that it was not needed where
+    the walker crossed the view; the :func:`held_walker` advice where there was none; else None."""
+    held = held_walker(segs)
+    if plate is None:
+        return held
+    if held:
+        return (f"background: {plate.name}, the image of the empty scene (the walker stayed in about the "
+                "same place in the image, so the background learned from the clip would hold them)")
+    return (f"background: learned from the clip, not {plate.name}: the walker crossed the view, and the "
+            "clip's background has the light of the moment and whoever stood still in it")
 
 
 def track_from_segmentations(segs: list[Segmentation | None]) -> CameraTrack:
@@ -129,14 +159,16 @@ def check_priors(priors: list[Prior], raw: list[Segmentation | None]) -> list[Pr
 
 
 def second_pass(frames: Iterable[np.ndarray], settings: SegmentSettings, priors: list[Prior],
-                raw: list[Segmentation | None], *, trim_reach: float | None = 0.1) -> list[Segmentation | None]:
+                raw: list[Segmentation | None], *, trim_reach: float | None = 0.1,
+                plate: np.ndarray | None = None) -> list[Segmentation | None]:
     """Segment the frames again with their priors, then trim to the priors that explain ``raw``.
 
     The segmenter checks each prior against its own evidence as it goes (the
     agent-side check); the trim (:func:`trim`, skipped when ``trim_reach`` is
     None) uses the priors checked against the first pass (:func:`check_priors`).
+    ``plate``: :func:`segment`'s.
     """
-    segs = segment(frames, settings, priors, guide=walker_boxes(raw))  # the first pass's walker
+    segs = segment(frames, settings, priors, guide=walker_boxes(raw), plate=plate)  # the first pass's walker
     return segs if trim_reach is None else trim(segs, check_priors(priors, raw), reach=trim_reach)
 
 
@@ -187,6 +219,7 @@ def refine_cameras(
     raw: dict[str, list[Segmentation | None]] | None = None,
     estimate: WalkEstimate | SegmentedWalk | None = None,
     progress: Callable[[float], None] | None = None,
+    plates: dict[str, np.ndarray] | None = None,
 ) -> RefineResult:
     """Segment, estimate, render priors, segment again with them.
 
@@ -221,7 +254,7 @@ def refine_cameras(
     if raw is None:
         raw = {}
         for name, make in frames.items():
-            raw[name], note = segment_clip(make, settings)
+            raw[name], note = segment_clip(make, settings, plate=(plates or {}).get(name))
             if note:
                 notes[name] = note
     else:
@@ -240,7 +273,8 @@ def refine_cameras(
         priors = {name: [prior_transform(p) for p in ps] for name, ps in priors.items()}
     refined = {}
     for k, (name, make) in enumerate(frames.items()):
-        refined[name] = second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach)
+        plate = (plates or {}).get(name) if held_walker(raw[name]) else None  # as segment_clip's
+        refined[name] = second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach, plate=plate)
         if progress is not None:
             progress((k + 1) / len(frames))
     return RefineResult(raw, refined, estimate, priors, sizes, notes)
@@ -353,6 +387,31 @@ def refine_sequence(seq: Sequence, model: AppearanceModel, *, renderer,
                            dict(seq.silhouettes), priors)
 
 
+def plate_path(video: str | os.PathLike) -> Path | None:
+    """``<camera>.background.png`` (``.jpg``, ``.jpeg``) beside the video ``<camera>.<ext>``, if there is one."""
+    video = Path(video)
+    return next((p for suffix in PLATE_SUFFIXES if (p := video.with_name(video.stem + suffix)).is_file()), None)
+
+
+def plate_for(video: str | os.PathLike) -> np.ndarray | None:
+    """The image of the empty scene beside a video (:func:`plate_path`, BGR), or None when there is
+    none (:class:`capture.segment.Segmenter`'s ``plate``).
+
+    Raises ValueError (:class:`~capture.sources.SourceError`) naming the file when it cannot be read
+    or is not the video's frame size.
+    """
+    path = plate_path(video)
+    if path is None:
+        return None
+    with VideoFileSource(video) as source:
+        return read_plate(path, source.size)
+
+
+def plates_for(videos: dict[str, str | os.PathLike]) -> dict[str, np.ndarray]:
+    """Each camera's :func:`plate_for` of its video, where it has one."""
+    return {c: plate for c, p in videos.items() if (plate := plate_for(p)) is not None}
+
+
 def video_frames(path: str | os.PathLike, max_frames: int | None = None) -> Callable[[], Iterator[np.ndarray]]:
     """A function that reopens the video and yields its BGR frames (one pass each call; at most
     ``max_frames``, None: all).
@@ -399,5 +458,6 @@ def refine_videos(videos: dict[str, str | os.PathLike], model: AppearanceModel, 
     """
     result = refine_cameras({c: video_frames(p, max_frames) for c, p in videos.items()}, model,
                             renderer=renderer, settings=SegmentSettings(warmup_frames=warmup),
-                            config=config, raw=raw, estimate=estimate)
+                            config=config, raw=raw, estimate=estimate,
+                            plates=plates_for(videos))
     return refined_sequence(result, fps, truth)

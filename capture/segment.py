@@ -452,8 +452,9 @@ class Segmenter:
     be called from another thread (the Zenoh feedback callback).
     """
 
-    def __init__(self, settings: SegmentSettings = SegmentSettings()) -> None:
+    def __init__(self, settings: SegmentSettings = SegmentSettings(), *, plate: np.ndarray | None = None) -> None:
         self.settings = settings
+        self.plate = plate  # an image of the empty scene: the bootstrapped background (bootstrap())
         self._mog = cv2.createBackgroundSubtractorMOG2(
             history=settings.history, varThreshold=settings.var_threshold,
             detectShadows=settings.detect_shadows)
@@ -513,15 +514,28 @@ class Segmenter:
         with the samples in which pixels far from the median
         (``bootstrap_outlier``) are replaced by it, so it learns the real noise
         but not the walkers; the full-resolution background is that median.
+
+        The segmenter's ``plate``, an image of the empty scene (BGR uint8, the
+        frames' size), is the background instead of the median: a walker who
+        stays in the same place in the image for most of the samples (walking
+        towards or away from the camera, on a treadmill) is in the median, and
+        only the plate shows what is behind them. The samples still give MOG2
+        the noise.
         """
         if not len(images):
             raise ValueError("bootstrap needs at least one frame")
         stack = np.stack(images)
         g = self._geometry_for((stack.shape[2], stack.shape[1]))
         moving = None if moving is None else np.stack(moving)
-        median = _median(stack, moving)
-        if self.settings.bootstrap_lit > 0:
-            median = _lit(stack, median, moving, self.settings)
+        if self.plate is not None:
+            if self.plate.shape != stack.shape[1:] or self.plate.dtype != np.uint8:
+                raise ValueError(f"the background plate must be a BGR uint8 image of the frames' size "
+                                 f"{stack.shape[2]}x{stack.shape[1]}, got shape {self.plate.shape} {self.plate.dtype}")
+            median = self.plate.astype(np.float32)
+        else:
+            median = _median(stack, moving)
+            if self.settings.bootstrap_lit > 0:
+                median = _lit(stack, median, moving, self.settings)
         self._full_bg = median if g.refine_px else None
         med_small = self._small(median.astype(np.uint8), g)
         residuals = []

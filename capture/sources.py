@@ -69,13 +69,33 @@ __all__ = [
     "make_source",
     "paced",
     "parse_options",
+    "read_plate",
 ]
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"})
+# An image of the empty scene beside a video <camera>.<ext>: <camera>.background<suffix>
+# (capture.refine.plate_for; jobs take it beside each uploaded video).
+PLATE_SUFFIXES = (".background.png", ".background.jpg", ".background.jpeg")
 
 
 class SourceError(ValueError):
     """A source spec or device that cannot be used; the message says why."""
+
+
+def read_plate(path: str | os.PathLike, size: tuple[int, int] | None) -> np.ndarray:
+    """An image of the empty scene (BGR uint8) for a source of frame ``size`` (width, height; None:
+    unknown, not checked): the segmenter's background (:class:`capture.segment.Segmenter`).
+
+    Raises :class:`SourceError` naming the file when it cannot be read or is not ``size``.
+    """
+    name = Path(path).name
+    plate = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if plate is None:
+        raise SourceError(f"background image {name} cannot be read as an image")
+    if size is not None and (plate.shape[1], plate.shape[0]) != tuple(size):
+        raise SourceError(f"background image {name} is {plate.shape[1]}x{plate.shape[0]}, the frames "
+                          f"{size[0]}x{size[1]}")
+    return plate
 
 
 @dataclass(slots=True)

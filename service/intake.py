@@ -13,6 +13,7 @@ are :class:`service.limits.UploadLimits` (docs/SERVICE.md, "Limits and refusals"
 from __future__ import annotations
 
 import errno
+import glob
 import json
 import lzma
 import math
@@ -26,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
 
+from capture.sources import PLATE_SUFFIXES
 from capture.wire import png_size
 from estimator.sequence import read_sequence
 
@@ -91,7 +93,8 @@ def stage_upload(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: Uploa
     names = [Path(name or "").name for name, _ in files]
     if len(files) == 1 and names[0].lower().endswith(".zip"):
         return _stage_zip(files[0][1], job_dir, limits)
-    if all(n.lower().endswith(VIDEO_EXTENSIONS) for n in names):
+    if all(n.lower().endswith(VIDEO_EXTENSIONS + PLATE_SUFFIXES) for n in names) and \
+            any(n.lower().endswith(VIDEO_EXTENSIONS) for n in names):
         return _stage_videos(files, job_dir, limits)
     raise UploadError(415, f"expected one .zip sequence folder or videos ({', '.join(VIDEO_EXTENSIONS)}), "
                            f"got {names}")
@@ -323,6 +326,10 @@ def _check_sequence_headers(folder: Path, limits: UploadLimits) -> None:
 
 
 def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: UploadLimits) -> StagedInput:
+    """One video per camera, and an image of the empty scene for any of them (``<camera>.background.png``,
+    ``.jpg``, ``.jpeg``: the segmenter's background, :func:`capture.refine.plate_for`)."""
+    plates = [(n, fh) for n, fh in files if Path(n or "").name.lower().endswith(PLATE_SUFFIXES)]
+    files = [(n, fh) for n, fh in files if not Path(n or "").name.lower().endswith(PLATE_SUFFIXES)]
     if len(files) > limits.max_cameras:
         raise UploadError(413, f"{len(files)} videos, more than the limit of {limits.max_cameras} cameras")
     folder = job_dir / "videos"
@@ -348,7 +355,53 @@ def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: Uplo
         cameras.append(cam)
     if len(set(sizes.values())) != 1:
         raise UploadError(422, f"videos of one rig must have the same frame size, got {sizes}")
+    for name, fh in plates:
+        _stage_plate(Path(Path(name).name), fh, folder, sizes)
     return StagedInput("videos", folder, cameras, max(counts.values()), frame_counts=counts)
+
+
+def _stage_plate(path: Path, fh: BinaryIO, folder: Path, sizes: dict[str, tuple[int, int]]) -> None:
+    """Store ``<camera>.background.<ext>`` beside its camera's video, checked: an image of that video's size."""
+    import cv2
+
+    cam, ext = path.name[:path.name.lower().rindex(".background")], path.suffix.lower()
+    if cam not in sizes:
+        raise UploadError(422, f"{path.name}: an image of the empty scene for camera {cam!r}, which has no video")
+    target = folder / f"{cam}.background{ext}"
+    if any(folder.glob(f"{glob.escape(cam)}.background.*")):
+        raise UploadError(422, f"two images of the empty scene for camera {cam!r}")
+    try:
+        with open(target, "wb") as out:
+            shutil.copyfileobj(fh, out, _CHUNK)
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise UploadError(507, f"no space left to store {path.name}") from None
+        raise
+    size = _image_size(target)  # from the header: a 100000 x 100000 image is refused before it is decoded
+    if size is not None and size != tuple(sizes[cam]):
+        raise UploadError(422, f"{path.name} is {size[0]}x{size[1]}, its video {sizes[cam][0]}x{sizes[cam][1]}: "
+                               "the image of the empty scene must be the video's frame size")
+    if size is None or cv2.imread(str(target), cv2.IMREAD_COLOR) is None:
+        raise UploadError(422, f"{path.name}: not a readable image (PNG or JPEG)")
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    """Width and height of a PNG (its ``IHDR``) or a JPEG (its first start-of-frame marker) from the
+    header, without decoding; None when it is neither."""
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    if (size := png_size(head)) is not None:
+        return size
+    if head[:2] != b"\xff\xd8":
+        return None
+    k = 2
+    while k + 9 <= len(head) and head[k] == 0xFF:
+        marker, length = head[k + 1], struct.unpack(">H", head[k + 2:k + 4])[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn: precision, height, width
+            height, width = struct.unpack(">HH", head[k + 5:k + 9])
+            return width, height
+        k += 2 + length
+    return None
 
 
 def _prop(cap, prop: int) -> int:

@@ -815,13 +815,13 @@ def _second_pass(first: FirstPass, model: AppearanceModel, walk: SegmentedWalk,
                  progress: Callable[[float], None] | None = None):
     """The videos segmented once more, with priors rendered from ``walk``; ``first`` is the first
     pass (:func:`capture.refine.refine_cameras`; a :class:`capture.refine.RefineResult`)."""
-    from capture.refine import refine_cameras, video_frames
+    from capture.refine import plates_for, refine_cameras, video_frames
     from capture.segment import SegmentSettings
 
     videos = {c: p for c, p in list_videos(first.folder).items() if c in first.segmentations}  # not those left out
     return refine_cameras({c: video_frames(p, first.max_frames) for c, p in videos.items()},
                           model, renderer=_get_renderer(), settings=SegmentSettings(warmup_frames=first.warmup),
-                          raw=first.segmentations, estimate=walk, progress=progress)
+                          raw=first.segmentations, estimate=walk, progress=progress, plates=plates_for(videos))
 
 
 def add_feedback(result: dict, block: dict | None) -> dict:
@@ -965,7 +965,7 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     is damaged: it is left out (its ``decoding`` entry says why, ``"left_out"``) and the
     other cameras go on; :class:`DamagedVideo` naming every video when none is left.
     """
-    from capture.refine import segment_clip, video_frames
+    from capture.refine import background_note, plate_for, plate_path, segment_clip, video_frames
     from capture.segment import SegmentSettings
 
     options = options or {}
@@ -980,11 +980,18 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
             rate = float(source.fps or 0.0)
             header = int(header_frames.get(path.stem) or source.frame_count() or 0)
             size = source.size
-        segs, chosen = segment_clip(video_frames(path, max_frames), settings)
+        try:
+            plate = plate_for(path)
+        except ValueError as exc:
+            raise DamagedVideo(str(exc)) from None
+        segs, chosen = segment_clip(video_frames(path, max_frames), settings, plate=plate)
         decoding[path.stem] = {"decoded_frames": len(segs), "header_frames": header,
                                "fps": round(rate, 4) or None}
         if chosen:
             decoding[path.stem]["walker"] = chosen
+        background = background_note(segs, plate_path(path))
+        if background:
+            decoding[path.stem]["background"] = background
         report((i + 1) / len(videos), f"segmented {path.name}")
         if not segs:
             decoding[path.stem]["left_out"] = f"video {path.name} has no decodable frames"
@@ -1010,13 +1017,13 @@ def _mark_decoding(result: dict[str, Any], decoding: dict[str, dict[str, int]]) 
                                                   "other cameras")
             continue
         entry = result.get("cameras", {}).get(cam)
-        walker = counts.get("walker")
+        said = [counts[k] for k in ("walker", "background") if counts.get(k)]
         if entry is not None:
-            entry.update({k: v for k, v in counts.items() if k != "walker"})
-            if walker:
-                entry.setdefault("notes", []).append(walker)
-        if walker:
-            result.setdefault("notes", []).append(f"{cam}: {walker}")
+            entry.update({k: v for k, v in counts.items() if k not in ("walker", "background")})
+            if said:
+                entry.setdefault("notes", []).extend(said)
+        if said:
+            result.setdefault("notes", []).extend(f"{cam}: {note}" for note in said)
         decoded, header = counts["decoded_frames"], counts["header_frames"]
         if header and decoded != header:
             note = (f"{cam}: {decoded} frames decoded, its video's header counts {header}: "

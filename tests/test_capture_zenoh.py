@@ -439,3 +439,37 @@ def test_capture_cli_sends_a_detectors_keypoints_with_the_frames(endpoint, video
     with pytest.raises(ValueError, match=r"keypoints must be \(13, 2\) per frame .* frames \[3\] are \(17, 2\)"):
         agent.main(build_config(connect=[endpoint]), agent.AgentSettings(source=str(path)),
                    keypoints={2: joints[0, 2], 3: np.zeros((17, 2))})  # COCO's 17, not posecal's 13
+
+
+def test_capture_cli_takes_an_image_of_the_empty_scene_as_the_background(endpoint, tmp_path, capsys, caplog):
+    """``posecal capture --background-image FILE``: a walker who stays in the same place in the view is in
+    the background the agent bootstraps from the file (a look back warns, once), and whole with the image
+    of the empty scene; an image of another size is refused (exit 2) naming it."""
+    from service.cli import main as cli_main
+    from test_plate import FPS, H, W, _walking_in_place
+
+    plate, frames, masks = _walking_in_place()
+    path = tmp_path / "c0.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    cv2.imwrite(str(tmp_path / "empty.png"), plate)
+    cv2.imwrite(str(tmp_path / "small.png"), plate[:120])
+    score, warned = {}, {}
+    caplog.set_level(logging.WARNING, logger="capture.agent")
+    for name, extra in (("learned", []), ("image", ["--background-image", str(tmp_path / "empty.png")])):
+        caplog.clear()
+        with zenoh.open(build_config(listen=[endpoint])) as session, \
+                SilhouetteReceiver(session, "lab", "c0") as receiver:
+            assert cli_main(["capture", "--rig", "lab", "--camera", "c0", "--source", str(path), "--fps", "240",
+                             "--connect", endpoint, *extra]) == 0
+            got = collect(receiver, len(frames), timeout=5)
+        assert len(got) >= 40, len(got)
+        score[name] = np.mean([iou(r.message.full_mask(), masks[r.message.frame_index]) for r in got])
+        warned[name] = caplog.text.count("stayed in about the same place")
+    assert score["learned"] < 0.5 < 0.9 < score["image"], score
+    assert warned == {"learned": 1, "image": 0}, warned
+    assert cli_main(["capture", "--source", str(path), "--connect", endpoint,
+                     "--background-image", str(tmp_path / "small.png")]) == 2
+    assert "background image small.png is 320x120, the frames 320x240" in capsys.readouterr().err

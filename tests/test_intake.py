@@ -264,3 +264,36 @@ def test_videos_checked_from_their_header_and_truncation_reported(srv, seq_dir, 
     metrics = srv.client.get("/metrics").text
     for status in ("400", "413", "422"):
         assert f'posecal_uploads_rejected_total{{status="{status}"}}' in metrics
+
+
+def test_an_image_of_the_empty_scene_beside_a_video_is_its_background(srv, tmp_path):
+    """``<camera>.background.png`` uploaded with the videos is kept beside its video for the segmenter
+    (:func:`capture.refine.segment_clip`; the result says whether it was used); one that is not the
+    video's size (read from its header), not an image, or for no camera is 422 naming it."""
+    from capture.synthetic import SyntheticSource
+
+    video = _video(tmp_path / "c.avi", 45).read_bytes()
+    src = SyntheticSource.from_spec("seed=3,azimuth=60,elevation=10,empty=12,pass=60,gap=0,size=320x240")
+    empty = cv2.imencode(".png", src.render(0).image)[1].tobytes()  # before the walker comes in
+    src.close()
+    small = cv2.imencode(".png", cv2.resize(src.render(0).image, (160, 120)))[1].tobytes()
+    before = {j["id"] for j in srv.client.get("/v1/jobs", params={"limit": 1000}).json()["jobs"]}
+    for plate, status, words in (({"c0.background.png": small}, 422, ("c0.background.png is 160x120", "320x240")),
+                                 ({"c2.background.jpg": empty}, 422, ("c2.background.jpg", "no video")),
+                                 ({"c1.background.png": _png(100000, 100000, real=False)}, 422,
+                                  ("c1.background.png is 100000x100000",)),  # from its header
+                                 ({"c1.background.png": b"\x89PNG not really"}, 422, ("c1.background.png",
+                                                                                      "not a readable image"))):
+        r = srv.client.post("/v1/jobs", files=_videos({"c0.avi": video, "c1.avi": video, **plate}), data=LIGHT)
+        _refused(r, status, *words)
+    _nothing_left(srv, before)
+    r = srv.client.post("/v1/jobs", files=_videos({"c0.avi": video, "c1.avi": video, "c0.background.png": empty}),
+                        data=LIGHT)
+    assert r.status_code == 202, r.text
+    job = _done(srv, r.json()["id"])
+    assert job["state"] == "done", job
+    result = srv.client.get(f"/v1/jobs/{job['id']}/result").json()
+    # the walker crosses the view: the clip's own background is the better one, and the note says so
+    assert any(n.startswith("c0: background: learned from the clip, not c0.background.png")
+               for n in result["notes"]), result["notes"]
+    assert not any(n.startswith("c1: background") for n in result["notes"])

@@ -38,6 +38,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "the first --warmup frames, preferring still pixels), the scene need "
                         "not be empty; 'warmup' = the paper's running average over the first "
                         "--warmup frames, which must be empty")
+    p.add_argument("--background-image", metavar="FILE",
+                   help="an image of the empty scene, the source's frame size: the background, where the "
+                        "walker stays in the same place in the view (a treadmill, a walk straight at the "
+                        "camera), which a background learned from the frames would hold")
     p.add_argument("--warmup", type=int, metavar="N",
                    help="start-up frames to learn the background from on live cameras, or "
                         "with --background warmup (default: 100)")
@@ -75,7 +79,7 @@ def _settings(args: argparse.Namespace):
     agent = given(("rig", args.rig), ("camera", args.camera), ("source", args.source),
                   ("fps", args.fps), ("max_frames", args.max_frames),
                   ("stats_interval_s", args.stats_interval), ("rerun", args.rerun),
-                  ("rerun_every", args.rerun_every))
+                  ("rerun_every", args.rerun_every), ("background_image", args.background_image))
     segment = given(("warmup_frames", args.warmup), ("background", args.background))
     try:
         settings = AgentSettings(**agent)

@@ -28,7 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("sequence", metavar="SEQ", help="sequence folder (rig.json + per-camera PNG silhouettes), "
                    "or a folder of videos, one per camera (<camera>.mp4, .avi, .mkv, .mov, .webm, .m4v; "
-                   "synchronised from the walk, --sync): the walker is separated from the background first")
+                   "synchronised from the walk, --sync): the walker is separated from the background first, learned "
+                   "from the video, or <camera>.background.png (.jpg), an image of the empty scene beside "
+                   "the video, where there is one (needed when the walker stays in the same place in "
+                   "the image for most of the video; the result's notes say when)")
     p.add_argument("--warmup", type=positive_int, metavar="N",
                    help="videos: background frames at the start (default: a quarter, at most 100)")
     p.add_argument("--sync", choices=("auto", "off"), default="auto",

@@ -1,0 +1,100 @@
+"""A walker held in the background learned from the clip, and the image of the empty scene that
+mends it (``<camera>.background.png``): capture.refine and the video path of jobs and the CLI."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from capture.choose import held_walker
+from capture.refine import plate_for, segment, segment_clip
+from capture.scene import iou, textured_background
+from capture.segment import SegmentSettings
+
+W, H, FPS = 320, 240, 15.0
+
+
+def _walking_in_place(n: int = 45, seed: int = 3, step: int = 0
+                      ) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """The empty scene, and frames of a walker who stays where they are (a walker coming at the camera
+    whose size hardly changes over the clip): the body still, the legs swinging, in view all along;
+    or crossing the image ``step`` pixels a frame."""
+    rng = np.random.default_rng(seed)
+    plate = textured_background(W, H, rng, saturation=0.35).astype(np.uint8)
+    frames, masks = [], []
+    for k in range(n):
+        mask = np.zeros((H, W), np.uint8)
+        x = 160 + step * (k - n // 2)
+        cv2.ellipse(mask, (x, 95), (18, 50), 0, 0, 360, 255, -1)  # head and trunk
+        swing = int(round(10 * np.sin(2 * np.pi * k / 15)))
+        for side in (-1, 1):
+            cv2.line(mask, (x + 7 * side, 135), (x + 7 * side + side * swing, 200), 255, 9)
+        image = plate.copy()
+        image[mask > 0] = (60, 40, 150)
+        frames.append(np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8))
+        masks.append(mask)
+    return plate, frames, masks
+
+
+def test_a_walker_held_in_the_background_is_whole_with_the_empty_scenes_image():
+    plate, frames, masks = _walking_in_place()
+    without = segment(frames, SegmentSettings(), fps=FPS)
+    with_plate, _ = segment_clip(lambda: iter(frames), SegmentSettings(), fps=FPS, plate=plate)
+    score = {name: np.mean([0.0 if s is None else iou(s.full_mask(), m) for s, m in zip(segs, masks)])
+             for name, segs in (("median", without), ("plate", with_plate))}
+    assert score["median"] < 0.5, score  # the trunk is in the median: the swinging legs at most
+    assert score["plate"] > 0.9, score
+    note = held_walker(without)
+    assert note is not None and "background.png" in note
+    _, crossing, masks = _walking_in_place(step=5)  # the same walker crossing the image is not held
+    segs = segment(crossing, SegmentSettings(), fps=FPS)
+    assert np.mean([0.0 if s is None else iou(s.full_mask(), m) for s, m in zip(segs, masks)]) > 0.8
+    assert held_walker(segs) is None
+    crossing_with_plate, _ = segment_clip(lambda: iter(crossing), SegmentSettings(), fps=FPS, plate=plate)
+    assert all((a is None and b is None) or np.array_equal(a.full_mask(), b.full_mask())
+               for a, b in zip(segs, crossing_with_plate))  # the clip's own background: the plate not used
+
+
+def test_a_plate_of_another_size_is_refused_naming_it(tmp_path):
+    plate, frames, _ = _walking_in_place(n=12)
+    with pytest.raises(ValueError, match="frames' size"):
+        segment_clip(lambda: iter(frames), SegmentSettings(), fps=FPS, plate=plate[:100])
+    video = tmp_path / "c0.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    assert plate_for(video) is None  # none beside it
+    cv2.imwrite(str(tmp_path / "c0.background.png"), plate)
+    assert np.abs(plate_for(video).astype(int) - plate).max() == 0
+    cv2.imwrite(str(tmp_path / "c0.background.png"), cv2.resize(plate, (160, 120)))
+    with pytest.raises(ValueError, match=r"c0\.background\.png is 160x120, the frames 320x240"):
+        plate_for(video)
+    (tmp_path / "c0.background.png").write_bytes(b"not an image")
+    with pytest.raises(ValueError, match="cannot be read"):
+        plate_for(video)
+
+
+def test_the_video_path_takes_the_plate_beside_each_video_and_says_so(tmp_path):
+    """Jobs and ``posecal estimate`` segment each video with its plate where there is one (the result's
+    notes say so); where there is none and the walker stayed in place, the note says what to do; a
+    plate that does not fit its video is bad input naming it."""
+    from service.worker import DamagedVideo, _segment_videos
+
+    plate, frames, masks = _walking_in_place()
+    for cam in ("c0", "c1"):
+        writer = cv2.VideoWriter(str(tmp_path / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (W, H))
+        for f in frames:
+            writer.write(f)
+        writer.release()
+    cv2.imwrite(str(tmp_path / "c0.background.png"), plate)
+    segs, _, _, decoding = _segment_videos(tmp_path, warmup=10, report=lambda *_: None)
+    assert decoding["c0"]["background"].startswith("background: c0.background.png, the image of the empty scene")
+    assert "stayed in about the same place" in decoding["c1"]["background"]  # no plate: the advice
+    ious = {c: np.mean([0.0 if s is None else iou(s.full_mask(), m) for s, m in zip(segs[c], masks)])
+            for c in segs}
+    assert ious["c0"] > 0.9 > 0.5 > ious["c1"], ious
+    cv2.imwrite(str(tmp_path / "c1.background.jpg"), plate[:, :200])
+    with pytest.raises(DamagedVideo, match=r"c1\.background\.jpg is 200x240"):
+        _segment_videos(tmp_path, warmup=10, report=lambda *_: None)
