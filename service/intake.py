@@ -344,13 +344,7 @@ def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: Uplo
         if cam in cameras:
             raise UploadError(422, f"two videos for camera {cam!r}")
         target = folder / f"{cam}{path.suffix.lower()}"
-        try:
-            with open(target, "wb") as out:
-                shutil.copyfileobj(fh, out, _CHUNK)
-        except OSError as exc:  # writing: a full disk is ours (507); the caller removes the folder
-            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise UploadError(507, f"no space left to store video {path.name}") from None
-            raise
+        _store(fh, target, f"video {path.name}")
         sizes[cam], counts[cam] = probe_video(target, path.name, limits)
         cameras.append(cam)
     if len(set(sizes.values())) != 1:
@@ -358,6 +352,18 @@ def _stage_videos(files: list[tuple[str, BinaryIO]], job_dir: Path, limits: Uplo
     for name, fh in plates:
         _stage_plate(Path(Path(name).name), fh, folder, sizes)
     return StagedInput("videos", folder, cameras, max(counts.values()), frame_counts=counts)
+
+
+def _store(fh: BinaryIO, target: Path, shown: str) -> None:
+    """Copy an uploaded file to ``target``; a full disk is ours (507, naming ``shown``), and the
+    caller removes the job's folder."""
+    try:
+        with open(target, "wb") as out:
+            shutil.copyfileobj(fh, out, _CHUNK)
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise UploadError(507, f"no space left to store {shown}") from None
+        raise
 
 
 def _stage_plate(path: Path, fh: BinaryIO, folder: Path, sizes: dict[str, tuple[int, int]]) -> None:
@@ -370,13 +376,7 @@ def _stage_plate(path: Path, fh: BinaryIO, folder: Path, sizes: dict[str, tuple[
     target = folder / f"{cam}.background{ext}"
     if any(folder.glob(f"{glob.escape(cam)}.background.*")):
         raise UploadError(422, f"two images of the empty scene for camera {cam!r}")
-    try:
-        with open(target, "wb") as out:
-            shutil.copyfileobj(fh, out, _CHUNK)
-    except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise UploadError(507, f"no space left to store {path.name}") from None
-        raise
+    _store(fh, target, path.name)
     size = _image_size(target)  # from the header: a 100000 x 100000 image is refused before it is decoded
     if size is not None and size != tuple(sizes[cam]):
         raise UploadError(422, f"{path.name} is {size[0]}x{size[1]}, its video {sizes[cam][0]}x{sizes[cam][1]}: "
