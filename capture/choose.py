@@ -221,7 +221,7 @@ def held_walker(segs: list[Segmentation | None]) -> str | None:
     cross less than ``HELD_TRAVEL`` of the box height between their 10th and
     90th percentiles.
     """
-    boxes = np.array([(s.box.x + s.box.w / 2, s.box.h) for s in segs if s is not None and s.area > 0], float)
+    boxes = np.array([(x + w / 2, h) for x, _, w, h in filter(None, walker_boxes(segs))], float)
     if len(boxes) < max(5, len(segs) / 2):
         return None
     travel = float(np.subtract(*np.percentile(boxes[:, 0], [90, 10])) / np.median(boxes[:, 1]))

@@ -965,8 +965,9 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
     is damaged: it is left out (its ``decoding`` entry says why, ``"left_out"``) and the
     other cameras go on; :class:`DamagedVideo` naming every video when none is left.
     """
-    from capture.refine import background_note, plate_for, plate_path, segment_clip, video_frames
+    from capture.refine import background_note, plate_path, segment_clip, video_frames
     from capture.segment import SegmentSettings
+    from capture.sources import read_plate
 
     options = options or {}
     max_frames = int(options.get("max_frames") or 0) or None
@@ -980,8 +981,9 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
             rate = float(source.fps or 0.0)
             header = int(header_frames.get(path.stem) or source.frame_count() or 0)
             size = source.size
+        plate_file = plate_path(path)
         try:
-            plate = plate_for(path)
+            plate = None if plate_file is None else read_plate(plate_file, size)
         except ValueError as exc:
             raise DamagedVideo(str(exc)) from None
         segs, chosen = segment_clip(video_frames(path, max_frames), settings, plate=plate)
@@ -989,7 +991,7 @@ def _segment_videos(folder: Path, *, warmup: int, report, options: dict[str, Any
                                "fps": round(rate, 4) or None}
         if chosen:
             decoding[path.stem]["walker"] = chosen
-        background = background_note(segs, plate_path(path))
+        background = background_note(segs, plate_file)
         if background:
             decoding[path.stem]["background"] = background
         report((i + 1) / len(videos), f"segmented {path.name}")
