@@ -56,6 +56,7 @@ __all__ = ["MAX_PRIORS", "PriorStats", "SegmentSettings", "Segmentation", "Segme
            "box_iou", "describe", "filled", "sample_indices"]
 
 MAX_PRIORS = 64  # priors kept per segmenter, newest frame indices first
+TORN = 0.75  # a candidate shorter than this share of the walker's height may be a piece of them (stack_gap)
 
 
 class SegmentSettings(BaseModel):
@@ -172,6 +173,12 @@ class SegmentSettings(BaseModel):
                                      "walker and only the outline differs; smaller holes are left, such "
                                      "as the gap between legs whose feet the closing joined "
                                      "(docs/CAPTURE.md)")
+    stack_gap: float = Field(0.2, ge=0, le=1, description="a candidate shorter than three quarters of "
+                             "the tracked walker's median height is joined by the pieces as short stacked above "
+                             "or below it (overlapping it across at least half the narrower one's width, at most "
+                             "this fraction of the joined height apart) when the join brings its height nearer "
+                             "that median and not beyond 1.2 times it: a walker torn in two at the waist by a "
+                             "shirt or trousers the colour of the ground behind (docs/CAPTURE.md); 0 = off")
     pick: Literal["tallest", "largest"] = Field("tallest", description="with no tracked walker to "
                                                 "continue, the candidate kept: the tallest (ties: the larger), "
                                                 "or the largest by area. People walking together, or a "
@@ -1047,8 +1054,8 @@ class Segmenter:
             candidates = self._drop_ghosts(candidates, labels, stats, (rx, ry), image, gain, g)
         if not candidates:
             return self._nobody(size, used_prior, 0)
-        boxes = {k: (rx + int(stats[k, 0]), ry + int(stats[k, 1]), int(stats[k, 2]), int(stats[k, 3]))
-                 for k in candidates}
+        groups = self._groups(candidates, stats, g)  # a torn walker's pieces joined
+        boxes = {k: _shifted(_union(stats[groups[k], :4]), rx, ry) for k in candidates}
         best = self._continuing(boxes)
         guided = None if guide is None else max(boxes, key=lambda k: box_iou(boxes[k], guide))
         if guided is not None and box_iou(boxes[guided], guide) < 0.3:
@@ -1061,12 +1068,16 @@ class Segmenter:
                 max(candidates, key=lambda k: (stats[k, key], stats[k, cv2.CC_STAT_AREA]))
             self._walker.clear()
             self._colours.reset()
-        self._track, self._track_missed = boxes[best], 0
-        x, y, w, h = (int(v) for v in stats[best, :4])  # in the labelled region
-        blob = cv2.compare(labels[y:y + h, x:x + w], best, cv2.CMP_EQ)
+            groups[best] = [best]  # no walker's height to join pieces to
+        parts = groups[best]
+        x, y, w, h = _union(stats[parts, :4])  # in the labelled region
+        self._track, self._track_missed = _shifted((x, y, w, h), rx, ry), 0
+        window = labels[y:y + h, x:x + w]
+        blob = cv2.compare(window, best, cv2.CMP_EQ) if len(parts) == 1 else \
+            np.isin(window, parts).astype(np.uint8) * 255
         x, y = rx + x, ry + y  # the blob's box in the full frame
         areas = [a for _, a in self._walker]
-        self._walker.append((h, int(stats[best, cv2.CC_STAT_AREA])))
+        area = int(stats[best, cv2.CC_STAT_AREA])
         if self.settings.colour_split and image is not None:
             others = [k for k in candidates if k != best]
             if others:
@@ -1077,13 +1088,59 @@ class Segmenter:
             if cut is not blob:  # the box tightened around what is left
                 bx, by, w, h = cv2.boundingRect(cut)
                 blob, x, y = cut[by:by + h, bx:bx + w], x + bx, y + by
+        if len(parts) == 1:  # the walker's height once cut off the others; a join is measured by it, not learned
+            self._walker.append((h, area))
         if self.settings.fill_holes is not None:
             blob = filled(blob, self.settings.fill_holes)
         m = self.settings.margin_px
         x0, y0, x1, y1 = _padded((x, y, w, h), m, size)  # the crop: the box and the margin, in the frame
         crop = cv2.copyMakeBorder(blob, y - y0, y1 - y - h, x - x0, x1 - x - w, cv2.BORDER_CONSTANT, value=0)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, cv2.countNonZero(blob), used_prior,
-                            len(candidates), tuple(boxes[k] for k in candidates))
+                            len(candidates), tuple(dict.fromkeys(boxes[k] for k in candidates)))
+
+    def _groups(self, candidates: list[int], stats: np.ndarray, g: _Geometry) -> dict[int, list[int]]:
+        """Each candidate component with the pieces stacked on it that make it the walker's height
+        (``stack_gap``; the candidate alone where none does, or no walker is tracked yet).
+
+        Clothing the colour of the ground behind tears a walker at the waist
+        or the hips: head and torso above, legs below, each its own component,
+        and the track kept one. A candidate shorter than ``TORN`` of the
+        walker's median height over its last detections is joined by such a
+        piece (a component as short, above or below it: widths overlapping by
+        half the narrower, apart by at most ``stack_gap`` of the joined height,
+        or overlapping by up to a quarter of it where an arm hangs beside the
+        hips) when that brings its height nearer the median and not beyond 1.2
+        times it: two people one above the other in the image are taller than
+        one. Nearest the median first, while one qualifies.
+        """
+        if not self.settings.stack_gap or len(self._walker) < 3:
+            return {k: [k] for k in candidates}
+        tall = float(np.median([t for t, _ in self._walker]))
+        pieces = [k for k in range(1, len(stats)) if 4 * stats[k, cv2.CC_STAT_AREA] >= g.min_area
+                  and stats[k, cv2.CC_STAT_HEIGHT] < TORN * tall]  # a whole walker is not a piece
+        return {k: self._stacked(k, stats, [p for p in pieces if p != k], tall) for k in candidates}
+
+    def _stacked(self, best: int, stats: np.ndarray, pieces: list[int], tall: float) -> list[int]:
+        """Component ``best`` and the ``pieces`` joined to it (:meth:`_groups`)."""
+        parts, box = [best], tuple(stats[best, :4])
+        while pieces and box[3] < TORN * tall:  # about whole: a leg lifted, a head bowed, not torn
+            x, y, w, h = box
+            joined = []
+            for k in pieces:
+                kx, ky, kw, kh = stats[k, :4]
+                uh = _union([box, stats[k, :4]])[3]
+                gap = max(ky - (y + h), y - (ky + kh))
+                if min(x + w, kx + kw) - max(x, kx) >= 0.5 * min(w, kw) \
+                        and -0.25 * uh <= gap <= self.settings.stack_gap * uh \
+                        and uh <= 1.2 * tall and abs(np.log(uh / tall)) < abs(np.log(h / tall)):
+                    joined.append((abs(np.log(uh / tall)), k))
+            if not joined:
+                break
+            k = min(joined)[1]
+            parts.append(k)
+            pieces = [p for p in pieces if p != k]
+            box = _union([box, stats[k, :4]])
+        return parts
 
     @staticmethod
     def _wide(labels: np.ndarray, stats: np.ndarray, k: int, g: _Geometry) -> bool:
@@ -1187,6 +1244,18 @@ class Segmenter:
         self._prime(base)
         self._static = []
         self.ghosts += 1
+
+
+def _union(boxes) -> tuple[int, int, int, int]:
+    """The ``(x, y, w, h)`` box around ``(x, y, w, h)`` boxes."""
+    b = np.asarray(boxes, int)
+    x0, y0 = b[:, 0].min(), b[:, 1].min()
+    return int(x0), int(y0), int((b[:, 0] + b[:, 2]).max() - x0), int((b[:, 1] + b[:, 3]).max() - y0)
+
+
+def _shifted(box: tuple[int, int, int, int], dx: int, dy: int) -> tuple[int, int, int, int]:
+    """``(x, y, w, h)`` moved by ``(dx, dy)``."""
+    return box[0] + dx, box[1] + dy, box[2], box[3]
 
 
 def box_iou(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> float:

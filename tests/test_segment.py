@@ -123,6 +123,48 @@ def test_a_torn_walker_is_not_left_for_the_people_joined_to_a_piece():
     assert len(after) == 7 and min(after) > 0.9, after
 
 
+def _torn_and_topped(band: bool, above: bool, **settings) -> list[float]:
+    """IoU with the walker over frames 106-129 of SMALL: from frame 106 a band across the middle
+    of the walker shows the ground (``band``: clothing its colour), or a shorter person walks
+    along just above the walker's head (``above``: farther away, higher in the image)."""
+    frames = list(scene_frames(SMALL))
+    empty = frames[0].image
+    segmenter = Segmenter(SegmentSettings(warmup_frames=100, **settings))
+    out = []
+    for frame in frames:
+        image = frame.image
+        x, y, w, h = cv2.boundingRect(frame.mask)
+        if frame.index >= 106:
+            image = image.copy()
+            if band:
+                rows = slice(y + 42, y + 54)  # 12 of the walker's 96 rows
+                image[rows] = np.where(frame.mask[rows, :, None] > 0, empty[rows], image[rows])
+            if above:
+                cv2.ellipse(image, (x + w // 2, y - 8 - 20), (10, 20), 0, 0, 360, (30, 30, 30), -1)
+        seg = segmenter.apply(image, frame.index)
+        if frame.index >= 106:
+            out.append(iou(seg.full_mask(), frame.mask))
+    return out
+
+
+def test_a_walker_torn_at_the_waist_is_joined_again():
+    """Clothing the colour of the ground across the walker's middle tears them in two for the
+    rest of the clip (seed 7's walk 5 in docs/ROBUSTNESS.md: a white shirt on a pale path).
+    The piece the track keeps is joined by the one stacked on it, which brings it back to the
+    walker's height; without the join (``stack_gap=0``) the track keeps one half."""
+    joined = _torn_and_topped(band=True, above=False)
+    assert len(joined) == 24 and min(joined) > 0.8, joined
+    alone = _torn_and_topped(band=True, above=False, stack_gap=0)
+    assert max(alone) < 0.6, alone  # the premise: one half only
+
+
+def test_a_person_just_above_the_walkers_head_is_not_joined():
+    """A shorter person higher in the image, 8 px above the walker's head, is stacked on the
+    walker too, but the two are taller than the walker has been: they stay apart."""
+    kept = _torn_and_topped(band=False, above=True)
+    assert min(kept) > 0.85, kept
+
+
 @pytest.mark.parametrize("passer_bgr", [(60, 170, 60), SMALL.walker_bgr])
 def test_a_passer_by_touching_the_walker_is_cut_off_by_colour(passer_bgr):
     """A shorter passer-by walks beside the walker, apart for 15 frames, then touching
