@@ -1025,7 +1025,8 @@ class Segmenter:
     def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool,
                  image: np.ndarray | None = None, gain: float = 1.0,
                  guide: tuple[int, int, int, int] | None = None) -> Segmentation:
-        """Close holes, keep the tracked walker's component (else the tallest, ``pick``), crop it.
+        """Close holes, keep the tracked walker's component (else the tallest, ``pick``) with the
+        pieces of them stacked on it (:meth:`_groups`), crop it.
 
         Closing and labelling run only inside the bounding rectangle of all
         foreground (plus room for the closing kernel): usually a small region
