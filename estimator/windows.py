@@ -45,11 +45,15 @@ class ViewpointTrack:
     outlier; ``confirm`` consecutive outliers that agree with each other mean
     the viewpoint changed (the camera moved, or the walker turned): the
     estimate restarts from them and a change is recorded, at the index of the
-    first of them. A lone outlier never moves the estimate.
+    first of them. A lone outlier never moves the estimate. A value resting on
+    fewer than ``settle`` windows restarts so without a change recorded: a
+    live rig's first window can be its cameras' start-up (frames of one camera
+    before the other was heard from), and the windows after it outvoting it is
+    a bad start, not a move.
     """
 
-    def __init__(self, *, threshold_deg: float, confirm: int, memory: int = 10) -> None:
-        self.threshold, self.confirm, self.memory = threshold_deg, confirm, memory
+    def __init__(self, *, threshold_deg: float, confirm: int, memory: int = 10, settle: int = 0) -> None:
+        self.threshold, self.confirm, self.memory, self.settle = threshold_deg, confirm, memory, settle
         self.value: tuple[float, float] | None = None
         self.n = 0
         self.pending: list[tuple[float, float, int]] = []
@@ -81,9 +85,10 @@ class ViewpointTrack:
         if all(_view_distance(p[:2], ref) <= self.threshold for p in self.pending):
             new = (circular_mean_deg(np.array([p[0] for p in self.pending])),
                    float(np.mean([p[1] for p in self.pending])))
-            self.changes.append({"frame_index": self.pending[0][2],
-                                 "from": [round(v, 2) for v in self.value],
-                                 "to": [round(v, 2) for v in new]})
+            if self.n >= self.settle:
+                self.changes.append({"frame_index": self.pending[0][2],
+                                     "from": [round(v, 2) for v in self.value],
+                                     "to": [round(v, 2) for v in new]})
             self.value, self.n = new, len(self.pending)
             self.pending.clear()
         else:

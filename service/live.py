@@ -821,7 +821,7 @@ class LiveService:
                 if track is None:
                     track = rig.tracks[cam] = ViewpointTrack(
                         threshold_deg=self.settings.change_threshold_deg,
-                        confirm=self.settings.change_windows)
+                        confirm=self.settings.change_windows, settle=self.settings.change_windows)
                 smoothed[cam] = track.update(c["azimuth_deg"], c["elevation_deg"], w.indices[-1])
             if rig.before is None or w.seq > rig.before.seq:  # windows may finish out of order
                 rig.before = WindowBefore.of(w.seq, w.indices, est)

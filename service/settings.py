@@ -136,7 +136,8 @@ class Settings(BaseSettings):
                                         "smoothed viewpoint is an outlier ...")
     change_windows: int = Field(3, ge=1, description="... and this many consecutive agreeing "
                                 "outliers mean the camera moved or the walker turned (a batch "
-                                "job starts a new segment there)")
+                                "job starts a new segment there); live, not while the smoothed "
+                                "viewpoint rests on fewer windows (a bad start, not a move)")
     # live: what a message must be to be believed (docs/SERVICE.md, "Limits and refusals")
     max_rigs: int = Field(32, ge=1, description="live rigs kept; a new one beyond this replaces "
                           "the longest-silent rig that is silent, else it is refused and counted")

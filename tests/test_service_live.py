@@ -151,6 +151,24 @@ def test_viewpoint_track_smooths_noise_and_reports_a_move():
     assert t.update(None, None, 14) == s  # a window in which the camera saw nothing
 
 
+def test_a_first_window_outvoted_by_the_next_is_no_camera_move():
+    """A live rig's first window can be its cameras' start-up, 36 deg off (CI, once); the
+    windows after it agreeing elsewhere replace it without a move reported (``settle``), and
+    a move after that is reported as before."""
+    t = ViewpointTrack(threshold_deg=30.0, confirm=3, settle=3)
+    t.update(111.0, 0.0, 0)
+    for k in range(1, 4):
+        s = t.update(75.0, 8.0, k)
+    assert s["changes"] == [] and abs(s["azimuth_deg"] - 75.0) < 1
+    for k in range(4, 7):
+        s = t.update(180.0, 8.0, k)
+    assert [c["frame_index"] for c in s["changes"]] == [4]
+    plain = ViewpointTrack(threshold_deg=30.0, confirm=3)  # offline (segment_walk): every change counts
+    for k, az in enumerate([111.0, 75.0, 75.0, 75.0]):
+        s = plain.update(az, 8.0, k)
+    assert [c["frame_index"] for c in s["changes"]] == [1]
+
+
 # ----------------------------------------------------------------------- end to end
 
 RIG = "lab"
