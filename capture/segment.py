@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from estimator.cleanup import bounding_box
 from estimator.prior import trust_factor
 
 from .colours import ColourSplit
@@ -1056,7 +1057,7 @@ class Segmenter:
         if not candidates:
             return self._nobody(size, used_prior, 0)
         groups = self._groups(candidates, stats, g)  # a torn walker's pieces joined
-        boxes = {k: _shifted(_union(stats[groups[k], :4]), rx, ry) for k in candidates}
+        boxes = {k: _shifted(bounding_box(stats[groups[k], :4]), rx, ry) for k in candidates}
         best = self._continuing(boxes)
         guided = None if guide is None else max(boxes, key=lambda k: box_iou(boxes[k], guide))
         if guided is not None and box_iou(boxes[guided], guide) < 0.3:
@@ -1071,7 +1072,7 @@ class Segmenter:
             self._colours.reset()
             groups[best] = [best]  # no walker's height to join pieces to
         parts = groups[best]
-        x, y, w, h = _union(stats[parts, :4])  # in the labelled region
+        x, y, w, h = (int(v) for v in bounding_box(stats[parts, :4]))  # in the labelled region
         self._track, self._track_missed = _shifted((x, y, w, h), rx, ry), 0
         window = labels[y:y + h, x:x + w]
         blob = cv2.compare(window, best, cv2.CMP_EQ) if len(parts) == 1 else \
@@ -1129,7 +1130,7 @@ class Segmenter:
             joined = []
             for k in pieces:
                 kx, ky, kw, kh = stats[k, :4]
-                uh = _union([box, stats[k, :4]])[3]
+                uh = bounding_box([box, stats[k, :4]])[3]
                 gap = max(ky - (y + h), y - (ky + kh))
                 if min(x + w, kx + kw) - max(x, kx) >= 0.5 * min(w, kw) \
                         and -0.25 * uh <= gap <= self.settings.stack_gap * uh \
@@ -1140,7 +1141,7 @@ class Segmenter:
             k = min(joined)[1]
             parts.append(k)
             pieces = [p for p in pieces if p != k]
-            box = _union([box, stats[k, :4]])
+            box = bounding_box([box, stats[k, :4]])
         return parts
 
     @staticmethod
@@ -1247,16 +1248,9 @@ class Segmenter:
         self.ghosts += 1
 
 
-def _union(boxes) -> tuple[int, int, int, int]:
-    """The ``(x, y, w, h)`` box around ``(x, y, w, h)`` boxes."""
-    b = np.asarray(boxes, int)
-    x0, y0 = b[:, 0].min(), b[:, 1].min()
-    return int(x0), int(y0), int((b[:, 0] + b[:, 2]).max() - x0), int((b[:, 1] + b[:, 3]).max() - y0)
-
-
-def _shifted(box: tuple[int, int, int, int], dx: int, dy: int) -> tuple[int, int, int, int]:
-    """``(x, y, w, h)`` moved by ``(dx, dy)``."""
-    return box[0] + dx, box[1] + dy, box[2], box[3]
+def _shifted(box, dx: int, dy: int) -> tuple[int, int, int, int]:
+    """``(x, y, w, h)`` moved by ``(dx, dy)``, as ints."""
+    return int(box[0]) + dx, int(box[1]) + dy, int(box[2]), int(box[3])
 
 
 def box_iou(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> float:

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-__all__ = ["CleanupConfig", "CleanupReport", "check_plausible", "isolate_walker", "select_walker",
+__all__ = ["CleanupConfig", "CleanupReport", "bounding_box", "check_plausible", "isolate_walker", "select_walker",
            "trim_below_feet"]
 
 
@@ -180,10 +180,12 @@ def _gaps(boxes: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return dx, dy
 
 
-def _union(boxes: np.ndarray) -> np.ndarray:
+def bounding_box(boxes) -> np.ndarray:
+    """The ``(x, y, w, h)`` box around ``(x, y, w, h)`` boxes (rows), of their dtype."""
+    boxes = np.asarray(boxes)
     x0, y0 = boxes[:, 0].min(), boxes[:, 1].min()
     x1, y1 = (boxes[:, 0] + boxes[:, 2]).max(), (boxes[:, 1] + boxes[:, 3]).max()
-    return np.array([x0, y0, x1 - x0, y1 - y0], float)
+    return np.array([x0, y0, x1 - x0, y1 - y0], boxes.dtype)
 
 
 def _candidates(stats: np.ndarray, at: np.ndarray, config: CleanupConfig,
@@ -223,7 +225,7 @@ def _candidates(stats: np.ndarray, at: np.ndarray, config: CleanupConfig,
                 break
             free &= ~near
             ids += np.flatnonzero(near).tolist()
-            box = _union(boxes[ids])
+            box = bounding_box(boxes[ids])
         groups.append(_Candidate(box, int(areas[ids].sum()), [i + 1 for i in ids], at))
     largest = max(g.area for g in groups)
     return [g for g in groups if g.area >= config.candidate * largest]
