@@ -39,7 +39,7 @@ from service.worker import WindowBefore  # noqa: E402
 # (label, module path suffix, function name): the stages in the order they run.
 STAGES = [
     ("clean-up: walker per frame (select_walker)", "cleanup.py", "select_walker"),
-    ("clean-up: shadow search (trim_below_feet)", "cleanup.py", "trim_below_feet"),
+    ("clean-up: shadow search (trim_shadow)", "cleanup.py", "trim_shadow"),
     ("clean-up: plausibility (check_plausible)", "cleanup.py", "check_plausible"),
     ("motion cue (head points, Theil-Sen)", "viewpoint.py", "motion_cue"),
     ("registration (Izo-Grimson section 5)", "registration.py", "register"),

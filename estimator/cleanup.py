@@ -22,14 +22,17 @@ this order):
    their displacement in walker heights and their change of size, so a
    bystander or a blob larger than the walker in one frame does not take
    over; size breaks the tie.
-3. **Below the feet** (:func:`trim_below_feet`, with the appearance model's
-   score). A shadow or
-   floor reflection joined to the feet is part of the walker's component
-   and of its box, and no test above sees it. The body model does: the
-   silhouettes cut at fractions of their height from the top are scored
-   against the appearance examples, and a window whose frames, cut near one
-   steadily changing length, score clearly better is cut, each frame where
-   its own score is best near that length.
+3. **Below or beside the feet** (:func:`trim_shadow`, with the appearance
+   model's score). A shadow or floor reflection joined to the feet is part
+   of the walker's component and of its box, and no test above sees it. The
+   body model does: the silhouettes cut at fractions of their height from
+   the top (:func:`trim_below_feet`), or with the legs cut free of what lies
+   a few tenths of the height to one side of the upper body
+   (:func:`trim_beside_feet`: a low light at the walker's side casts the
+   shadow away from the camera, rising from the feet beside the legs, which
+   no row cut removes without them), are scored against the appearance
+   examples; a window whose frames, cut one way, score clearly better is cut
+   that way, each frame where its own score is best.
 4. **Plausibility** (:func:`check_plausible`, after the cut). A frame is
    skipped (treated as missing, so it cannot drag the viewpoint) when its
    walker touches the image border (cut by it), when its height differs
@@ -51,7 +54,7 @@ import cv2
 import numpy as np
 
 __all__ = ["CleanupConfig", "CleanupReport", "bounding_box", "check_plausible", "isolate_walker", "select_walker",
-           "trim_below_feet"]
+           "trim_below_feet", "trim_beside_feet", "trim_shadow"]
 
 
 @dataclass(frozen=True)
@@ -112,7 +115,23 @@ class CleanupConfig:
         clean, speckled, blotted walkers and a second person 22-83, holes
         and a cut limb 70-146 (searched, not cut), a shadow at the feet
         116-252; the search is 9 times the scoring, most of a clean window's
-        clean-up.
+        clean-up. The same gate opens :func:`trim_beside_feet`'s search.
+    side_cuts : tuple of float
+        :func:`trim_beside_feet`: offsets, in fractions of the height, from
+        the upper body's middle column beyond which the lower part of the
+        silhouette is cut off on one side.
+    side_from : float
+        ... the lower part: rows below this fraction of the height from the
+        top (the shadow of a low light rises at most about a third of the
+        height from the feet; the arms stay above).
+    side_gain : float
+        ... the window is cut only if that lowers the sampled frames' summed
+        score by this fraction of the uncut silhouettes'. Higher than
+        ``cut_gain``: narrower legs fit the examples better on any real
+        walker (on vtest.avi's walkers, 41-106 px tall, the gain reached 0.20-0.31
+        on 12 of 29 windows, none with a visible shadow beside the legs),
+        while a shadow cast 0.4-1 height sideways gained 0.47-0.87
+        (docs/ROBUSTNESS.md, "A shadow cast sideways").
     """
 
     candidate: float = 0.3
@@ -132,6 +151,9 @@ class CleanupConfig:
     cut_frames: int = 8
     cut_steps: tuple[float, ...] = (-0.06, -0.03, 0.0, 0.03, 0.06)
     cut_search: float = 95.0
+    side_cuts: tuple[float, ...] = (0.12, 0.16, 0.2, 0.25, 0.3, 0.4)
+    side_from: float = 0.5
+    side_gain: float = 0.4
 
 
 @dataclass
@@ -146,6 +168,7 @@ class CleanupReport:
     waived: list[str] = field(default_factory=list)  # tests not applied: they would skip too many
     cut: int = 0  # frames cut by trim_below_feet
     cut_kept: float = 1.0  # median fraction of their height kept
+    side_cut: int = 0  # frames cut by trim_beside_feet
     kept_mask: np.ndarray | None = None  # (T,) bool
 
     def note(self) -> str | None:
@@ -159,6 +182,9 @@ class CleanupReport:
             parts.append(f"{n} frames skipped ({reason})")
         for reason in self.waived:
             parts.append(f"most frames {reason}: kept all the same")
+        if self.side_cut:
+            parts.append(f"cut beside the feet on {self.side_cut} frames: what lay to one side of the legs did not "
+                         "fit a walker (a shadow cast sideways)")
         if self.cut:
             parts.append(f"cut below the feet on {self.cut} frames (median {self.cut_kept:.0%} of the height kept): "
                          "the rest did not fit a walker (a shadow or reflection)")
@@ -436,10 +462,26 @@ def _line(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return float(np.median(y - b * t)), b
 
 
+def trim_shadow(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
+                score: Callable[[list[np.ndarray]], np.ndarray], *, config: CleanupConfig | None = None
+                ) -> tuple[list[np.ndarray | None], np.ndarray, np.ndarray, np.ndarray]:
+    """Stage 3: cut a shadow or reflection joined to the feet off one camera's window, below the
+    feet (:func:`trim_below_feet`) or beside them (:func:`trim_beside_feet`), whichever lowers
+    the sampled frames' summed score more. One light casts one shadow: a cut below the feet
+    would also take a sideways shadow, with the legs; a cut beside them, part of one cast
+    towards the camera.
+
+    Returns the silhouettes (tight crops), their boxes, the fraction of each frame's height
+    kept below the feet (1 = uncut, NaN where no silhouette) and which frames were cut beside
+    them.
+    """
+    return _trim(silhouettes, boxes, score, config or CleanupConfig(), ("below", "beside"))
+
+
 def trim_below_feet(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
                     score: Callable[[list[np.ndarray]], np.ndarray], *,
                     config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, np.ndarray]:
-    """Stage 3: cut a shadow or reflection joined to the feet off one camera's window.
+    """A shadow or reflection joined to the feet cut off one camera's window (part of stage 3).
 
     ``score`` rates silhouettes (lower = more like a walker: the eq. 8
     distance to the nearest appearance example, :func:`estimator.pipeline.walker_score`).
@@ -458,6 +500,9 @@ def trim_below_feet(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
     3. **Per frame**, the best of the cuts at ``cut_steps`` around the line
        (and of the uncut silhouette): the lowest foot moves with the stride.
 
+    Searched only when the sampled frames' median uncut score exceeds
+    ``cut_search`` (a walker as the examples are has nothing to cut).
+
     Returns
     -------
     silhouettes, boxes
@@ -465,33 +510,112 @@ def trim_below_feet(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
     kept : ndarray of shape (T,)
         Fraction of each frame's height kept (1 = uncut), NaN where no silhouette.
     """
-    config = config or CleanupConfig()
-    T = len(silhouettes)
+    out, boxes, kept, _ = _trim(silhouettes, boxes, score, config or CleanupConfig(), ("below",))
+    return out, boxes, kept
+
+
+def trim_beside_feet(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
+                     score: Callable[[list[np.ndarray]], np.ndarray], *,
+                     config: CleanupConfig | None = None) -> tuple[list[np.ndarray | None], np.ndarray, np.ndarray]:
+    """A shadow cast sideways cut off the legs of one camera's window (part of stage 3).
+
+    A low light at the walker's side, in front of them, casts their shadow
+    away from the camera: in the image it starts at the feet and rises to one
+    side, beside the legs, never below them, so :func:`trim_below_feet` could
+    remove it only with the legs. Here the lower part of each silhouette (rows
+    below ``side_from`` of its height) is cleared beyond an offset from the
+    upper body's middle column (``side_cuts``, fractions of the height), on
+    the left or on the right, and scored with ``score`` as there:
+
+    1. **Which side?** On up to ``cut_frames`` frames, the side whose cuts
+       (each frame's best, or uncut) sum to the lower score. A shadow keeps
+       its side over seconds.
+    2. **Is anything there?** The window is cut only if that lowers the
+       frames' summed score by ``side_gain`` of the uncut silhouettes'.
+    3. **Per frame**, the best of that side's cuts and of the uncut
+       silhouette: the feet move with the stride.
+
+    Searched only when the sampled frames' median uncut score exceeds
+    ``cut_search``, as :func:`trim_below_feet`. Returns the silhouettes
+    (tight crops), their boxes and which frames were cut.
+    """
+    out, boxes, _, beside = _trim(silhouettes, boxes, score, config or CleanupConfig(), ("beside",))
+    return out, boxes, beside
+
+
+def _trim(silhouettes: list[np.ndarray | None], boxes: np.ndarray, score: Callable[[list[np.ndarray]], np.ndarray],
+          config: CleanupConfig, kinds: tuple[str, ...]
+          ) -> tuple[list[np.ndarray | None], np.ndarray, np.ndarray, np.ndarray]:
+    """The cut of ``kinds`` ("below", "beside") that gains most on the sampled frames, if it gains
+    ``cut_gain`` (``side_gain`` beside the feet): the silhouettes, boxes, height kept below the
+    feet, frames cut beside them."""
     boxes = np.array(boxes, float)
-    kept = np.full(T, np.nan)
     present = np.array([t for t, s in enumerate(silhouettes) if s is not None], int)
-    if present.size == 0:
-        return list(silhouettes), boxes, kept
+    kept = np.full(len(silhouettes), np.nan)
     kept[present] = 1.0
-    height = np.array([s.shape[0] if s is not None else 0 for s in silhouettes], float)
+    beside = np.zeros(len(silhouettes), bool)
+    searched = _searched(silhouettes, present, score, config)
+    if searched is None:
+        return list(silhouettes), boxes, kept, beside
+    plans = {"below": (_below_plan, config.cut_gain), "beside": (_beside_plan, config.side_gain)}
+    best = None
+    for k in kinds:
+        plan, least = plans[k]
+        g, p = plan(silhouettes, *searched, score, config)
+        if g >= least and (best is None or g > best[0]):
+            best = (g, k, p)
+    if best is None:
+        return list(silhouettes), boxes, kept, beside
+    _, kind, plan = best
+    if kind == "below":
+        out, boxes, kept = _below_apply(silhouettes, boxes, present, plan, score, config)
+    else:
+        out, boxes, beside = _beside_apply(silhouettes, boxes, present, plan, score, config.side_from)
+    return out, boxes, kept, beside
+
+
+def _searched(silhouettes: list[np.ndarray | None], present: np.ndarray,
+              score: Callable[[list[np.ndarray]], np.ndarray],
+              config: CleanupConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """The frames a cut search samples (up to ``cut_frames`` of ``present``, evenly spaced, with a
+    score) and their uncut scores (column 0 of an (n, 1) array); None when there is nothing to
+    search for: no frame, or a median uncut score within ``cut_search`` (a walker as the
+    examples are)."""
+    if present.size == 0:
+        return None
     sample = present[np.unique(np.linspace(0, present.size - 1, min(config.cut_frames, present.size)).astype(int))]
-    cuts = np.unique(np.concatenate([[1.0], np.clip(config.cuts, 0.05, 1.0)]))[::-1]  # uncut first
-    uncut = _scores(score, [[_top_rows(silhouettes[t], int(height[t]))] for t in sample])
+    uncut = _scores(score, [[_top_rows(silhouettes[t], silhouettes[t].shape[0])] for t in sample])
     ok = np.isfinite(uncut[:, 0])
     if not ok.any() or np.median(uncut[ok, 0]) <= config.cut_search:
-        return list(silhouettes), boxes, kept  # a walker as the examples are: nothing to search for
-    trials = [[_top_rows(silhouettes[t], round(f * height[t])) for f in cuts[1:]] for t in sample]
+        return None
+    return sample[ok], uncut[ok]
+
+
+def _below_plan(silhouettes: list[np.ndarray | None], sample: np.ndarray, uncut: np.ndarray,
+                score: Callable[[list[np.ndarray]], np.ndarray], config: CleanupConfig
+                ) -> tuple[float, tuple[float, float]]:
+    """:func:`trim_below_feet`'s steps 1-2 on the sampled frames: the gain of the window's cut
+    (its summed score's fall, a fraction of the uncut one's) and the line of the walker's length."""
+    height = np.array([silhouettes[t].shape[0] for t in sample], float)
+    cuts = np.unique(np.concatenate([[1.0], np.clip(config.cuts, 0.05, 1.0)]))[::-1]  # uncut first
+    trials = [[_top_rows(silhouettes[t], round(f * h)) for f in cuts[1:]] for t, h in zip(sample, height)]
     scores = np.concatenate([uncut, _scores(score, trials)], axis=1)
-    scores, sample = scores[ok], sample[ok]
     # The walker's length from its top on those frames (their best cut), a straight line over the window.
-    a, b = _line(sample.astype(float), cuts[np.argmin(scores, axis=1)] * height[sample])
-    # The window is cut if its frames, each cut near the line (or not at all), score better by cut_gain.
-    near = np.abs(cuts[None, :] - ((a + b * sample) / height[sample])[:, None]) <= config.cut_near
+    a, b = _line(sample.astype(float), cuts[np.argmin(scores, axis=1)] * height)
+    # Each frame cut near the line (or not at all).
+    near = np.abs(cuts[None, :] - ((a + b * sample) / height)[:, None]) <= config.cut_near
     along = np.minimum(np.where(near, scores, np.inf).min(axis=1), scores[:, 0])
-    if not 1.0 - along.sum() / scores[:, 0].sum() >= config.cut_gain:
-        return list(silhouettes), boxes, kept
-    line = a + b * present
-    rows = np.round(line[:, None] * (1.0 + np.asarray(config.cut_steps, float))[None, :])
+    return 1.0 - along.sum() / scores[:, 0].sum(), (a, b)
+
+
+def _below_apply(silhouettes: list[np.ndarray | None], boxes: np.ndarray, present: np.ndarray,
+                 line: tuple[float, float], score: Callable[[list[np.ndarray]], np.ndarray],
+                 config: CleanupConfig) -> tuple[list[np.ndarray | None], np.ndarray, np.ndarray]:
+    """:func:`trim_below_feet`'s step 3: every frame cut at its best near the ``line``."""
+    height = np.array([s.shape[0] if s is not None else 0 for s in silhouettes], float)
+    kept = np.where(height > 0, 1.0, np.nan)
+    a, b = line
+    rows = np.round((a + b * present)[:, None] * (1.0 + np.asarray(config.cut_steps, float))[None, :])
     rows = np.concatenate([rows, height[present, None]], axis=1)  # and the uncut silhouette
     rows = np.clip(rows, 1, height[present, None]).astype(int)
     trials = [[_top_rows(silhouettes[t], r) for r in rr] for t, rr in zip(present, rows)]
@@ -508,9 +632,67 @@ def trim_below_feet(silhouettes: list[np.ndarray | None], boxes: np.ndarray,
     return out, boxes, kept
 
 
+def _side_trials(sil: np.ndarray, offsets: np.ndarray, from_row: float
+                 ) -> list[list[tuple[np.ndarray, int, int] | None]]:
+    """``sil`` with its rows below ``from_row`` of its height cleared beyond each of ``offsets``
+    (pixels) from the upper body's middle column, on the left (first list) and on the right
+    (second): tight crops with their first column and row, None where nothing is left."""
+    h = sil.shape[0]
+    start = int(round(from_row * h))
+    upper = sil[int(0.15 * h):max(start, int(0.15 * h) + 1)]
+    middle = float(np.median(np.nonzero(upper if upper.any() else sil)[1]))
+    col = np.arange(sil.shape[1])
+    out = []
+    for side in (-1.0, 1.0):
+        row = []
+        for d in offsets:
+            trial = sil.copy()
+            trial[start:, side * (col - middle) > d] = 0
+            r, c = np.flatnonzero(trial.any(axis=1)), np.flatnonzero(trial.any(axis=0))
+            row.append(None if r.size == 0 else (trial[r[0]:r[-1] + 1, c[0]:c[-1] + 1], int(c[0]), int(r[0])))
+        out.append(row)
+    return out
+
+
+def _beside_plan(silhouettes: list[np.ndarray | None], sample: np.ndarray, uncut: np.ndarray,
+                 score: Callable[[list[np.ndarray]], np.ndarray], config: CleanupConfig
+                 ) -> tuple[float, tuple[int, np.ndarray]]:
+    """:func:`trim_beside_feet`'s steps 1-2 on the sampled frames: the gain of the window's cut on
+    its better side, and that side (0 left, 1 right) with the offsets in fractions of the height."""
+    fractions = np.asarray(config.side_cuts, float)
+    n = fractions.size
+    trials = [sum(_side_trials(silhouettes[t], fractions * silhouettes[t].shape[0], config.side_from), [])
+              for t in sample]
+    scores = _scores(score, trials)  # (frames, left cuts + right cuts)
+    along = np.minimum(np.stack([scores[:, :n].min(axis=1), scores[:, n:].min(axis=1)]), uncut[:, 0])
+    side = int(np.argmin(along.sum(axis=1)))
+    return 1.0 - along[side].sum() / uncut[:, 0].sum(), (side, fractions)
+
+
+def _beside_apply(silhouettes: list[np.ndarray | None], boxes: np.ndarray, present: np.ndarray,
+                  plan: tuple[int, np.ndarray], score: Callable[[list[np.ndarray]], np.ndarray],
+                  from_row: float) -> tuple[list[np.ndarray | None], np.ndarray, np.ndarray]:
+    """:func:`trim_beside_feet`'s step 3: every frame cut at its best offset on the window's side."""
+    side, fractions = plan
+    every = [_side_trials(silhouettes[t], fractions * silhouettes[t].shape[0], from_row)[side] for t in present]
+    scores = _scores(score, [[(silhouettes[t], 0, 0)] + row for t, row in zip(present, every)])
+    best = np.argmin(np.where(np.isfinite(scores), scores, np.inf), axis=1)
+    out = list(silhouettes)
+    cut = np.zeros(len(silhouettes), bool)
+    for t, k, row in zip(present, best, every):
+        if k == 0:
+            continue
+        crop, dx, dy = row[k - 1]
+        out[t] = crop
+        boxes[t] = [boxes[t, 0] + dx, boxes[t, 1] + dy, crop.shape[1], crop.shape[0]]
+        cut[t] = True
+    return out, boxes, cut
+
+
 def _scores(score: Callable[[list[np.ndarray]], np.ndarray],
-            trials: list[list[tuple[np.ndarray, int] | None]]) -> np.ndarray:
-    """``score`` of every trial crop in one call: (frames, trials), inf where a trial is empty."""
+            trials: list[list[tuple | None]]) -> np.ndarray:
+    """``score`` of every trial (a crop first, then its offsets) in one call: (frames, trials), inf
+    where a trial is empty."""
     flat = [c[0] for row in trials for c in row if c is not None]
     values = np.asarray(score(flat), float) if flat else np.zeros(0)
     out = np.full((len(trials), max((len(r) for r in trials), default=0)), np.inf)

@@ -14,8 +14,14 @@ not make (docs/ROBUSTNESS.md):
   (the same, on a limb), which can split the silhouette;
 - ``shadow``: a dark ground-plane projection of the body attached at the
   feet (the walker's own shadow or floor reflection classified as foreground);
+- ``side_shadow``: the shadow of a low light beside and in front of the walker,
+  cast away from the camera: it rises from the feet to one side, beside the
+  legs, rather than below them;
 - ``second_person``: another walker of similar size elsewhere in the frame;
-- ``all``: every one of the above on the same frames.
+- ``low_wall``: the lowest 15-40 % of the walker hidden behind something in
+  front of them (a low wall, a bench, a parked car);
+- ``all``: every one of the above on the same frames but ``side_shadow`` (one
+  light casts one shadow) and ``low_wall`` (not mended: docs/ROBUSTNESS.md).
 
 Each function takes one silhouette (uint8 0/255, full frame) and a
 ``numpy.random.Generator`` and returns a new array; :func:`damage_sequence`
@@ -34,7 +40,7 @@ import numpy as np
 from .joints import JOINT_NAMES
 
 __all__ = ["DAMAGE_KINDS", "damage", "damage_sequence", "detector_keypoints", "parse_damage", "salt", "blobs", "holes",
-           "cut_limb", "shadow", "second_person"]
+           "cut_limb", "shadow", "side_shadow", "low_wall", "second_person"]
 
 _J = {name: i for i, name in enumerate(JOINT_NAMES)}
 # (upper joint, end joint) of the limbs a cut can remove: forearms and shins.
@@ -144,6 +150,39 @@ def shadow(sil: np.ndarray, rng: np.random.Generator, *, length: tuple[float, fl
     return cv2.bitwise_or(sil, cast)
 
 
+def side_shadow(sil: np.ndarray, rng: np.random.Generator, *, rise: tuple[float, float] = (0.05, 0.35),
+                reach: tuple[float, float] = (0.4, 1.0)) -> np.ndarray:
+    """Attach the shadow of a low light beside the walker, cast away from the camera: the
+    silhouette squashed upwards from its feet to ``rise`` of its height (not mirrored: the
+    head's shadow lies farthest, so highest in the image) and sheared to one side so that its
+    far end lies ``reach`` heights beside the feet. At a small rise it is a band along the
+    ground line (a light at the walker's side); it is never below the feet, so a cut below
+    them cannot remove it."""
+    box = _box(sil)
+    if box is None:
+        return sil.copy()
+    x, y, w, h = box
+    k = float(rng.uniform(*rise))
+    s = float(rng.uniform(*reach)) / k * (1.0 if rng.random() < 0.5 else -1.0)
+    foot = y + h
+    # v' = foot - k (foot - v); u' = u + s (foot - v'): squashed upwards, sheared sideways.
+    m = np.array([[1.0, -s * k, s * k * foot], [0.0, k, foot * (1 - k)]], np.float32)
+    cast = cv2.warpAffine(sil, m, (sil.shape[1], sil.shape[0]), flags=cv2.INTER_NEAREST)
+    return cv2.bitwise_or(sil, cast)
+
+
+def low_wall(sil: np.ndarray, rng: np.random.Generator, *, hidden: tuple[float, float] = (0.15, 0.4)) -> np.ndarray:
+    """Hide the lowest ``hidden`` of the walker's height (a low wall, a bench or a parked car
+    between the walker and the camera): the silhouette ends in a straight cut above the feet."""
+    box = _box(sil)
+    if box is None:
+        return sil.copy()
+    x, y, w, h = box
+    out = sil.copy()
+    out[int(round(y + h * (1.0 - rng.uniform(*hidden)))):] = 0
+    return out
+
+
 def second_person(sil: np.ndarray, rng: np.random.Generator, *, scale: tuple[float, float] = (0.6, 0.9)) -> np.ndarray:
     """Add another walker: the silhouette mirrored, rescaled (a bystander a little
     farther away) and moved at least one body width aside (clipped by the frame if
@@ -173,6 +212,8 @@ def second_person(sil: np.ndarray, rng: np.random.Generator, *, scale: tuple[flo
 # a cut limb), then what lies around it (a second person, blobs, salt).
 _KINDS: dict[str, Callable] = {
     "shadow": shadow,
+    "side_shadow": side_shadow,
+    "low_wall": low_wall,
     "holes": holes,
     "cut_limb": cut_limb,
     "second_person": second_person,
@@ -180,16 +221,19 @@ _KINDS: dict[str, Callable] = {
     "salt": salt,
 }
 DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
-"""Damage kinds :func:`damage` knows, ``"all"`` applying every other one in turn."""
+"""Damage kinds :func:`damage` knows, ``"all"`` applying every other one in turn but ``side_shadow``
+(one light casts one shadow: ``all`` has the one at the feet) and ``low_wall`` (a limit of the
+estimator, not a fault it mends: docs/ROBUSTNESS.md, "Limits")."""
+_ALL = tuple(k for k in _KINDS if k not in ("side_shadow", "low_wall"))
 
 
-_STEADY = ("shadow", "second_person")  # placement-like: one draw per camera over a sequence
+_STEADY = ("shadow", "side_shadow", "low_wall", "second_person")  # one draw per camera over a sequence
 _SCALED = ("holes", "blobs")  # sized by the walker's box (and cut_limb, which also takes the joints)
 
 
 def parse_damage(kind: str) -> tuple[str, ...]:
     """The kinds named by ``kind`` ("all", one kind, or kinds joined by "+"), in the order applied."""
-    names = tuple(_KINDS) if kind == "all" else tuple(kind.split("+"))
+    names = _ALL if kind == "all" else tuple(kind.split("+"))
     bad = [k for k in names if k not in _KINDS]
     if bad or not names:
         raise ValueError(f"unknown damage {kind!r}; expected one of {', '.join(DAMAGE_KINDS)} "

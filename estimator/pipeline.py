@@ -34,7 +34,7 @@ import numpy as np
 
 from .appearance import AppearanceModel
 from .body import PARTS
-from .cleanup import CleanupConfig, CleanupReport, check_plausible, select_walker, trim_below_feet
+from .cleanup import CleanupConfig, CleanupReport, check_plausible, select_walker, trim_shadow
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
@@ -152,9 +152,10 @@ class CameraTrack:
         ``(width, height)`` of the full frame, when known: a walker touching
         its border is cut by it (:mod:`estimator.cleanup`).
     cut : ndarray of shape (T,), bool, optional
-        Frames the clean-up cut below the feet (a shadow or reflection
-        removed, :func:`estimator.cleanup.trim_below_feet`): the silhouette's
-        bottom there is the cut, not the body's outline
+        Frames the clean-up cut below or beside the feet (a shadow or
+        reflection removed, :func:`estimator.cleanup.trim_below_feet`,
+        :func:`estimator.cleanup.trim_beside_feet`): the silhouette's outline
+        at the feet there is the cut, not the body's
         (:mod:`estimator.frontier` leaves them out). None: not cleaned.
     """
 
@@ -746,7 +747,7 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
 
     The walker is selected (:func:`estimator.cleanup.select_walker`); with a
     ``score`` (see :func:`walker_score`) a shadow or reflection joined to the
-    feet is cut off (:func:`estimator.cleanup.trim_below_feet`); then frames
+    feet is cut off, below or beside them (:func:`estimator.cleanup.trim_shadow`); then frames
     whose walker is implausible are skipped (:func:`estimator.cleanup.check_plausible`:
     after the cut, so that a shadow reaching the image border does not count
     as the walker cut by it).
@@ -757,9 +758,11 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
         sils, boxes, report = select_walker(t.silhouettes, t.boxes, config=config)
         cut = np.zeros(len(sils), bool)
         if score is not None:
-            sils, boxes, kept = trim_below_feet(sils, boxes, score, config=config)
-            cut = kept < 1.0
-            report.cut, report.cut_kept = int(cut.sum()), float(np.median(kept[cut])) if cut.any() else 1.0
+            sils, boxes, kept, beside = trim_shadow(sils, boxes, score, config=config)
+            below = kept < 1.0
+            cut = beside | below
+            report.side_cut = int(beside.sum())
+            report.cut, report.cut_kept = int(below.sum()), float(np.median(kept[below])) if below.any() else 1.0
         sils, boxes, reports[name] = check_plausible(sils, boxes, report,
                                                      image_size=t.image_size if t.full_frame else None, config=config)
         out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size, cut=cut)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from estimator.cleanup import CleanupConfig, isolate_walker, select_walker, trim_below_feet
-from estimator.damage import DAMAGE_KINDS, blobs, damage, damage_sequence, holes
+from estimator.cleanup import CleanupConfig, isolate_walker, select_walker, trim_below_feet, trim_shadow
+from estimator.damage import DAMAGE_KINDS, blobs, damage, damage_sequence, holes, parse_damage
 from estimator.pipeline import (EstimateConfig, _Cloud, _vote, clean_tracks, estimate_walk, tracks_from_sequence,
                                 walker_score)
 from estimator.sequence import Sequence
@@ -38,6 +38,9 @@ def test_damage_is_reproducible_and_checked(walk):
     assert not np.array_equal(damage(sil, "salt", np.random.default_rng(1)), sil)
     with pytest.raises(ValueError, match="unknown damage"):
         damage(sil, "smudge", np.random.default_rng(1))
+    # one light casts one shadow: "all" has the one at the feet
+    assert "shadow" in parse_damage("all") and "side_shadow" not in parse_damage("all")
+    assert "low_wall" not in parse_damage("all")
 
 
 def test_combined_damage_is_sized_by_the_walker_and_blobs_stay_away_from_it():
@@ -230,6 +233,32 @@ def test_a_shadow_at_the_feet_is_cut_off_by_the_model(walk, small_model):
         assert np.all(kept == 1.0) and np.array_equal(same, clean[cam].boxes)
 
 
+def test_a_shadow_cast_sideways_is_cut_beside_the_feet_not_below(walk, small_model):
+    """A low light at the walker's side casts the shadow rising beside the legs: a cut below the
+    feet would take the legs with it; the cut beside them leaves the walker's own outline."""
+    clean = tracks_from_sequence(walk)
+    shadowed = tracks_from_sequence(damaged(walk, "side_shadow"))
+    score = lambda s: walker_score(small_model, s)  # noqa: E731
+    for cam in walk.cameras:
+        t, c = shadowed[cam], clean[cam]
+        assert np.median(t.boxes[:, 2] / c.boxes[:, 2]) > 1.5  # the damage is real: twice as wide
+        assert np.allclose(t.boxes[:, 3], c.boxes[:, 3], atol=1)  # and not below the feet
+        out, boxes, kept, beside = trim_shadow(t.silhouettes, t.boxes, score)
+        assert np.mean(beside) > 0.9 and np.all(kept == 1.0)
+        assert np.median(np.abs(boxes[:, 2] / c.boxes[:, 2] - 1)) < 0.1
+        assert np.median(np.abs(boxes[:, 3] / c.boxes[:, 3] - 1)) < 0.02
+        # the cut below the feet alone takes the legs
+        _, below, _ = trim_below_feet(t.silhouettes, t.boxes, score)
+        assert np.median(below[:, 3] / c.boxes[:, 3]) < 0.9
+        # a shadow at the feet is still cut below them, and a clean window not at all
+        low = tracks_from_sequence(damaged(walk, "shadow"))[cam]
+        _, boxes, kept, beside = trim_shadow(low.silhouettes, low.boxes, score)
+        assert not beside.any() and np.mean(kept < 1.0) > 0.9
+        assert np.median(np.abs(boxes[:, 3] / c.boxes[:, 3] - 1)) < 0.05
+        same, boxes, kept, beside = trim_shadow(c.silhouettes, c.boxes, score)
+        assert not beside.any() and np.all(kept == 1.0) and np.array_equal(boxes, c.boxes)
+
+
 def test_the_cuts_are_searched_only_where_the_walker_does_not_fit(walk, small_model):
     """A window whose uncut silhouettes fit the examples costs one scoring of its sampled
     frames; a shadowed one is searched over every cut (CleanupConfig.cut_search)."""
@@ -249,7 +278,7 @@ def test_the_cuts_are_searched_only_where_the_walker_does_not_fit(walk, small_mo
             assert scored[1] == config.cut_frames * (len(config.cuts) - 1)
 
 
-@pytest.mark.parametrize("kind", ["salt", "blobs", "shadow", "second_person"])
+@pytest.mark.parametrize("kind", ["salt", "blobs", "shadow", "side_shadow", "second_person"])
 def test_estimate_on_damaged_silhouettes_stays_near_the_clean_one(walk, small_model, kind):
     ref = estimate_walk(tracks_from_sequence(walk), small_model)
     est = estimate_walk(tracks_from_sequence(damaged(walk, kind)), small_model)

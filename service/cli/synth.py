@@ -33,7 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--elevations", type=_floats, help="camera elevations in degrees, e.g. 5,20")
     p.add_argument("--size", type=_floats, default=(640.0, 480.0), help="image width,height (default 640,480)")
     p.add_argument("--damage", help="damage the silhouettes as a real segmenter would: salt, blobs, holes, "
-                   "cut_limb, shadow, second_person, all, or kinds joined by '+' (truth.json stays clean)")
+                   "cut_limb, shadow, side_shadow, low_wall, second_person, all, or kinds joined by '+' (truth.json "
+                   "stays clean)")
     p.set_defaults(func=run)
 
 
