@@ -95,6 +95,29 @@ def _load_json(path: str) -> dict:
     return data
 
 
+def _binary(folder: str, frames: dict[int, np.ndarray], n: int) -> list[np.ndarray | None]:
+    """One camera's grayscale frames as 0/255 silhouettes (index = frame number).
+
+    A pixel > 127 is the walker, but for masks of two values, 0 and one other, as segmentation
+    tools write them in any encoding (0/1, a class index, a colour read as grey): that value.
+    Two-valued masks whose walker covers more than half of every frame and all four of its
+    borders are inverted (the walker written dark on light): a SequenceError says so.
+    """
+    values = np.flatnonzero(sum(np.bincount(f.ravel(), minlength=256) for f in frames.values()))
+    two = values.size == 2 and values[0] == 0
+    out = {k: np.where(f > (0 if two else 127), np.uint8(255), np.uint8(0)) for k, f in frames.items()}
+    if two and all(_inverted(f) for f in out.values()):
+        raise SequenceError(f"{folder}: the masks look inverted (value {values[1]} covers more than half of every "
+                            "frame and touches all its borders): write the walker as the non-zero value on 0")
+    return [out.get(k) for k in range(n)]
+
+
+def _inverted(sil: np.ndarray) -> bool:
+    """Whether a silhouette covers more than half its frame and all four borders."""
+    border = sil[0].any() and sil[-1].any() and sil[:, 0].any() and sil[:, -1].any()
+    return bool(border and np.count_nonzero(sil) > sil.size / 2)
+
+
 def read_sequence(path: str | os.PathLike) -> Sequence:
     """Read and validate a sequence folder of PNG silhouettes."""
     path = os.fspath(path)
@@ -128,10 +151,10 @@ def read_sequence(path: str | os.PathLike) -> Sequence:
                 raise SequenceError(f"{folder}/{name}: not a readable PNG")
             if image.shape[0] > height or image.shape[1] > width:
                 raise SequenceError(f"{folder}/{name}: {image.shape[1]}x{image.shape[0]} exceeds the image size {width}x{height}")
-            frames[int(stem)] = np.where(image > 127, np.uint8(255), np.uint8(0))
+            frames[int(stem)] = image
         if not frames:
             raise SequenceError(f"{folder}: no PNG silhouettes for camera {cam!r}")
-        silhouettes[cam] = [frames.get(k) for k in range(max(frames) + 1)]
+        silhouettes[cam] = _binary(folder, frames, max(frames) + 1)
     truth_path = os.path.join(path, "truth.json")
     truth = _load_json(truth_path) if os.path.exists(truth_path) else None
     extra = {k: v for k, v in rig.items() if k not in ("fps", "cameras", "image_size")}

@@ -111,6 +111,29 @@ def test_sequence_round_trip_and_errors(tmp_path):
         read_sequence(tmp_path)
 
 
+@pytest.mark.parametrize("value", [1, 15, 76])  # 0/1, a class index, a red walker read as grey
+def test_two_valued_masks_are_read_as_silhouettes(tmp_path, value):
+    """Segmentation tools write masks as 0 and one value, often not 255: read with the > 127 rule
+    they would be empty frames. A soft mask (0-255) keeps that rule, so its faint pixels are not
+    the walker; inverted masks are refused with a reason."""
+    import cv2
+
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=3, seed=0, image_size=(160, 120)))
+    write_sequence(tmp_path / "s", seq)
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / "s" / "c0" / f"{k:06d}.png"), (seq.silhouettes["c0"][k] > 0).astype(np.uint8) * value)
+        soft = np.where(seq.silhouettes["c1"][k] > 0, 200, 40).astype(np.uint8)  # faint everywhere
+        cv2.imwrite(str(tmp_path / "s" / "c1" / f"{k:06d}.png"), soft)
+    back = read_sequence(tmp_path / "s")
+    for k in range(3):
+        np.testing.assert_array_equal(back.silhouettes["c0"][k], seq.silhouettes["c0"][k])
+        np.testing.assert_array_equal(back.silhouettes["c1"][k], seq.silhouettes["c1"][k])
+    for k in range(3):  # the walker dark on light
+        cv2.imwrite(str(tmp_path / "s" / "c0" / f"{k:06d}.png"), (seq.silhouettes["c0"][k] == 0).astype(np.uint8) * value)
+    with pytest.raises(SequenceError, match="masks look inverted"):
+        read_sequence(tmp_path / "s")
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
