@@ -34,7 +34,7 @@ import numpy as np
 
 from .appearance import AppearanceModel
 from .body import PARTS
-from .cleanup import CleanupConfig, CleanupReport, check_plausible, select_walker, trim_shadow
+from .cleanup import CleanupConfig, CleanupReport, check_plausible, hidden_feet, select_walker, trim_shadow
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
@@ -763,6 +763,8 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
             cut = beside | below
             report.side_cut = int(beside.sum())
             report.cut, report.cut_kept = int(below.sum()), float(np.median(kept[below])) if below.any() else 1.0
+            if not below.any():  # a cut below the feet ends flat too
+                report.hidden = hidden_feet(sils, score, config=config)
         sils, boxes, reports[name] = check_plausible(sils, boxes, report,
                                                      image_size=t.image_size if t.full_frame else None, config=config)
         out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size, cut=cut)
