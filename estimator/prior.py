@@ -584,7 +584,9 @@ def priors_for_window(
     gait: GaitModel | None = None,
     first_index: int = 0,
 ) -> dict[str, list[Prior]]:
-    """Priors for every frame of every camera that has a silhouette and a viewpoint.
+    """Priors for every frame of every camera that has a silhouette and a viewpoint, but for a
+    camera whose walker's lowest part looks hidden (its estimate is not to be trusted there:
+    :func:`estimator.cleanup.hidden_feet`).
 
     Parameters
     ----------
@@ -626,6 +628,8 @@ def priors_for_window(
         cam = estimate.cameras.get(name)
         out[name] = []
         if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg):
+            continue
+        if cam.cleanup is not None and cam.cleanup.hidden:  # a wrong body: estimator.cleanup.hidden_feet
             continue
         rows = _known_frames(track)
         out[name] = _window_priors(estimate, cam, track, rows, size, renderer=renderer, config=config, gait=gait,
