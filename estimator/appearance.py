@@ -29,6 +29,7 @@ from ._cluster import fit_gmm, within_scatter
 from .examples import Examples
 from .exemplars import ExemplarIndex, pack
 from .joints import N_JOINTS
+from .occlusion import HiddenBelow, hidden_below
 from .registration import DEFAULT_SIZE, Transforms, _distance_flat, register, transform_points
 
 __all__ = [
@@ -130,6 +131,9 @@ class AppearanceModel:
         inputs with beyond the cluster means.
     params : BuildParams
         How the model was built.
+    hidden : HiddenBelow or None
+        Set on a model cut for a walker hidden below (:meth:`hidden_below`, not
+        saved); its ``gmm_*`` stay the whole body's.
     provenance : dict
         JSON-able description of the examples (renderer, body/gait version, ...).
     version : int
@@ -150,6 +154,7 @@ class AppearanceModel:
     params: BuildParams = field(default_factory=BuildParams)
     provenance: dict = field(default_factory=dict)
     version: int = FORMAT_VERSION
+    hidden: HiddenBelow | None = None
 
     def __post_init__(self) -> None:
         k = len(self.means)
@@ -238,9 +243,24 @@ class AppearanceModel:
 
     # -- matching (§5) --------------------------------------------------------------
     def register(self, silhouettes) -> tuple[np.ndarray, Transforms]:
-        """Register silhouettes with this model's canvas and settings (see :func:`register`)."""
+        """Register silhouettes with this model's canvas and settings (see :func:`register`; a model
+        cut for a walker hidden below registers the visible part as such and clears the same rows)."""
         p = self.params
-        return register(silhouettes, size=p.size, height_fraction=p.height_fraction, rotate=p.rotate)
+        if self.hidden is None:
+            return register(silhouettes, size=p.size, height_fraction=p.height_fraction, rotate=p.rotate)
+        reg, tf = register(silhouettes, size=p.size, height_fraction=p.height_fraction, rotate=p.rotate,
+                           hidden=self.hidden.fraction, top=self.hidden.top)
+        reg[:, self.hidden.rows:] = 0.0
+        return reg, tf
+
+    def hidden_below(self, fraction: float, *, compared: float | None = None) -> AppearanceModel:
+        """This model for a walker whose lowest ``fraction`` of the height is hidden (a low wall, the
+        image's bottom edge): :func:`estimator.occlusion.hidden_below`, built once per fraction."""
+        made = self.__dict__.setdefault("_hidden_below", {})
+        key = (round(float(fraction), 4), None if compared is None else round(float(compared), 4))
+        if key not in made:
+            made[key] = hidden_below(self, key[0], compared=key[1])
+        return made[key]
 
     def distances(self, silhouettes) -> np.ndarray:
         """Eq. 8 distance from each silhouette to each cluster mean.
@@ -512,6 +532,8 @@ def save_model(model: AppearanceModel, path: str | os.PathLike) -> Path:
     The file holds ``format_version``, a JSON ``meta`` (build parameters,
     provenance) and the arrays of :class:`AppearanceModel`.
     """
+    if model.hidden is not None:
+        raise ValueError("a model cut for a hidden walker is derived, not saved: save the whole one")
     path = Path(path)
     meta = {"format_version": model.version, "params": asdict(model.params),
             "provenance": model.provenance}

@@ -21,7 +21,7 @@ not make (docs/ROBUSTNESS.md):
 - ``low_wall``: the lowest 15-40 % of the walker hidden behind something in
   front of them (a low wall, a bench, a parked car);
 - ``all``: every one of the above on the same frames but ``side_shadow`` (one
-  light casts one shadow) and ``low_wall`` (not mended: docs/ROBUSTNESS.md).
+  light casts one shadow) and ``low_wall`` (a wall would hide the shadow at the feet).
 
 Each function takes one silhouette (uint8 0/255, full frame) and a
 ``numpy.random.Generator`` and returns a new array; :func:`damage_sequence`
@@ -222,8 +222,8 @@ _KINDS: dict[str, Callable] = {
 }
 DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
 """Damage kinds :func:`damage` knows, ``"all"`` applying every other one in turn but ``side_shadow``
-(one light casts one shadow: ``all`` has the one at the feet) and ``low_wall`` (a limit of the
-estimator, not a fault it mends: docs/ROBUSTNESS.md, "Limits")."""
+(one light casts one shadow: ``all`` has the one at the feet) and ``low_wall`` (a wall in front would
+hide the shadow at the feet with them; docs/ROBUSTNESS.md, "A walker hidden below")."""
 _ALL = tuple(k for k in _KINDS if k not in ("side_shadow", "low_wall"))
 
 

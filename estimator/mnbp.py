@@ -403,17 +403,20 @@ class SilhouetteView:
     comparison at the candidates' points, with no image-sized work per call.
     ``widths`` (B, parts) are the parts' widths in each image as fractions of
     its walker's height (default the model's, :data:`PARTS_2D`; the person's
-    own from :func:`person_widths`).
+    own from :func:`person_widths`). ``below`` (B,) rows under each image are
+    hidden (a wall in front, the frame's bottom edge: :mod:`estimator.occlusion`):
+    there, and on the border beside and below them, ``G = 0``, so a shin
+    behind the wall is neither pulled up onto the silhouette nor punished.
     """
 
     def __init__(self, silhouettes: list[np.ndarray], heights: np.ndarray, states: list[np.ndarray],
-                 widths: np.ndarray | None = None) -> None:
-        self.shapes = np.array([s.shape for s in silhouettes], np.int64).reshape(-1, 2)  # (B, 2): rows, columns
+                 widths: np.ndarray | None = None, below: np.ndarray | None = None) -> None:
+        below = np.zeros(len(silhouettes), np.int64) if below is None else np.asarray(below, np.int64)
+        self.shapes = np.array([s.shape for s in silhouettes], np.int64).reshape(-1, 2) + np.c_[below, 0 * below]
         padded = self.shapes + 2
         sizes = padded.prod(axis=1)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        self.base = np.concatenate([np.pad(np.where(s > 0, 1, -1).astype(np.int8), 1, constant_values=-1).ravel()
-                                    for s in silhouettes])
+        self.base = np.concatenate([_observed(s, k).ravel() for s, k in zip(silhouettes, below)])
         self.height = np.asarray(heights, float).reshape(len(silhouettes))
         self.widths = np.broadcast_to(MODEL_WIDTHS if widths is None else np.asarray(widths, float),
                                       (len(silhouettes), len(PARTS_2D)))
@@ -456,9 +459,19 @@ class SilhouetteView:
         """Per silhouette (B,): sum of ``G`` over the whole drawn body / silhouette area (1 = perfect)."""
         out = np.empty(len(self.height))
         for b in range(len(out)):
-            body, on = self._image(self.count, b) > 0, self._image(self.base, b) > 0
-            out[b] = (on[body].sum() - (~on)[body].sum() - on[~body].sum()) / max(1, on.sum())
+            body, g = self._image(self.count, b) > 0, self._image(self.base, b)
+            on, off = g > 0, g < 0
+            out[b] = (on[body].sum() - off[body].sum() - on[~body].sum()) / max(1, on.sum())
         return out
+
+
+def _observed(silhouette: np.ndarray, below: int) -> np.ndarray:
+    """``G`` of one image with its one-pixel border (:class:`SilhouetteView`): +1 on the silhouette,
+    -1 off it and on the border, 0 on ``below`` hidden rows under it and the border around those."""
+    g = np.pad(np.where(silhouette > 0, 1, -1).astype(np.int8), ((1, below + 1), (1, 1)), constant_values=-1)
+    if below:
+        g[-below - 1:] = 0
+    return g
 
 
 def anneal(beliefs: _Beliefs, log_phi, redraw, prior_energy, config: MNBPConfig, scale: np.ndarray | float) -> None:
@@ -493,16 +506,18 @@ def anneal(beliefs: _Beliefs, log_phi, redraw, prior_energy, config: MNBPConfig,
 
 def estimate_postures2d(silhouettes: list[np.ndarray], starts: np.ndarray, *, heights: np.ndarray | None = None,
                         priors: np.ndarray | None = None, seeds: list[int] | None = None,
-                        widths: np.ndarray | None = None, config: MNBPConfig = MNBPConfig()) -> list[Posture2D]:
+                        widths: np.ndarray | None = None, below: np.ndarray | None = None,
+                        config: MNBPConfig = MNBPConfig()) -> list[Posture2D]:
     """2D postures on several silhouettes at once (one frame's cameras): :func:`estimate_posture2d`
     for each, batched through the same array operations; each answer is the one
     :func:`estimate_posture2d` gives with ``config.seed`` = its seed (default: ``config.seed``).
     ``widths`` (B, parts or parts,): the parts' widths, fractions of each walker's height
-    (default the model's)."""
+    (default the model's). ``below`` (B,): rows of the walker hidden under each silhouette
+    (:class:`SilhouetteView`), counted in the default heights."""
     starts = np.asarray(starts, float)
     priors = starts if priors is None else np.asarray(priors, float)
     if heights is None:
-        heights = [image_height(s) for s in silhouettes]
+        heights = [image_height(s) + (0 if below is None else below[b]) for b, s in enumerate(silhouettes)]
     heights = np.asarray(heights, float)
     seeds = [config.seed] * len(silhouettes) if seeds is None else seeds
     rngs = [np.random.default_rng(s) for s in seeds]
@@ -513,7 +528,7 @@ def estimate_postures2d(silhouettes: list[np.ndarray], starts: np.ndarray, *, he
 
     beliefs = _Beliefs(batch(starts), heights, config, rngs)
     prior_states = batch(priors)
-    view = SilhouetteView(silhouettes, heights, [beliefs.best(i) for i in range(len(PARTS_2D))], widths)
+    view = SilhouetteView(silhouettes, heights, [beliefs.best(i) for i in range(len(PARTS_2D))], widths, below)
     anneal(beliefs, view.log_phi, view.redraw,
            lambda i, x: _prior_energy(i, x, prior_states[i], heights, config), config, heights)
     best = [beliefs.best(i) for i in range(len(PARTS_2D))]
@@ -583,8 +598,8 @@ def _prior_energy(i: int, x: np.ndarray, centre: np.ndarray, height: np.ndarray,
 
 def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np.ndarray], starts: list[np.ndarray],
                       *, config: MNBPConfig = MNBPConfig(), carry: float = 0.5, chain: int | None = 15,
-                      seeds: list[int] | None = None,
-                      widths: np.ndarray | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                      seeds: list[int] | None = None, widths: np.ndarray | None = None,
+                      hidden: list[np.ndarray | None] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """2D postures over several cameras' frames, in full-frame pixels.
 
     For camera *c*, ``silhouettes[c]`` are crops at ``boxes[c]`` (T, 4: x, y,
@@ -606,11 +621,13 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
     ``widths`` (parts,): the person's part widths, fractions of the walker's
     image height; by default the model's, or with ``config.fit_widths``
     measured on these silhouettes at the starts (:func:`person_widths`).
+    ``hidden[c]`` (T,): the share of the walker's height hidden below each
+    frame's silhouette (:attr:`estimator.pipeline.CameraTrack.hidden`).
     Returns per camera joints (T, 13, 2), NaN where no silhouette, and scores (T,).
     """
     n_cams = len(silhouettes)
     if widths is None and config.fit_widths:
-        widths = person_widths(silhouettes, boxes, starts)
+        widths = person_widths(silhouettes, boxes, starts, hidden=hidden)
     seeds = [config.seed] * n_cams if seeds is None else list(seeds)
     starts = [np.asarray(s, float) for s in starts]
     boxes = [np.asarray(b, float) for b in boxes]
@@ -637,13 +654,21 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
         ks = [k for k, _, _ in active]
         origin = np.stack([boxes[c][t, :2] for _, c, t in active])[:, None]
         model = np.stack([starts[c][t] for _, c, t in active])
+        below = [_hidden_rows(silhouettes[c][t], None if hidden is None else hidden[c], t) for _, c, t in active]
         posts = estimate_postures2d([silhouettes[c][t] for _, c, t in active],
                                     model + carry * correction[ks] - origin, priors=model - origin,
-                                    seeds=[seeds[c] + t for _, c, t in active], widths=widths, config=config)
+                                    seeds=[seeds[c] + t for _, c, t in active], widths=widths, below=below,
+                                    config=config)
         for (k, c, t), post, o, m in zip(active, posts, origin, model):
             out[c][t], scores[c][t] = post.joints + o, post.score
             correction[k] = out[c][t] - m
     return out, scores
+
+
+def _hidden_rows(silhouette: np.ndarray, hidden: np.ndarray | None, t: int) -> int:
+    """Rows of the walker hidden under a silhouette whose lowest ``hidden[t]`` of the height is hidden."""
+    f = 0.0 if hidden is None else float(hidden[t])
+    return int(round(image_height(silhouette) * f / (1.0 - f)))
 
 
 _LIMBS = tuple(i for i, p in enumerate(PARTS_2D) if i > 0 and p.name != "head")
@@ -654,8 +679,8 @@ _ALONG = np.linspace(0.25, 0.75, 7)  # where along a limb its width is read
 
 
 def person_widths(silhouettes: list[list[np.ndarray | None]], boxes: list[np.ndarray], joints: list[np.ndarray],
-                  *, share: float = 0.9, min_samples: int = 40,
-                  bounds: tuple[float, float] = (0.6, 1.6)) -> np.ndarray:
+                  *, share: float = 0.9, min_samples: int = 40, bounds: tuple[float, float] = (0.6, 1.6),
+                  hidden: list[np.ndarray | None] | None = None) -> np.ndarray:
     """The person's part widths (parts,), fractions of the walker's image height, read off the
     silhouettes where the limbs stand free (Wang–Leow §2: a part's size is person-specific).
 
@@ -676,15 +701,16 @@ def person_widths(silhouettes: list[list[np.ndarray | None]], boxes: list[np.nda
     seed 7 placed the joints best at 0.9: median 0.0175 / 0.0179 / 0.0186 at
     1.0, 0.0160 / 0.0168 / 0.0170 at 0.9, 0.0165 / 0.0167 / 0.0169 at 0.8 with
     worse p90s, on the CMU, stylised and model sets). Ratios to the model's
-    are held within ``bounds``.
+    are held within ``bounds``. ``hidden`` as for :func:`posture_sequences`
+    (the heights include what is hidden).
     """
     ratios: list[np.ndarray] = []
     kinds: list[np.ndarray] = []
-    for sils, bxs, js in zip(silhouettes, boxes, joints):
-        for sil, box, j in zip(sils, np.asarray(bxs, float), np.asarray(js, float)):
+    for c, (sils, bxs, js) in enumerate(zip(silhouettes, boxes, joints)):
+        for t, (sil, box, j) in enumerate(zip(sils, np.asarray(bxs, float), np.asarray(js, float))):
             if sil is None or not sil.any() or not (np.all(np.isfinite(box)) and np.all(np.isfinite(j))):
                 continue
-            r, k = _width_readings(sil, j - box[:2])
+            r, k = _width_readings(sil, j - box[:2], _hidden_rows(sil, None if hidden is None else hidden[c], t))
             ratios.append(r)
             kinds.append(k)
     widths = MODEL_WIDTHS.copy()
@@ -699,10 +725,10 @@ def person_widths(silhouettes: list[list[np.ndarray | None]], boxes: list[np.nda
     return widths * np.clip(share * scale, *bounds)
 
 
-def _width_readings(sil: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _width_readings(sil: np.ndarray, joints: np.ndarray, below: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """One silhouette's limb width readings (:func:`person_widths`): ratios to the model's width
-    and the limb kind of each."""
-    height = image_height(sil)
+    and the limb kind of each (``below``: rows of the walker hidden under it)."""
+    height = image_height(sil) + below
     states = states_from_joints(joints, height)
     drawn = np.zeros((len(PARTS_2D), *sil.shape), np.uint8)
     for i, x in enumerate(states):
@@ -759,9 +785,10 @@ def measure_postures(estimate: WalkEstimate, config: MNBPConfig = MNBPConfig()) 
         else:
             measured.append((k, name, cam, track))
     sils, boxes = [tr.silhouettes for *_, tr in measured], [tr.boxes for *_, tr in measured]
+    hidden = [tr.hidden for *_, tr in measured]
     starts = [cam.joints2d for _, _, cam, _ in measured]
-    widths = person_widths(sils, boxes, starts) if config.fit_widths and measured else None
-    joints, scores = posture_sequences(sils, boxes, starts, config=config, widths=widths,
+    widths = person_widths(sils, boxes, starts, hidden=hidden) if config.fit_widths and measured else None
+    joints, scores = posture_sequences(sils, boxes, starts, config=config, widths=widths, hidden=hidden,
                                        seeds=[config.seed + 1000 * k for k, *_ in measured])
     for (_, name, cam, _), j, s in zip(measured, joints, scores):
         cameras[name] = replace(cam, joints2d=j, model_joints2d=cam.joints2d, posture_score=s)

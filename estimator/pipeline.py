@@ -34,13 +34,15 @@ import numpy as np
 
 from .appearance import AppearanceModel
 from .body import PARTS
-from .cleanup import CleanupConfig, CleanupReport, check_plausible, hidden_feet, select_walker, trim_shadow
+from .cleanup import (CleanupConfig, CleanupReport, check_plausible, hidden_feet, on_bottom_edge, select_walker,
+                      trim_shadow)
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
 from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
 from .matchcache import MatchCache, derived, match
+from .occlusion import hidden_fraction
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import (FALL_MIN_ELEVATION_DEG, MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint,
@@ -157,6 +159,10 @@ class CameraTrack:
         :func:`estimator.cleanup.trim_beside_feet`): the silhouette's outline
         at the feet there is the cut, not the body's
         (:mod:`estimator.frontier` leaves them out). None: not cleaned.
+    hidden : ndarray of shape (T,), float, optional
+        Share of the walker's height hidden below each frame's silhouette (by
+        something in front, or the image's bottom edge; :mod:`estimator.occlusion`),
+        0 where nothing is. None: not cleaned.
     """
 
     silhouettes: list[np.ndarray | None]
@@ -164,6 +170,7 @@ class CameraTrack:
     full_frame: bool = True
     image_size: tuple[int, int] | None = None
     cut: np.ndarray | None = None
+    hidden: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.boxes = np.asarray(self.boxes, dtype=float)
@@ -173,6 +180,14 @@ class CameraTrack:
             self.cut = np.asarray(self.cut, bool)
             if self.cut.shape != (len(self.silhouettes),):
                 raise ValueError(f"cut must have shape ({len(self.silhouettes)},), got {self.cut.shape}")
+        if self.hidden is not None:
+            self.hidden = np.asarray(self.hidden, float)
+            if self.hidden.shape != (len(self.silhouettes),) or not np.all((self.hidden >= 0) & (self.hidden < 1)):
+                raise ValueError(f"hidden must have shape ({len(self.silhouettes)},) and values in [0, 1)")
+
+    def whole_heights(self) -> np.ndarray:
+        """Each frame's walker height in pixels with what is hidden below (:attr:`hidden`): (T,)."""
+        return self.boxes[:, 3] / (1.0 - (0.0 if self.hidden is None else self.hidden))
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickled with 0/255 silhouettes packed to bits: tracks travel between the service's
@@ -189,7 +204,7 @@ class CameraTrack:
         """The track on ``frames`` (indices, or a slice) only."""
         idx = np.arange(len(self.silhouettes))[frames]
         return CameraTrack([self.silhouettes[k] for k in idx], self.boxes[idx], self.full_frame, self.image_size,
-                           None if self.cut is None else self.cut[idx])
+                           None if self.cut is None else self.cut[idx], None if self.hidden is None else self.hidden[idx])
 
 
 def _pack_mask(mask: np.ndarray | None):
@@ -431,14 +446,16 @@ def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
     if all(e.tracks is not None for e in estimates):
         tracks = {}
         for name in names:
-            sils, boxes, cuts, ref = [], [], [], None
+            sils, boxes, cuts, hidden, ref = [], [], [], [], None
             for e, n in zip(estimates, lengths):
                 t = e.tracks.get(name)
                 sils += [None] * n if t is None else list(t.silhouettes)
                 boxes.append(np.full((n, 4), np.nan) if t is None else t.boxes)
                 cuts.append(np.zeros(n, bool) if t is None or t.cut is None else t.cut)
+                hidden.append(np.zeros(n) if t is None or t.hidden is None else t.hidden)
                 ref = t or ref
-            tracks[name] = CameraTrack(sils, np.concatenate(boxes), ref.full_frame, ref.image_size, np.concatenate(cuts))
+            tracks[name] = CameraTrack(sils, np.concatenate(boxes), ref.full_frame, ref.image_size, np.concatenate(cuts),
+                                       np.concatenate(hidden))
     posts = [e.phase_posterior for e in estimates]
     return WalkEstimate(
         phase=np.concatenate([e.phase for e in estimates]), states=np.concatenate([e.states for e in estimates]),
@@ -750,23 +767,29 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
     feet is cut off, below or beside them (:func:`estimator.cleanup.trim_shadow`); then frames
     whose walker is implausible are skipped (:func:`estimator.cleanup.check_plausible`:
     after the cut, so that a shadow reaching the image border does not count
-    as the walker cut by it).
+    as the walker cut by it). A walker hidden below, by something in front
+    (:func:`estimator.cleanup.hidden_feet`) or by the image's bottom edge, is
+    said in the report's ``hidden_by``; :func:`observe_cameras` matches it by
+    its visible part.
     """
     config = config or CleanupConfig()
     out, reports = {}, {}
     for name, t in tracks.items():
         sils, boxes, report = select_walker(t.silhouettes, t.boxes, config=config)
-        cut = np.zeros(len(sils), bool)
+        cut, front = np.zeros(len(sils), bool), False
         if score is not None:
             sils, boxes, kept, beside = trim_shadow(sils, boxes, score, config=config)
             below = kept < 1.0
             cut = beside | below
             report.side_cut = int(beside.sum())
             report.cut, report.cut_kept = int(below.sum()), float(np.median(kept[below])) if below.any() else 1.0
-            if not below.any():  # a cut below the feet ends flat too
-                report.hidden = hidden_feet(sils, score, config=config)
+            front = not below.any() and hidden_feet(sils, score, config=config) > 0  # a cut below the feet ends flat too
         sils, boxes, reports[name] = check_plausible(sils, boxes, report,
                                                      image_size=t.image_size if t.full_frame else None, config=config)
+        if t.full_frame and t.image_size is not None and on_bottom_edge(boxes, t.image_size):
+            report.hidden_by = "the image's bottom edge"
+        elif front:
+            report.hidden_by = "something in front"
         out[name] = CameraTrack(sils, boxes, full_frame=t.full_frame, image_size=t.image_size, cut=cut)
     return out, reports
 
@@ -827,12 +850,31 @@ class PhaseRefinement:
 
 
 def _cleaned(tracks: dict[str, CameraTrack], model: AppearanceModel, config: EstimateConfig,
-             cache: MatchCache | None) -> tuple[dict[str, CameraTrack], dict[str, CleanupReport]]:
+             cache: MatchCache | None, *, hidden: bool = True) -> tuple[dict[str, CameraTrack], dict[str, CleanupReport]]:
     """The tracks after the clean-up ``config`` asks for (:func:`clean_tracks`, shadows scored
-    with ``cache``), and its reports; as they are without one."""
+    with ``cache``), and its reports; as they are without one. With ``hidden``, the share of
+    the body hidden below a camera's walker is searched (:func:`estimator.occlusion.hidden_fraction`)."""
     if config.cleanup is None:
         return tracks, {}
-    return clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
+    tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
+    for name, report in reports.items():
+        if hidden and report.hidden_by:
+            t = tracks[name]
+            report.hidden, _ = hidden_fraction(model, t.silhouettes, config.cleanup.hidden_matched,
+                                               score=walker_score, frames=config.cleanup.cut_frames)
+            if not report.hidden:  # a whole body fits best: a shadow at the edge, flat feet
+                report.hidden_by = ""
+                continue
+            present = np.array([s is not None for s in t.silhouettes])
+            # The outline's bottom there is the wall's or the frame's (estimator.frontier leaves it out).
+            tracks[name] = replace(t, cut=t.cut | present, hidden=np.where(present, report.hidden, 0.0))
+    return tracks, reports
+
+
+def _camera_model(model: AppearanceModel, report: CleanupReport | None) -> AppearanceModel:
+    """The model a camera's walker is matched with: cut for a walker hidden below
+    (:meth:`AppearanceModel.hidden_below`), else ``model``."""
+    return model.hidden_below(report.hidden) if report is not None and report.hidden else model
 
 
 def _matched(track: CameraTrack, model: AppearanceModel, cache: MatchCache | None
@@ -872,14 +914,20 @@ def observe_cameras(
     if exemplars is not None and exemplars.n_phases != config.hmm.n_states:
         raise ValueError(f"exemplars have {exemplars.n_phases} phases, the HMM {config.hmm.n_states}")
     tracks, reports = _cleaned(tracks, model, config, cache)
+    whole, whole_cache = model, cache
     out: dict[str, CameraObservation] = {}
     for name, track in tracks.items():
+        model = _camera_model(whole, reports.get(name))
+        cache = whole_cache if model is whole else None  # a cache is bound to one model
+        if exemplars is not None:
+            exemplars = model.exemplars()
         T = len(track.silhouettes)
         labels = np.full(T, -1, np.int64)
         dist = np.full((T, model.n_clusters), np.inf, np.float32)
         cam_notes = []
         cue = motion_cue(track.boxes, head_points(track.silhouettes, track.boxes),
-                         feet_cut=name in reports and reports[name].cut > 0) if track.full_frame else None
+                         feet_cut=name in reports and (reports[name].cut > 0 or reports[name].hidden > 0)
+                         ) if track.full_frame else None
         note = reports[name].note() if name in reports else None
         if note:
             cam_notes.append(note)
@@ -945,13 +993,13 @@ def refine_cameras(
     ``registered`` are skipped.
     """
     config = config or EstimateConfig()
-    index = model.exemplars()
-    by_phase = _rows_by_phase(index)
+    by_phase = _rows_by_phase(model.exemplars())  # the members' order is the cut models' too
     out = {}
     for name, o in observations.items():
         if o.registered is None or o.present.size == 0:
             continue
         c = o.estimate
+        index = _camera_model(model, c.cleanup).exemplars()  # a cut model's observation has no cache keys
         vp, weight = _vote(_cloud_at_phases(index, by_phase, o.registered, states[o.present], config, cache, o.keys),
                            len(o.present), c.cue, config, ahead=(sides or {}).get(name))
         obs = np.full(len(states), np.nan)
@@ -1020,10 +1068,12 @@ def prime_cache(tracks: dict[str, CameraTrack], model: AppearanceModel, cache: M
     if config.method != "exemplars":
         return 0
     index = model.exemplars()
-    tracks, _ = _cleaned(tracks, model, config, cache)
+    tracks, reports = _cleaned(tracks, model, config, cache, hidden=False)
     by_phase = _rows_by_phase(index) if states is not None else None
     looked = 0
     for name, track in tracks.items():
+        if name in reports and reports[name].hidden_by:  # matched with a cut model, without the cache
+            continue
         present, registered, d, keys = _matched(track, model, cache)
         if not present.size:
             continue
@@ -1126,7 +1176,9 @@ def decode_walk(
     tracks = {name: o.track for name, o in observations.items()}
     for name, c in cams.items():
         if np.isfinite(c.viewpoint.azimuth_deg):
-            placed = _place_joints(person, config.body, c.viewpoint, tracks[name].boxes)
+            boxes = tracks[name].boxes.copy()
+            boxes[:, 3] = tracks[name].whole_heights()  # the whole body, below the visible part too
+            placed = _place_joints(person, config.body, c.viewpoint, boxes)
             c.joints2d = np.where(np.isfinite(tracks[name].boxes[:, :1, None]), placed, np.nan)
     return WalkEstimate(
         phase=phase,

@@ -585,8 +585,9 @@ def priors_for_window(
     first_index: int = 0,
 ) -> dict[str, list[Prior]]:
     """Priors for every frame of every camera that has a silhouette and a viewpoint, but for a
-    camera whose walker's lowest part looks hidden (its estimate is not to be trusted there:
-    :func:`estimator.cleanup.hidden_feet`).
+    camera whose walker's lowest part is hidden (by something in front or the image's bottom
+    edge: :mod:`estimator.occlusion`): a whole body drawn there would ask the segmenter for
+    what the wall hides.
 
     Parameters
     ----------
@@ -629,7 +630,7 @@ def priors_for_window(
         out[name] = []
         if cam is None or not np.isfinite(cam.viewpoint.azimuth_deg):
             continue
-        if cam.cleanup is not None and cam.cleanup.hidden:  # a wrong body: estimator.cleanup.hidden_feet
+        if cam.cleanup is not None and cam.cleanup.hidden_by:  # not the wall: estimator.occlusion
             continue
         rows = _known_frames(track)
         out[name] = _window_priors(estimate, cam, track, rows, size, renderer=renderer, config=config, gait=gait,

@@ -67,6 +67,8 @@ def register(
     height_fraction: float = _DEFAULT_HEIGHT_FRACTION,
     rotate: bool = True,
     binary: bool = True,
+    hidden: float = 0.0,
+    top: float | None = None,
 ) -> tuple[np.ndarray, Transforms]:
     """Register silhouettes to a common canvas (Izo–Grimson §5).
 
@@ -89,6 +91,16 @@ def register(
     binary : bool, keyword-only
         Threshold the resampled silhouette at 0.5 (values 0/1). If False, return the
         area-resampled fraction of foreground in each canvas pixel, in [0, 1].
+    hidden : float, keyword-only
+        Fraction of the walker's height hidden below the silhouettes (a low
+        wall, the image's bottom edge; :mod:`estimator.occlusion`), in [0, 1).
+        The extent is then ``1 - hidden`` of the body's and is scaled to that
+        share of the target height.
+    top : float, keyword-only
+        Place the top of the extent at this canvas row (where a whole
+        registered body's top lies; the centroid's column stays the centre's)
+        rather than the centroid at the centre, which a body without its
+        lowest part does not share. Required when ``hidden`` > 0.
 
     Returns
     -------
@@ -114,6 +126,8 @@ def register(
     h, w = _check_size(size)
     if not 0.0 < height_fraction <= 1.0:
         raise ValueError(f"height_fraction must be in (0, 1], got {height_fraction}")
+    if not 0.0 <= hidden < 1.0 or (hidden > 0.0 and top is None):
+        raise ValueError(f"hidden must be in [0, 1) and given with top, got hidden={hidden}, top={top}")
     if isinstance(silhouettes, np.ndarray):
         if silhouettes.ndim != 3:
             raise ValueError(f"silhouettes must have shape (T, H, W), got {silhouettes.shape}")
@@ -131,10 +145,10 @@ def register(
     centroid = np.full((t, 2), np.nan)
     height = np.zeros(t)
     valid = np.zeros(t, bool)
-    target = height_fraction * h
+    target = height_fraction * h * (1.0 - hidden)
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
     for i in range(t):
-        r = _register_one(items[i], out[i], target, centre, rotate, binary)
+        r = _register_one(items[i], out[i], target, centre, rotate, binary, top)
         if r is not None:
             matrix[i], scale[i], angle[i], centroid[i], height[i] = r
             valid[i] = True
@@ -147,8 +161,9 @@ def _check_size(size: tuple[int, int]) -> tuple[int, int]:
     return int(size[0]), int(size[1])
 
 
-def _register_one(sil, out, target, centre, rotate, binary):
-    """Register one silhouette into ``out`` (float32, zeros); None if it is empty."""
+def _register_one(sil, out, target, centre, rotate, binary, top=None):
+    """Register one silhouette into ``out`` (float32, zeros); None if it is empty. With ``top``, the
+    top of its extent goes to that canvas row (the centroid stays on the centre column)."""
     mask = np.asarray(sil)
     if mask.dtype != np.uint8:
         mask = (mask != 0).view(np.uint8)
@@ -179,6 +194,8 @@ def _register_one(sil, out, target, centre, rotate, binary):
     along = np.concatenate([-sn * (left - cx) + c * yr, -sn * (right - cx) + c * yr])
     extent = float(along.max() - along.min() + 1.0)
     s = target / extent
+    if top is not None:  # the extent's first row at canvas row ``top``
+        centre = np.array([centre[0], top - s * along.min()])
     # R(-angle) maps the axis to the vertical (0, 1).
     rot = np.array([[c, sn], [-sn, c]])
     # Area-averaged resize of the crop to the nearest integer size.

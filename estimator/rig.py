@@ -954,7 +954,8 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
     stature = config.height_m / stature_scale(pinhole.joints3d, config.height_m)
     # The person's part widths, read once where round one's posture projects (as the 2D round
     # reads them on its starts), serve every view of the 3D round and each view's polish.
-    widths = (person_widths(sils, list(boxes), list(project(pinhole.cameras(), pinhole.joints3d)))
+    hidden = [t.hidden for t in taken]
+    widths = (person_widths(sils, list(boxes), list(project(pinhole.cameras(), pinhole.joints3d)), hidden=hidden)
               if config.round3d.mnbp.fit_widths else None)
     changes = []
     for r in range(1, config.rounds):
@@ -965,7 +966,7 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
         if config.polish is not None:
             polished, scores = posture_sequences(sils, list(boxes), list(tracks), carry=0.0, config=config.polish,
                                                  seeds=[1000 * r + 100 * c for c in range(len(names))],
-                                                 widths=widths)
+                                                 widths=widths, hidden=hidden)
             tracks = np.stack(polished)
             weights = _low_weights(np.stack(scores), config)  # as round one's (_posture_weights)
             weights = None if weights is None else weights[..., None]

@@ -1,0 +1,111 @@
+"""A walker hidden below: matching what is visible of the body.
+
+A low wall, a bench or a parked car in front of the walker, or the image's
+bottom edge, hides the lowest part of the body. Izo–Grimson §5 registers a
+silhouette by its centroid, principal axis and height, so such a walker is
+placed and scaled as a whole, shorter body and matched with the wrong
+examples (docs/ROBUSTNESS.md, "A walker hidden below").
+
+Here the comparison is restricted to what both sides show. The examples
+stay as they were registered (whole bodies, their tops about one canvas
+row); the canvas is cut at the row that a body's ``1 - fraction`` of its
+height reaches from there, and the examples' means and exemplars lose the
+rows below it. The input is registered with its visible extent scaled to
+that share of the target height and its top on the examples' top row
+(:func:`estimator.registration.register`, ``hidden``), and loses the same
+rows. The hidden share itself is searched per window
+(:func:`hidden_fraction`): the one at whose scale the head and trunk fit
+the examples best; 0 if a whole body does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .appearance import AppearanceModel
+
+__all__ = ["HiddenBelow", "hidden_below", "hidden_fraction"]
+
+
+@dataclass(frozen=True)
+class HiddenBelow:
+    """How an appearance model's canvas is cut for a walker hidden below.
+
+    Attributes
+    ----------
+    fraction : float
+        Share of the body's height hidden below the silhouettes.
+    top : float
+        Canvas row of a whole registered body's first row (the examples' median).
+    rows : int
+        Canvas rows compared: ``0:rows``; the rest is cleared in the examples and inputs alike.
+    """
+
+    fraction: float
+    top: float
+    rows: int
+
+
+def hidden_below(model: AppearanceModel, fraction: float, *, compared: float | None = None) -> AppearanceModel:
+    """``model`` (an :class:`~estimator.appearance.AppearanceModel`) for a walker whose lowest
+    ``fraction`` of the height is hidden: its cluster means and exemplars cut below the rows such
+    a walker shows, and its registration placing the visible part as those rows (module docstring).
+    With ``compared``, the rows cut are those below the body's ``1 - compared`` instead
+    (:func:`hidden_fraction` compares every fraction on the same rows).
+
+    Prefer :meth:`AppearanceModel.hidden_below`, which builds each once.
+    """
+    compared = fraction if compared is None else compared
+    if not (0.0 <= fraction < 1.0 and 0.0 <= compared < 1.0):
+        raise ValueError(f"fraction and compared must be in [0, 1), got {fraction}, {compared}")
+    if model.hidden is not None:
+        raise ValueError("the model is already cut for a hidden walker")
+    h, w = model.size
+    n = model.n_examples
+    # Rows of whole bytes when the width is a multiple of 8 (the default canvas): no unpacking.
+    bits = (model.member_bits.reshape(n, h, w // 8) if w % 8 == 0
+            else np.unpackbits(model.member_bits, axis=1, count=h * w).reshape(n, h, w))
+    top = float(np.median(bits.any(axis=2).argmax(axis=1)))
+    rows = int(round(top + model.params.height_fraction * h * (1.0 - compared)))
+    bits = bits.copy()
+    bits[:, rows:] = 0
+    means = model.means.copy()
+    means[:, rows:] = 0.0
+    packed = bits.reshape(n, -1) if w % 8 == 0 else np.packbits(bits.reshape(n, -1), axis=1)
+    return replace(model, means=means, member_bits=packed, hidden=HiddenBelow(float(fraction), top, rows))
+
+
+def hidden_fraction(model: AppearanceModel, silhouettes: Sequence[np.ndarray | None], fractions: Sequence[float],
+                    score: Callable[[AppearanceModel, list[np.ndarray]], np.ndarray], *, frames: int = 8,
+                    compared: float = 0.4) -> tuple[float, np.ndarray]:
+    """The share of the body hidden below ``silhouettes`` (one camera's window, visible parts): the
+    one of ``fractions`` at which they fit the examples best.
+
+    Each fraction registers the silhouettes at its scale (their visible
+    extent is ``1 - fraction`` of a body's), and all are compared on the same
+    rows, the body's top ``1 - compared``: head and trunk, whose size then
+    tells the scale; a fraction above ``compared`` leaves some of those rows
+    empty and pays for it. Comparing each fraction on all the rows it shows
+    favours the largest (the legs, the hardest part to fit, drop out), and so
+    does a larger ``compared`` (real walkers are wider than the examples and
+    fit better shrunk): both measured on vtest.avi's walkers cut by the
+    image's bottom edge (docs/ROBUSTNESS.md). ``score(model, silhouettes)``
+    gives each silhouette's distance to the nearest example
+    (:func:`estimator.pipeline.walker_score`). Up to ``frames`` silhouettes,
+    evenly spaced, are scored. Returns the fraction and the mean score of each.
+    """
+    sils = [s for s in silhouettes if s is not None]
+    if not sils or not len(fractions):
+        raise ValueError("hidden_fraction needs silhouettes and fractions")
+    sils = [sils[i] for i in np.unique(np.linspace(0, len(sils) - 1, min(frames, len(sils))).astype(int))]
+    costs = np.empty(len(fractions))
+    for i, f in enumerate(fractions):
+        d = np.asarray(score(model.hidden_below(float(f), compared=compared), sils), float)
+        d = d[np.isfinite(d)]
+        costs[i] = d.mean() if d.size else np.inf
+    return float(fractions[int(np.argmin(costs))]), costs
