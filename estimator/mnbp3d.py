@@ -34,8 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from .joints import JOINT_INDEX, N_JOINTS
 from .pinhole import PinholeCameras, project
-from .mnbp import (_ATTACH, _INDEX, PARTS_2D, MNBPConfig, SilhouetteView, _Beliefs, anneal, image_height,
-                   limb_state, part_points, torso_state)
+from .mnbp import (_ATTACH, _INDEX, PARTS_2D, MNBPConfig, SilhouetteView, _Beliefs, _hidden_rows, anneal,
+                   image_height, limb_state, part_points, torso_state)
 
 __all__ = ["MNBP3DConfig", "Posture3D", "estimate_posture3d", "joints_from_states3d", "part_lengths",
            "posture_sequence3d", "postures3d", "states_from_joints3d"]
@@ -174,7 +174,8 @@ def part_lengths(joints3d: np.ndarray) -> np.ndarray:
 
 def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, cameras: PinholeCameras,
                starts: np.ndarray, *, stature: float, lengths: np.ndarray, config: MNBP3DConfig = MNBP3DConfig(),
-               seeds: list[int], widths: np.ndarray | None = None) -> list[Posture3D]:
+               seeds: list[int], widths: np.ndarray | None = None,
+               below: np.ndarray | None = None) -> list[Posture3D]:
     """3D postures of several frames at once, each from every view's silhouette (one batch).
 
     Parameters
@@ -196,6 +197,10 @@ def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, 
         The parts' widths as fractions of the walker's image height, the same in
         every view (the person's, :func:`estimator.mnbp.person_widths`); the
         model's by default.
+    below : list over frames of lists over cameras of int, optional
+        Rows of the walker hidden under each crop (a wall in front, the image's
+        bottom edge): neither walker nor background there
+        (:class:`estimator.mnbp.SilhouetteView`).
     """
     starts = np.asarray(starts, float)
     views = [(b, c) for b, sils in enumerate(silhouettes) for c, sil in enumerate(sils)
@@ -208,7 +213,8 @@ def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, 
     vb = np.array([slot[b] for b, _ in views])
     vc = np.array([c for _, c in views])
     origin = np.asarray(origins, float)[[b for b, _ in views], vc][:, None]  # (V, 1, 2)
-    heights = np.array([image_height(silhouettes[b][c]) for b, c in views])
+    hid = np.array([0 if below is None else below[b][c] for b, c in views], np.int64)  # per view
+    heights = np.array([image_height(silhouettes[b][c]) for b, c in views]) + hid
     first = np.flatnonzero(np.r_[True, vb[1:] != vb[:-1]])  # each problem's first view (views are by frame)
     per = [states_from_joints3d(starts[b]) for b in posed]
     start_states = [np.stack([p[i] for p in per]) for i in range(len(PARTS_2D))]
@@ -222,7 +228,7 @@ def postures3d(silhouettes: list[list[np.ndarray | None]], origins: np.ndarray, 
 
     beliefs = _Beliefs3D(start_states, stature, lengths, config, [np.random.default_rng(seeds[b]) for b in posed])
     view = SilhouetteView([silhouettes[b][c] for b, c in views], heights,
-                          [to_views(i, s[:, None])[:, 0] for i, s in enumerate(start_states)], widths)
+                          [to_views(i, s[:, None])[:, 0] for i, s in enumerate(start_states)], widths, hid)
     anneal(beliefs, lambda i, x: np.add.reduceat(view.log_phi(i, to_views(i, x)), first, axis=0),
            lambda i, best: view.redraw(i, to_views(i, best[:, None])[:, 0]),
            lambda i, x: _prior_energy3d(i, x, start_states[i], stature, config), config.mnbp, stature)
@@ -244,13 +250,16 @@ def estimate_posture3d(silhouettes: list[np.ndarray | None], origins: np.ndarray
 
 def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.ndarray, cameras: PinholeCameras,
                        starts: np.ndarray, *, stature: float, config: MNBP3DConfig = MNBP3DConfig(),
-                       seed: int = 0, widths: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       seed: int = 0, widths: np.ndarray | None = None,
+                       hidden: list[np.ndarray | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """3D postures (T, 13, 3) and scores (T,) of a segment, its frames solved as one batch
     (:func:`postures3d`, frame *t* with seed ``seed + t``, the parts ``widths`` wide).
 
     ``silhouettes[c][t]`` are crops at ``boxes[c, t]`` (x, y, w, h, full frame),
     ``starts`` (T, 13, 3) round one's joints; a frame whose start is not
     finite, or that no camera saw, keeps its start (NaN stays NaN).
+    ``hidden[c]`` (T,): the share of the walker's height hidden below each
+    of camera *c*'s crops (:attr:`estimator.pipeline.CameraTrack.hidden`).
     """
     starts = np.asarray(starts, float)
     lengths = part_lengths(starts)
@@ -259,8 +268,10 @@ def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.nda
     if not frames:
         return out, scores
     sils = [[s[t] if np.all(np.isfinite(boxes[c, t])) else None for c, s in enumerate(silhouettes)] for t in frames]
+    below = [[0 if s is None else _hidden_rows(s, None if hidden is None else hidden[c], t)
+              for c, s in enumerate(row)] for t, row in zip(frames, sils)]
     posts = postures3d(sils, np.moveaxis(boxes[:, frames, :2], 0, 1), cameras, starts[frames], stature=stature,
-                       lengths=lengths, config=config, seeds=[seed + t for t in frames], widths=widths)
+                       lengths=lengths, config=config, seeds=[seed + t for t in frames], widths=widths, below=below)
     for t, post in zip(frames, posts):
         out[t], scores[t] = post.joints, post.score
     return out, scores

@@ -961,7 +961,7 @@ def iterate_rounds(estimate: WalkEstimate, names: list[str], frames: np.ndarray,
     for r in range(1, config.rounds):
         cams = pinhole.cameras()
         joints3d, _ = posture_sequence3d(sils, boxes, cams, pinhole.joints3d, stature=stature,
-                                         config=config.round3d, seed=1000 * r, widths=widths)
+                                         config=config.round3d, seed=1000 * r, widths=widths, hidden=hidden)
         tracks, weights = project(cams, joints3d), None
         if config.polish is not None:
             polished, scores = posture_sequences(sils, list(boxes), list(tracks), carry=0.0, config=config.polish,

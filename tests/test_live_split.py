@@ -10,8 +10,10 @@ import time
 import numpy as np
 import pytest
 
+from estimator.damage import damage_sequence
 from estimator.matchcache import MatchCache
 from estimator.pipeline import estimate_walk, tracks_from_sequence
+from estimator.sequence import Sequence
 from estimator.synth import SynthSpec, synthesize
 from estimator.windows import window_tracks
 from service.worker import (WindowBefore, camera_shares, estimate_window, json_safe, make_pinned_pools,
@@ -165,3 +167,22 @@ def test_an_early_look_is_done_once_when_its_last_process_is():
     a.set_result(1)
     assert isinstance(both.exception(), ValueError)
     assert _all_of([]).result() == 0
+
+
+def test_a_walker_behind_a_wall_split_over_two_processes_is_the_one_process_estimate(pools, small_model):
+    """Cameras whose walker is hidden below (estimator.occlusion) are matched against a cut model that
+    each process builds for itself, without the match cache; their tracks carry the hidden share
+    across the processes. Split, and looked at early, the window is the one-process estimate."""
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=20, seed=5, azimuths=(60.0, 150.0, 250.0),
+                               elevations=(10.0, 10.0, 5.0), image_size=(320, 240)))
+    walled = damage_sequence(seq.silhouettes, "low_wall", seed=0)
+    tracks = tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size, walled, seq.truth))
+    sizes = {c: seq.image_size for c in tracks}
+    alone = estimate_walk(tracks, small_model)
+    expected = json_safe(alone.to_result(first_index=0))
+    warm_window(pools, "wall", window_tracks(tracks, 0, 10), list(range(10))).result(timeout=60)
+    result, _, _, est = estimate_window(pools, "wall", tracks, list(range(20)), sizes)
+    _same(result, expected)
+    for cam, c in result["cameras"].items():
+        assert any("hidden by something in front" in n for n in c["notes"]), cam
+        assert est.tracks[cam].hidden.max() == alone.tracks[cam].hidden.max() > 0.1
