@@ -20,8 +20,11 @@ not make (docs/ROBUSTNESS.md):
 - ``second_person``: another walker of similar size elsewhere in the frame;
 - ``low_wall``: the lowest 15-40 % of the walker hidden behind something in
   front of them (a low wall, a bench, a parked car);
+- ``fixed_wall``: the same wall fixed in the image, as a real one is: every
+  row below one row of the camera's frame hidden, so the share hidden changes
+  as the walker nears or recedes (15-40 % at the camera's median walker box);
 - ``all``: every one of the above on the same frames but ``side_shadow`` (one
-  light casts one shadow) and ``low_wall`` (a wall would hide the shadow at the feet).
+  light casts one shadow) and the walls (a wall would hide the shadow at the feet).
 
 Each function takes one silhouette (uint8 0/255, full frame) and a
 ``numpy.random.Generator`` and returns a new array; :func:`damage_sequence`
@@ -40,7 +43,7 @@ import numpy as np
 from .joints import JOINT_NAMES
 
 __all__ = ["DAMAGE_KINDS", "damage", "damage_sequence", "detector_keypoints", "parse_damage", "salt", "blobs", "holes",
-           "cut_limb", "shadow", "side_shadow", "low_wall", "second_person"]
+           "cut_limb", "shadow", "side_shadow", "low_wall", "fixed_wall", "second_person"]
 
 _J = {name: i for i, name in enumerate(JOINT_NAMES)}
 # (upper joint, end joint) of the limbs a cut can remove: forearms and shins.
@@ -183,6 +186,27 @@ def low_wall(sil: np.ndarray, rng: np.random.Generator, *, hidden: tuple[float, 
     return out
 
 
+def fixed_wall(sil: np.ndarray, rng: np.random.Generator, *, row: int | None = None,
+               hidden: tuple[float, float] = (0.15, 0.4)) -> np.ndarray:
+    """Hide every row of the frame from ``row`` down (a wall's top edge, fixed in the image);
+    without a ``row``, :func:`low_wall` on this frame (:func:`damage_sequence` gives each camera one)."""
+    if row is None:
+        return low_wall(sil, rng, hidden=hidden)
+    out = sil.copy()
+    out[max(0, int(row)):] = 0
+    return out
+
+
+def _wall_row(frames: list[np.ndarray | None], rng: np.random.Generator,
+              hidden: tuple[float, float] = (0.15, 0.4)) -> int | None:
+    """The row of a camera's fixed wall: ``hidden`` (drawn) of its median walker box above that box's bottom."""
+    boxes = np.array([b for b in (_box(s) for s in frames if s is not None) if b is not None], float)
+    if not len(boxes):
+        return None
+    bottom, height = np.median(boxes[:, 1] + boxes[:, 3]), np.median(boxes[:, 3])
+    return int(round(bottom - float(rng.uniform(*hidden)) * height))
+
+
 def second_person(sil: np.ndarray, rng: np.random.Generator, *, scale: tuple[float, float] = (0.6, 0.9)) -> np.ndarray:
     """Add another walker: the silhouette mirrored, rescaled (a bystander a little
     farther away) and moved at least one body width aside (clipped by the frame if
@@ -214,6 +238,7 @@ _KINDS: dict[str, Callable] = {
     "shadow": shadow,
     "side_shadow": side_shadow,
     "low_wall": low_wall,
+    "fixed_wall": fixed_wall,
     "holes": holes,
     "cut_limb": cut_limb,
     "second_person": second_person,
@@ -222,12 +247,12 @@ _KINDS: dict[str, Callable] = {
 }
 DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
 """Damage kinds :func:`damage` knows, ``"all"`` applying every other one in turn but ``side_shadow``
-(one light casts one shadow: ``all`` has the one at the feet) and ``low_wall`` (a wall in front would
+(one light casts one shadow: ``all`` has the one at the feet) and the walls (a wall in front would
 hide the shadow at the feet with them; docs/ROBUSTNESS.md, "A walker hidden below")."""
-_ALL = tuple(k for k in _KINDS if k not in ("side_shadow", "low_wall"))
+_ALL = tuple(k for k in _KINDS if k not in ("side_shadow", "low_wall", "fixed_wall"))
 
 
-_STEADY = ("shadow", "side_shadow", "low_wall", "second_person")  # one draw per camera over a sequence
+_STEADY = ("shadow", "side_shadow", "low_wall", "fixed_wall", "second_person")  # one draw per camera
 _SCALED = ("holes", "blobs")  # sized by the walker's box (and cut_limb, which also takes the joints)
 
 
@@ -242,12 +267,13 @@ def parse_damage(kind: str) -> tuple[str, ...]:
 
 
 def damage(sil: np.ndarray, kind: str, rng: np.random.Generator, joints2d: np.ndarray | None = None, *,
-           steady_rng: np.random.Generator | None = None) -> np.ndarray:
+           steady_rng: np.random.Generator | None = None, wall_row: int | None = None) -> np.ndarray:
     """Apply damage ``kind`` (one of :data:`DAMAGE_KINDS`, or kinds joined by ``+``) to one
     full-frame silhouette.
 
     ``joints2d`` (13, 2), the frame's true joints, is used by ``cut_limb``;
-    ``steady_rng`` (default ``rng``) draws the shadow and the second person.
+    ``steady_rng`` (default ``rng``) draws the shadow and the second person;
+    ``wall_row`` is ``fixed_wall``'s row.
     Holes, the cut and blobs are sized (and blobs kept away) by the walker's
     box in ``sil``, not by the silhouette as damaged so far (a shadow or a
     bystander would make them larger and push blobs onto the walker).
@@ -263,6 +289,8 @@ def damage(sil: np.ndarray, kind: str, rng: np.random.Generator, joints2d: np.nd
             out = cut_limb(out, r, joints2d, box=walker)
         elif k in _SCALED:
             out = _KINDS[k](out, r, box=walker)
+        elif k == "fixed_wall":
+            out = fixed_wall(out, r, row=wall_row)
         else:
             out = _KINDS[k](out, r)
     return out
@@ -273,14 +301,15 @@ def damage_sequence(silhouettes: dict[str, list[np.ndarray | None]], kind: str, 
     """Damage every full-frame silhouette of every camera; None frames stay None.
 
     The second person and the shadow keep one placement per camera over the
-    sequence (drawn once per camera), as a bystander or a light would; the
-    other damage is drawn afresh per frame. ``truth`` (a sequence's truth
-    dict) gives ``cut_limb`` the true joints.
+    sequence (drawn once per camera), as a bystander or a light would, and
+    ``fixed_wall`` one row of the frame; the other damage is drawn afresh per
+    frame. ``truth`` (a sequence's truth dict) gives ``cut_limb`` the true joints.
     """
     out = {}
     for c, (cam, frames) in enumerate(silhouettes.items()):
         rng = np.random.default_rng([seed, c])
         steady = int(rng.integers(2**31))  # one draw per camera for placement-like damage
+        row = _wall_row(frames, np.random.default_rng([seed, c, steady, 1])) if "fixed_wall" in kind else None
         damaged = []
         for t, sil in enumerate(frames):
             if sil is None:
@@ -290,7 +319,7 @@ def damage_sequence(silhouettes: dict[str, list[np.ndarray | None]], kind: str, 
             if truth is not None:
                 j2d = np.asarray(truth["frames"][t]["joints2d"].get(cam, np.full((13, 2), np.nan)), float)
             damaged.append(damage(sil, kind, np.random.default_rng([seed, c, t]), j2d,
-                                  steady_rng=np.random.default_rng([seed, c, steady])))
+                                  steady_rng=np.random.default_rng([seed, c, steady]), wall_row=row))
         out[cam] = damaged
     return out
 

@@ -40,7 +40,22 @@ def test_damage_is_reproducible_and_checked(walk):
         damage(sil, "smudge", np.random.default_rng(1))
     # one light casts one shadow: "all" has the one at the feet
     assert "shadow" in parse_damage("all") and "side_shadow" not in parse_damage("all")
-    assert "low_wall" not in parse_damage("all")
+    assert "low_wall" not in parse_damage("all") and "fixed_wall" not in parse_damage("all")
+
+
+def test_a_fixed_wall_stays_on_one_row_of_each_camera_while_the_walker_moves(walk):
+    """``fixed_wall`` hides every row below one row of each camera's frame (a real wall's edge),
+    so the share of the walker hidden changes as the walker nears; ``low_wall`` hides one share."""
+    def rows(s):
+        return np.flatnonzero(s.any(axis=1))
+
+    for kind, spread in (("fixed_wall", (0.05, 1.0)), ("low_wall", (0.0, 0.02))):
+        walled = damage_sequence(walk.silhouettes, kind, seed=0)
+        for cam, frames in walled.items():
+            share = np.array([1 - np.ptp(rows(d)) / np.ptp(rows(s)) for d, s in zip(frames, walk.silhouettes[cam])])
+            assert 0.1 < np.median(share) < 0.45 and spread[0] <= np.ptp(share) <= spread[1], (kind, cam)
+            if kind == "fixed_wall":
+                assert len({rows(d)[-1] for d in frames}) == 1, cam  # one row above the wall's edge
 
 
 def test_combined_damage_is_sized_by_the_walker_and_blobs_stay_away_from_it():
