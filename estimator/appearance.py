@@ -259,7 +259,7 @@ class AppearanceModel:
         made = self.__dict__.setdefault("_hidden_below", {})
         key = (round(float(fraction), 4), None if compared is None else round(float(compared), 4))
         if key not in made:
-            made[key] = hidden_below(self, key[0], compared=key[1])
+            made[key] = hidden_below(self, key[0], compared=key[1], cuts=self.__dict__.setdefault("_cuts", {}))
         return made[key]
 
     def distances(self, silhouettes) -> np.ndarray:

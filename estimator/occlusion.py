@@ -51,14 +51,18 @@ class HiddenBelow:
     rows: int
 
 
-def hidden_below(model: AppearanceModel, fraction: float, *, compared: float | None = None) -> AppearanceModel:
+def hidden_below(model: AppearanceModel, fraction: float, *, compared: float | None = None,
+                 cuts: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> AppearanceModel:
     """``model`` (an :class:`~estimator.appearance.AppearanceModel`) for a walker whose lowest
     ``fraction`` of the height is hidden: its cluster means and exemplars cut below the rows such
     a walker shows, and its registration placing the visible part as those rows (module docstring).
     With ``compared``, the rows cut are those below the body's ``1 - compared`` instead
     (:func:`hidden_fraction` compares every fraction on the same rows).
 
-    Prefer :meth:`AppearanceModel.hidden_below`, which builds each once.
+    ``cuts`` maps a row count to the means and packed exemplars cut there, shared (read-only)
+    by every cut model of that row count and filled here: the fractions searched on the same
+    rows differ only in their registration. Prefer :meth:`AppearanceModel.hidden_below`, which
+    builds each model once and keeps the cuts.
     """
     compared = fraction if compared is None else compared
     if not (0.0 <= fraction < 1.0 and 0.0 <= compared < 1.0):
@@ -72,11 +76,14 @@ def hidden_below(model: AppearanceModel, fraction: float, *, compared: float | N
             else np.unpackbits(model.member_bits, axis=1, count=h * w).reshape(n, h, w))
     top = float(np.median(bits.any(axis=2).argmax(axis=1)))
     rows = int(round(top + model.params.height_fraction * h * (1.0 - compared)))
-    bits = bits.copy()
-    bits[:, rows:] = 0
-    means = model.means.copy()
-    means[:, rows:] = 0.0
-    packed = bits.reshape(n, -1) if w % 8 == 0 else np.packbits(bits.reshape(n, -1), axis=1)
+    cuts = {} if cuts is None else cuts
+    if rows not in cuts:
+        bits = bits.copy()
+        bits[:, rows:] = 0
+        means = model.means.copy()
+        means[:, rows:] = 0.0
+        cuts[rows] = means, bits.reshape(n, -1) if w % 8 == 0 else np.packbits(bits.reshape(n, -1), axis=1)
+    means, packed = cuts[rows]
     return replace(model, means=means, member_bits=packed, hidden=HiddenBelow(float(fraction), top, rows))
 
 
