@@ -9,7 +9,7 @@ each estimated clean and with every damage of :mod:`estimator.damage`
 pairs of them, and all together), with the default clean-up before
 registration and without it (``EstimateConfig(cleanup=None)``). Prints, per
 damage, the azimuth error distribution, its change from the clean estimate,
-the phase accuracy after the HMM, the time of the whole estimate and of the
+the phase accuracy after the HMM, the elevation error, the time of the whole estimate and of the
 clean-up alone (:func:`estimator.pipeline.clean_tracks`, timed separately)
 per frame and camera; writes the report and a box plot (a run with
 ``--kinds`` writes neither unless ``--report``/``--plot`` are given).
@@ -48,7 +48,8 @@ TARGET_MEDIAN, TARGET_P90 = 2.0, 5.0  # issue 17: within this of the clean resul
 def run(model, n: int, seed: int, kinds: list[str]) -> dict:
     """Per (variant, kind): per-camera azimuth errors, and per-sequence phase accuracy."""
     variants = {"clean-up (default)": EstimateConfig(), "no clean-up": EstimateConfig(cleanup=None)}
-    rows = {(v, k): {"az": [], "phase": [], "ms": [], "cleanup_ms": []} for v in variants for k in ["clean", *kinds]}
+    rows = {(v, k): {"az": [], "el": [], "phase": [], "ms": [], "cleanup_ms": []} for v in variants
+            for k in ["clean", *kinds]}
     motions = {}
     items = specs(n, seed)
     items = items[:n] + items[-10:-8] + items[-5:-3]  # two sequences driven by each CMU walk
@@ -73,20 +74,23 @@ def run(model, n: int, seed: int, kinds: list[str]) -> dict:
                     est = estimate_walk(tracks, model, config=config)
                 except ValueError:  # nothing left of the walker: count as a failure
                     r["az"].extend([180.0] * len(seq.cameras))
+                    r["el"].extend([90.0] * len(seq.cameras))
                     r["phase"].append(0.0)
                     continue
                 r["ms"].append(1000 * (time.perf_counter() - t0) / (len(seq.cameras) * seq.n_frames))
                 for cam in seq.cameras:
                     a = est.cameras[cam].viewpoint.azimuth_deg
                     r["az"].append(180.0 if not np.isfinite(a) else float(az_err(a, truth["cameras"][cam]["azimuth_deg"])))
+                    e = est.cameras[cam].viewpoint.elevation_deg
+                    r["el"].append(90.0 if not np.isfinite(e) else abs(e - truth["cameras"][cam]["elevation_deg"]))
                 r["phase"].append(float(np.mean(ph_err(est.phase, true_phase) <= 0.05)))
     return rows
 
 
 def table(rows: dict, kinds: list[str]) -> tuple[str, dict]:
     lines = ["| damage | variant | azimuth median | p90 | median change from clean | p90 change | phase within 1/20 "
-             "| ms per frame and camera | of which clean-up |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| elevation median / p90 | ms per frame and camera | of which clean-up |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     verdict = {}
     variants = list(dict.fromkeys(v for v, _ in rows))
     for kind in ["clean", *kinds]:
@@ -97,7 +101,8 @@ def table(rows: dict, kinds: list[str]) -> tuple[str, dict]:
             cms = f"{np.median(r['cleanup_ms']):.2f}" if r["cleanup_ms"] else "-"
             ms = f"{np.median(r['ms']):.2f}" if r["ms"] else "-"
             lines.append(f"| {kind} | {v} | {np.median(az):.1f} | {np.percentile(az, 90):.1f} | {dmed:+.1f} | {dp90:+.1f} "
-                         f"| {np.mean(r['phase']):.1%} | {ms} | {cms} |")
+                         f"| {np.mean(r['phase']):.1%} | {np.median(r['el']):.1f} / {np.percentile(r['el'], 90):.1f} "
+                         f"| {ms} | {cms} |")
             if v == variants[0] and kind != "clean":
                 verdict[kind] = (dmed <= TARGET_MEDIAN and dp90 <= TARGET_P90, dmed, dp90)
     return "\n".join(lines), verdict

@@ -610,9 +610,14 @@ def _trim(silhouettes: list[np.ndarray | None], boxes: np.ndarray, score: Callab
     return out, boxes, kept, beside
 
 
+def evenly_spaced(n: int, k: int) -> np.ndarray:
+    """Indices of up to ``k`` of ``n`` items, evenly spaced from the first to the last."""
+    return np.unique(np.linspace(0, n - 1, min(k, n)).astype(int))
+
+
 def _sample(present: np.ndarray, config: CleanupConfig) -> np.ndarray:
     """Up to ``cut_frames`` of the frames ``present``, evenly spaced."""
-    return present[np.unique(np.linspace(0, present.size - 1, min(config.cut_frames, present.size)).astype(int))]
+    return present[evenly_spaced(present.size, config.cut_frames)]
 
 
 def _searched(silhouettes: list[np.ndarray | None], present: np.ndarray,

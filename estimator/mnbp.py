@@ -57,6 +57,7 @@ import cv2
 import numpy as np
 
 from .joints import JOINT_INDEX, N_JOINTS
+from .occlusion import whole_height
 
 if TYPE_CHECKING:
     from .pipeline import WalkEstimate
@@ -667,8 +668,8 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
 
 def _hidden_rows(silhouette: np.ndarray, hidden: np.ndarray | None, t: int) -> int:
     """Rows of the walker hidden under a silhouette whose lowest ``hidden[t]`` of the height is hidden."""
-    f = 0.0 if hidden is None else float(hidden[t])
-    return int(round(image_height(silhouette) * f / (1.0 - f)))
+    h = image_height(silhouette)
+    return int(round(whole_height(h, 0.0 if hidden is None else float(hidden[t])) - h))
 
 
 _LIMBS = tuple(i for i, p in enumerate(PARTS_2D) if i > 0 and p.name != "head")

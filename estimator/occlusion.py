@@ -26,10 +26,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .cleanup import evenly_spaced
+
 if TYPE_CHECKING:
     from .appearance import AppearanceModel
 
-__all__ = ["HiddenBelow", "hidden_below", "hidden_fraction"]
+__all__ = ["HiddenBelow", "hidden_below", "hidden_fraction", "whole_height"]
+
+
+def whole_height(visible: np.ndarray | float, share: np.ndarray | float) -> np.ndarray | float:
+    """The walker's whole image height from the visible part's, its lowest ``share`` hidden below."""
+    return visible / (1.0 - share)
 
 
 @dataclass(frozen=True)
@@ -109,7 +116,7 @@ def hidden_fraction(model: AppearanceModel, silhouettes: Sequence[np.ndarray | N
     sils = [s for s in silhouettes if s is not None]
     if not sils or not len(fractions):
         raise ValueError("hidden_fraction needs silhouettes and fractions")
-    sils = [sils[i] for i in np.unique(np.linspace(0, len(sils) - 1, min(frames, len(sils))).astype(int))]
+    sils = [sils[i] for i in evenly_spaced(len(sils), frames)]
     costs = np.empty(len(fractions))
     for i, f in enumerate(fractions):
         d = np.asarray(score(model.hidden_below(float(f), compared=compared), sils), float)

@@ -42,11 +42,11 @@ from .gait import GaitModel, load_gait
 from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
 from .matchcache import MatchCache, derived, match
-from .occlusion import hidden_fraction
+from .occlusion import hidden_fraction, whole_height
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import (FALL_MIN_ELEVATION_DEG, MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint,
-                        head_points, motion_cue)
+                        head_points, motion_cue, with_path_elevation)
 
 __all__ = ["CameraObservation", "CameraTrack", "EstimateConfig", "PhaseRefinement", "WalkEstimate", "clean_tracks",
            "concat_estimates", "decode_walk", "estimable_frames", "estimate_walk", "extrapolate_states",
@@ -108,6 +108,11 @@ class EstimateConfig:
         path in the image decides if its viewpoint is at least this far above
         the walker (:func:`estimator.viewpoint.estimate_viewpoint`); ``inf``
         never.
+    path_elevation : bool
+        Join each camera's elevation with the one its walker's image path
+        implies (:func:`estimator.viewpoint.with_path_elevation`): the shape
+        tells the elevation mostly by the legs, which a wall or the frame's
+        edge may hide.
     """
 
     method: str = "exemplars"
@@ -127,6 +132,7 @@ class EstimateConfig:
     settle_margin: float = 0.5
     settle_min_cos: float = 0.5
     fall_min_elevation_deg: float = FALL_MIN_ELEVATION_DEG
+    path_elevation: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in ("exemplars", "paper"):
@@ -187,7 +193,13 @@ class CameraTrack:
 
     def whole_heights(self) -> np.ndarray:
         """Each frame's walker height in pixels with what is hidden below (:attr:`hidden`): (T,)."""
-        return self.boxes[:, 3] / (1.0 - (0.0 if self.hidden is None else self.hidden))
+        return whole_height(self.boxes[:, 3], 0.0 if self.hidden is None else self.hidden)
+
+    def whole_boxes(self) -> np.ndarray:
+        """:attr:`boxes` with the heights of :meth:`whole_heights` (the top row is the silhouette's): (T, 4)."""
+        boxes = self.boxes.copy()
+        boxes[:, 3] = self.whole_heights()
+        return boxes
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickled with 0/255 silhouettes packed to bits: tracks travel between the service's
@@ -925,7 +937,8 @@ def observe_cameras(
         labels = np.full(T, -1, np.int64)
         dist = np.full((T, model.n_clusters), np.inf, np.float32)
         cam_notes = []
-        cue = motion_cue(track.boxes, head_points(track.silhouettes, track.boxes),
+        boxes = track.whole_boxes()  # heights, and the head's depth, of the whole body
+        cue = motion_cue(boxes, head_points(track.silhouettes, boxes),
                          feet_cut=name in reports and (reports[name].cut > 0 or reports[name].hidden > 0)
                          ) if track.full_frame else None
         note = reports[name].note() if name in reports else None
@@ -1176,9 +1189,9 @@ def decode_walk(
     tracks = {name: o.track for name, o in observations.items()}
     for name, c in cams.items():
         if np.isfinite(c.viewpoint.azimuth_deg):
-            boxes = tracks[name].boxes.copy()
-            boxes[:, 3] = tracks[name].whole_heights()  # the whole body, below the visible part too
-            placed = _place_joints(person, config.body, c.viewpoint, boxes)
+            if config.path_elevation:
+                c.viewpoint = with_path_elevation(c.viewpoint, c.cue)
+            placed = _place_joints(person, config.body, c.viewpoint, tracks[name].whole_boxes())
             c.joints2d = np.where(np.isfinite(tracks[name].boxes[:, :1, None]), placed, np.nan)
     return WalkEstimate(
         phase=phase,

@@ -40,6 +40,7 @@ import scipy.optimize
 import scipy.special
 
 from .camera import Camera
+from .cleanup import evenly_spaced
 from .gait import GaitModel, load_gait
 from .joints import N_JOINTS
 from .pipeline import CameraTrack, WalkEstimate
@@ -636,7 +637,7 @@ def priors_for_window(
         out[name] = _window_priors(estimate, cam, track, rows, size, renderer=renderer, config=config, gait=gait,
                                    first_index=first_index)
         if config.trust and rows:
-            sample = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, config.trust_window).astype(int))]
+            sample = [rows[i] for i in evenly_spaced(len(rows), config.trust_window)]
             rival = _rival_agreement(estimate, cam, track, sample, size, renderer=renderer, config=config, gait=gait)
             out[name] = trusted_priors(out[name], cam.viewpoint, config, rival=rival)[0]
         if config.same_phase:

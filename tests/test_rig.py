@@ -16,7 +16,7 @@ from estimator.gait import load_gait
 from estimator.joints import JOINT_INDEX as J
 from estimator.joints import N_JOINTS
 from estimator.mnbp import measure_postures
-from estimator.pipeline import estimate_walk, tracks_from_sequence
+from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence
 from estimator.perspective import perspective_refine
 from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig, person_frame,
                            rotations_from_viewpoints, segment_lengths, smoothed, viewpoint_rotations)
@@ -196,8 +196,8 @@ def test_the_viewpoints_rig_aims_each_camera_at_its_silhouettes(walk):
     size = np.array(seq.image_size, float)
     centres = {c: np.nanmean(t.boxes[:, :2] + t.boxes[:, 2:] / 2, axis=0) - size / 2 for c, t in est.tracks.items()}
     off = {c: np.degrees(np.arctan(np.linalg.norm(v) / size[0])) for c, v in centres.items()}
-    turned = [geodesic_deg(a, b) for a, b in zip(aimed, plain)]
-    assert turned[0] < 1e-6 and max(turned) > 0.5 and max(turned) < 2 * max(off.values()) + 1.0, (turned, off)
+    turned = [geodesic_deg(a, b) for a, b in zip(aimed, plain)]  # the reference: 0 to arccos's precision
+    assert turned[0] < 1e-4 and max(turned) > 0.5 and max(turned) < 2 * max(off.values()) + 1.0, (turned, off)
     centred = replace(est, tracks={c: replace(t, boxes=t.boxes - np.r_[centres[c], 0, 0]) for c, t in est.tracks.items()})
     np.testing.assert_allclose(viewpoint_rotations(centred, focal_widths=1.0), plain, atol=1e-6)
     crops = replace(est, tracks={c: replace(t, full_frame=False) for c, t in est.tracks.items()})
@@ -410,11 +410,20 @@ def test_joined_stretches_take_the_medoid_viewpoint(walk):
     assert len(joined.phase) == 18 and joined.cameras["c1"].joints2d.shape == (18, N_JOINTS, 2)
 
 
-def test_the_rig_is_refined_on_the_silhouettes_tangents(walk):
+def test_the_rig_is_refined_on_the_silhouettes_tangents(walk, small_model):
     """The pinhole cameras adjusted to the measured postures are moved onto the silhouettes' epipolar
-    tangents (estimator.frontier): nearer the true rig than without, and the posture refitted to them."""
-    seq, _, measured = walk
+    tangents (estimator.frontier): nearer the true rig than without, and the posture refitted to them.
+    Started from the shape's elevations alone (12 deg off without the tangents), they bring the rig within
+    2 deg; from the default's, joined with the walker's path (3.2 deg off without), to 2.6 (the tangents'
+    optimum on this 320 x 240 walk is not the truth, and where they stop depends on the start)."""
+    seq, _, default = walk
     truth = _true_rig(seq)
+    plain, rig = calibrate_rig(default, RigConfig(tangents=None)), calibrate_rig(default)
+    before = [geodesic_deg(a, b) for a, b in zip(plain.rotations[1:], truth[1:])]
+    after = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], truth[1:])]
+    assert max(after) < max(before) < 4.0, (before, after)  # 3.2 / 2.6 -> 2.6 / 2.0 deg
+    shape = estimate_walk(tracks_from_sequence(seq), small_model, config=EstimateConfig(path_elevation=False))
+    measured = measure_postures(shape)
     plain = calibrate_rig(measured, RigConfig(tangents=None))
     rig = calibrate_rig(measured)
     assert any("epipolar tangents (" in n for n in rig.notes), rig.notes
@@ -425,7 +434,7 @@ def test_the_rig_is_refined_on_the_silhouettes_tangents(walk):
     assert said["residual_px"][1] < said["residual_px"][0] and "epipolar_tangents" not in plain.to_dict()
     before = [geodesic_deg(a, b) for a, b in zip(plain.rotations[1:], truth[1:])]
     after = [geodesic_deg(a, b) for a, b in zip(rig.rotations[1:], truth[1:])]
-    assert max(after) < 0.5 * max(before) and max(after) < 2.0, (before, after)  # 11.6 / 6.3 -> 1.1 / 1.1 deg
+    assert max(after) < 0.5 * max(before) and max(after) < 2.0, (before, after)  # 12.2 / 7.3 -> 1.8 / 1.3 deg
     # the posture is the one the held cameras see: its projection is near the measured 2D postures
     true3d = np.array([f["joints3d"] for f in seq.truth["frames"]])
     assert np.median(aligned_error(rig.joints3d, true3d)) < 1.1 * np.median(aligned_error(plain.joints3d, true3d))

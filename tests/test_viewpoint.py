@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from estimator.synth import SynthSpec, synthesize
-from estimator.viewpoint import MotionCue, estimate_viewpoint, head_points, motion_cue
+from estimator.viewpoint import (MotionCue, Viewpoint, elevation_from_path, estimate_viewpoint, head_points, motion_cue,
+                                 with_path_elevation)
 
 
 def cloud(rng, az, el, n=300, spread=6.0):
@@ -157,3 +158,38 @@ def test_head_points_skip_missing_frames_and_few_heads_fall_back_to_the_height()
     boxes[:, 3] = 50.0  # constant whole-pixel heights: no growth, but a finite error (no false certainty)
     cue = motion_cue(boxes, np.where(np.arange(8)[:, None] < 3, heads, np.nan))  # 3 heads: not enough
     assert cue.source == "height" and cue.growth == 0.0 and cue.growth_se > 0 and cue.signs()[0] == 0
+
+
+@pytest.mark.parametrize("az", [20.0, 140.0, 230.0, 320.0, 80.0])
+@pytest.mark.parametrize("el", [-15.0, 30.0])
+def test_the_heads_path_tells_the_elevation(az, el):
+    """A walker moving along a straight line moves down the image by ``sin e cos a`` for ``-sin a``
+    across it: at the true azimuth the head's path gives the elevation within 2 deg (4 deg within 10
+    deg of a side view, where the path is nearly level whatever the elevation), and says so."""
+    seq = synthesize(SynthSpec(n_cameras=1, n_frames=30, seed=3, azimuths=(az,), elevations=(el,),
+                               image_size=(320, 240)))
+    cue = motion_cue(*_boxes_and_heads(seq.silhouettes["c0"]))
+    e, se = elevation_from_path(cue, az, 0.0)
+    side = abs(az % 180 - 90) <= 10
+    assert abs(e - el) <= (4.0 if side else 2.0) and 0 < se < 3.0
+    # an uncertain azimuth widens the error; one that may lie across the side view leaves no sign
+    assert elevation_from_path(cue, az, 5.0)[1] > se
+    assert np.isnan(elevation_from_path(cue, az, 6.0 if side else 90.0)[0])
+
+
+def test_the_paths_elevation_joins_the_shapes_by_their_errors():
+    """The shape's elevation 20 deg off with 12 deg of spread moves most of the way to the path's,
+    whose error is smaller; without a path, or with one that says nothing, nothing moves."""
+    seq = synthesize(SynthSpec(n_cameras=1, n_frames=30, seed=3, azimuths=(40.0,), elevations=(25.0,),
+                               image_size=(320, 240)))
+    cue = motion_cue(*_boxes_and_heads(seq.silhouettes["c0"]))
+    shape = Viewpoint(42.0, 5.0, np.diag([64.0, 144.0]), 12.0, "motion", 1.0, 500)
+    joined = with_path_elevation(shape, cue)
+    assert joined.elevation_from == "shape+path" and joined.azimuth_deg == shape.azimuth_deg
+    assert abs(joined.elevation_deg - 25.0) < 0.35 * 20.0 and joined.covariance[1, 1] < shape.covariance[1, 1]
+    assert joined.to_dict()["elevation_from"] == "shape+path"
+    assert with_path_elevation(shape, None) is shape
+    level = MotionCue(growth=0.0, travel=0.05, n_frames=30)  # no head path measured
+    assert with_path_elevation(shape, level) is shape
+    side = with_path_elevation(Viewpoint(95.0, 5.0, np.diag([64.0, 144.0]), 12.0, "motion", 1.0, 500), cue)
+    assert side.elevation_from == "shape" and side.elevation_deg == 5.0
