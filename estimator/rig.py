@@ -188,9 +188,8 @@ class RigConfig:
     hidden_weight : float
         The weight there of a joint mNBP placed below a silhouette whose lowest
         part is hidden (a wall in front, the frame's bottom edge:
-        :func:`hidden_joints`), which the scaled-orthographic start leaves out
-        altogether: placed by the articulation, not measured, but the only
-        evidence of a shin that no camera sees. On the CMU walks of
+        :func:`hidden_joints`): placed by the articulation, not measured, but
+        the only evidence of a shin that no camera sees. On the CMU walks of
         ``bench/eval_rig_from_silhouettes.py --seed 23 --damage low_wall``:
         0.05 took the 3D posture from 0.031 to 0.042 of the stature (the
         ankles 0.040 -> 0.071) for the same rotations; 0.3 keeps it at 0.031.

@@ -21,8 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "circular_mean_deg", "elevation_from_path", "estimate_viewpoint",
-           "head_points", "motion_cue", "with_path_elevation"]
+__all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "circular_mean_deg", "elevation_from_path",
+           "estimate_viewpoint", "head_points", "motion_cue", "with_path_elevation"]
 
 
 def azimuth_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
