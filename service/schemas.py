@@ -173,6 +173,9 @@ class ResultCamera(_Open):
     flip: str = Field(description="how ahead/behind was settled: motion, cameras, majority or none")
     flip_margin: float | None
     n_samples: int
+    elevation_from: Literal["shape", "shape+path"] = Field(
+        "shape", description="the elevation from the matched examples' viewpoints, or joined with the one the "
+                             "walker's straight path across the image implies")
     motion_cue: MotionCue | None
     notes: list[str]
     decoded_frames: int | None = Field(None, description="videos: frames that decoded")
