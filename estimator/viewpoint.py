@@ -299,9 +299,9 @@ def with_path_elevation(vp: Viewpoint, cue: MotionCue | None) -> Viewpoint:
     """The viewpoint with its elevation and the path's (:func:`elevation_from_path`, at its own
     azimuth and the azimuth's spread) joined by their variances; unchanged without a path.
 
-    On the CMU walks of ``bench/eval_rig_from_silhouettes.py`` (seed 23, 36 cameras) the shape's
-    elevation is 2.2 / 9.0 deg off (median / p90) and the joined one 2.0 / 7.1; behind a low wall
-    (the legs hidden, 34 cameras) 10.5 / 19.4 and 5.9 / 11.1.
+    On the held-out walks of ``bench/eval_damage.py --seed 13`` the shape's elevation is 2.6 / 6.4
+    deg off (median / p90) and the joined one 1.3 / 5.0; behind a low wall (the legs hidden)
+    7.1 / 18.1 and 4.0 / 15.8.
     """
     if cue is None or not (np.isfinite(vp.azimuth_deg) and np.isfinite(vp.elevation_deg)):
         return vp
