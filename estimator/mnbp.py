@@ -655,7 +655,7 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
         ks = [k for k, _, _ in active]
         origin = np.stack([boxes[c][t, :2] for _, c, t in active])[:, None]
         model = np.stack([starts[c][t] for _, c, t in active])
-        below = [_hidden_rows(silhouettes[c][t], None if hidden is None else hidden[c], t) for _, c, t in active]
+        below = [_hidden_rows(silhouettes[c][t], hidden, c, t) for _, c, t in active]
         posts = estimate_postures2d([silhouettes[c][t] for _, c, t in active],
                                     model + carry * correction[ks] - origin, priors=model - origin,
                                     seeds=[seeds[c] + t for _, c, t in active], widths=widths, below=below,
@@ -666,10 +666,12 @@ def posture_sequences(silhouettes: list[list[np.ndarray | None]], boxes: list[np
     return out, scores
 
 
-def _hidden_rows(silhouette: np.ndarray, hidden: np.ndarray | None, t: int) -> int:
-    """Rows of the walker hidden under a silhouette whose lowest ``hidden[t]`` of the height is hidden."""
+def _hidden_rows(silhouette: np.ndarray, hidden: list[np.ndarray | None] | None, c: int, t: int) -> int:
+    """Rows of the walker hidden under camera *c*'s silhouette of frame *t*, whose lowest
+    ``hidden[c][t]`` of the height is hidden (``hidden`` as for :func:`posture_sequences`)."""
     h = image_height(silhouette)
-    return int(round(whole_height(h, 0.0 if hidden is None else float(hidden[t])) - h))
+    share = 0.0 if hidden is None or hidden[c] is None else float(hidden[c][t])
+    return int(round(whole_height(h, share) - h))
 
 
 _LIMBS = tuple(i for i, p in enumerate(PARTS_2D) if i > 0 and p.name != "head")
@@ -711,7 +713,7 @@ def person_widths(silhouettes: list[list[np.ndarray | None]], boxes: list[np.nda
         for t, (sil, box, j) in enumerate(zip(sils, np.asarray(bxs, float), np.asarray(js, float))):
             if sil is None or not sil.any() or not (np.all(np.isfinite(box)) and np.all(np.isfinite(j))):
                 continue
-            r, k = _width_readings(sil, j - box[:2], _hidden_rows(sil, None if hidden is None else hidden[c], t))
+            r, k = _width_readings(sil, j - box[:2], _hidden_rows(sil, hidden, c, t))
             ratios.append(r)
             kinds.append(k)
     widths = MODEL_WIDTHS.copy()

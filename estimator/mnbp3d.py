@@ -268,7 +268,7 @@ def posture_sequence3d(silhouettes: list[list[np.ndarray | None]], boxes: np.nda
     if not frames:
         return out, scores
     sils = [[s[t] if np.all(np.isfinite(boxes[c, t])) else None for c, s in enumerate(silhouettes)] for t in frames]
-    below = [[0 if s is None else _hidden_rows(s, None if hidden is None else hidden[c], t)
+    below = [[0 if s is None else _hidden_rows(s, hidden, c, t)
               for c, s in enumerate(row)] for t, row in zip(frames, sils)]
     posts = postures3d(sils, np.moveaxis(boxes[:, frames, :2], 0, 1), cameras, starts[frames], stature=stature,
                        lengths=lengths, config=config, seeds=[seed + t for t in frames], widths=widths, below=below)

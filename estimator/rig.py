@@ -574,7 +574,7 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
         return fallback
     fused, weight = _fuse(cal.rotations, cal.euler_xyz_std_deg, views, config.viewpoint_sigma_deg)
     low = None if keypoints is not None else _posture_weights(estimate, names, config)
-    weights = None if keypoints is not None else _joint_weights(low, below, config)
+    weights = _joint_weights(low, below, config)  # None for keypoints: no posture scores, nothing below
     weights = None if weights is None else weights[use][:, frames]
     used = tracks[use][:, frames]  # the postures the pinhole stages fit
     pinhole, why_not = _pinhole(estimate, [names[c] for c in use], used, fused, cal.scales, config, views, weights,
