@@ -59,7 +59,7 @@ import cv2
 import numpy as np
 
 __all__ = ["CleanupConfig", "CleanupReport", "bounding_box", "check_plausible", "isolate_walker", "select_walker",
-           "trim_below_feet", "trim_beside_feet", "trim_shadow", "hidden_feet", "on_bottom_edge"]
+           "trim_below_feet", "trim_beside_feet", "trim_shadow", "hidden_feet", "fixed_edge", "on_bottom_edge"]
 
 
 @dataclass(frozen=True)
@@ -151,6 +151,12 @@ class CleanupConfig:
         summed score by this fraction of the silhouettes' own (walls on
         bench/eval_damage.py's seed 7: 0.26-0.74, bar one camera at 0.12;
         vtest.avi's walkers that end as flat, cut by nothing: 0.18).
+    fixed_share : float
+        :func:`fixed_edge`: a camera's silhouettes end on an edge fixed in the
+        image (a wall's top, the frame's bottom) when at least this share of
+        the frames with one end within a row of the same image row and they
+        end flat (``hidden_flat``). A walker's feet move down or up the image
+        as they near or recede and lift in every step; a wall's edge does not.
     hidden_matched : tuple of float
         Fractions of the body searched for a walker hidden below (by
         something in front, as above, or by the image's bottom edge), which is
@@ -182,6 +188,7 @@ class CleanupConfig:
     hidden: tuple[float, ...] = (0.15, 0.25, 0.35, 0.45)
     hidden_flat: float = 0.6
     hidden_gain: float = 0.25
+    fixed_share: float = 0.8
     hidden_matched: tuple[float, ...] = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
 
 
@@ -200,6 +207,7 @@ class CleanupReport:
     side_cut: int = 0  # frames cut by trim_beside_feet
     hidden: float = 0.0  # the share of the body hidden below the silhouettes (estimator.occlusion)
     hidden_by: str = ""  # what hides it: "something in front" (hidden_feet) or "the image's bottom edge"
+    fixed_edge: bool = False  # the silhouettes end on an edge fixed in the image (fixed_edge)
     kept_mask: np.ndarray | None = None  # (T,) bool
 
     def note(self) -> str | None:
@@ -217,8 +225,10 @@ class CleanupReport:
             parts.append(f"cut beside the feet on {self.side_cut} frames: what lay to one side of the legs did not "
                          "fit a walker (a shadow cast sideways)")
         if self.hidden_by:
-            why = ("the silhouettes end in a straight cut, and fit the examples better made up below it: a low wall, "
-                   "a bench or a car?" if self.hidden_by == "something in front" else "the walker stands on it")
+            why = ("the walker stands on it" if self.hidden_by == "the image's bottom edge" else
+                   "the silhouettes end on one image row, in a straight cut: a low wall, a bench or a car?"
+                   if self.fixed_edge else "the silhouettes end in a straight cut, and fit the examples better made "
+                   "up below it: a low wall, a bench or a car?")
             parts.append(f"the walker's lowest {self.hidden:.0%} looks hidden by {self.hidden_by} ({why}); matched "
                          "by the visible part (docs/ROBUSTNESS.md, \"A walker hidden below\")")
         if self.cut:
@@ -765,6 +775,33 @@ def hidden_feet(silhouettes: list[np.ndarray | None], score: Callable[[list[np.n
     along = np.minimum(_scores(score, trials), uncut[:, :1])  # (frames, fractions)
     k = int(np.argmin(along.sum(axis=0)))
     return float(fractions[k]) if 1.0 - along[:, k].sum() / uncut[:, 0].sum() >= config.hidden_gain else 0.0
+
+
+def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
+               config: CleanupConfig | None = None) -> bool:
+    """Whether one camera's silhouettes end on an edge fixed in the image: a wall's top, a car's
+    bonnet or the frame's bottom, in front of the walker.
+
+    A wall moves with nothing: the silhouettes' bottom stays on one image row
+    (within a row on ``fixed_share`` of the frames with a box, six at least)
+    while the walker nears or recedes, and ends flat there (the median sampled
+    frame's lowest tenth, ``hidden_flat``). Neither alone is enough: a walker
+    seen from the side keeps their feet near one row, and feet in a shoe
+    can end flat. Such a walker's visible height is not their size (it
+    shrinks as a walker comes nearer to a camera that looks over the wall),
+    so :func:`estimator.occlusion.hidden_shares` gives each frame its own
+    share, and :func:`estimator.viewpoint.motion_cue` reads the growth from
+    the head alone. ``boxes`` are the silhouettes' ``(x, y, w, h)`` in the full frame.
+    """
+    config = config or CleanupConfig()
+    b = np.asarray(boxes, float)
+    present = np.array([t for t, s in enumerate(silhouettes) if s is not None and np.isfinite(b[t, 3])], int)
+    if present.size < 6:
+        return False
+    bottom = b[present, 1] + b[present, 3]
+    if np.mean(np.abs(bottom - np.median(bottom)) <= 1.0) < config.fixed_share:
+        return False
+    return bool(np.median([_flat_bottom(silhouettes[t]) for t in _sample(present, config)]) >= config.hidden_flat)
 
 
 def on_bottom_edge(boxes: np.ndarray, image_size: tuple[int, int]) -> bool:

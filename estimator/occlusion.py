@@ -31,12 +31,31 @@ from .cleanup import evenly_spaced
 if TYPE_CHECKING:
     from .appearance import AppearanceModel
 
-__all__ = ["HiddenBelow", "hidden_below", "hidden_fraction", "whole_height"]
+__all__ = ["HiddenBelow", "hidden_below", "hidden_fraction", "hidden_shares", "whole_height"]
 
 
 def whole_height(visible: np.ndarray | float, share: np.ndarray | float) -> np.ndarray | float:
     """The walker's whole image height from the visible part's, its lowest ``share`` hidden below."""
     return visible / (1.0 - share)
+
+
+def hidden_shares(visible: np.ndarray, growth: float, share: float, *, most: float = 0.9) -> np.ndarray:
+    """Each frame's hidden share behind an edge fixed in the image (:func:`estimator.cleanup.fixed_edge`).
+
+    The visible heights ``visible`` (T,) (NaN where none) are the edge's row
+    less the walker's top, which tells nothing of the walker's size; the
+    whole height grows by ``growth`` per frame (log scale, the head's path:
+    :func:`estimator.viewpoint.motion_cue`), ``exp(c + growth t)``, with ``c``
+    such that the median frame hides ``share`` (the window's, from
+    :func:`hidden_fraction`). Shares are clipped to ``[0, most]``; NaN stays NaN.
+    """
+    h = np.asarray(visible, float)
+    t = np.arange(h.size, dtype=float)
+    ok = np.isfinite(h) & (h > 0)
+    if not ok.any():
+        return np.full(h.shape, np.nan)
+    c = np.log(np.median(h[ok] * np.exp(-growth * t[ok]))) - np.log1p(-share)
+    return np.clip(1.0 - h / np.exp(c + growth * t), 0.0, most)
 
 
 @dataclass(frozen=True)

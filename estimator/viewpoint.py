@@ -54,7 +54,9 @@ class MotionCue:
     source : str
         What ``growth`` was measured from: ``"head"`` (the perspective curvature
         of the head's image path), ``"height"`` (the silhouette's height), or
-        ``"head+height"`` (both, weighted by their errors).
+        ``"head+height"`` (both, weighted by their errors); ``"none"`` when
+        neither could be (the heights end on a fixed edge and the head's path
+        was not measured: ``growth_se`` is infinite).
     conflict : bool
         The head and the height disagreed (by more than ``motion_cue``'s
         ``conflict`` errors) and one of them was dropped: the sign of
@@ -186,7 +188,7 @@ def _theil_sen(t: np.ndarray, y: np.ndarray, *, floor: float = 0.0) -> tuple[flo
 
 
 def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: bool = False,
-               conflict: float = 3.0) -> MotionCue | None:
+               heights: bool = True, conflict: float = 3.0) -> MotionCue | None:
     """Fit the walker's motion from full-frame boxes (and head points).
 
     Parameters
@@ -206,6 +208,12 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
         errors, the head alone counts if the feet were cut, the height alone
         otherwise (a walker who speeds up or slows down bends the head's path
         as approaching would: CMU 07_05).
+    heights : bool
+        False when the silhouettes' heights are not the walker's size: they end
+        on an edge fixed in the image (:func:`estimator.cleanup.fixed_edge`), and
+        the visible part shrinks as the walker nears a camera that looks over a
+        wall. The growth is then the head's alone, and 0 with an infinite error
+        (no evidence) without a head path.
 
     Returns
     -------
@@ -223,10 +231,10 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     # Robust slopes (Theil-Sen: median of pairwise slopes) resist a bad frame.
     # Heights are whole pixels: their log is known to 1 / (sqrt(12) h) at best.
     pixel = 1.0 / (np.sqrt(12.0) * np.median(h))  # a whole-pixel edge, in walker heights
-    growth, se = _theil_sen(t, np.log(h), floor=pixel)
+    growth, se = _theil_sen(t, np.log(h), floor=pixel) if heights else (0.0, float("inf"))
     travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
     fall, fall_se = (0.0, float("inf")) if feet_cut else _theil_sen(t, (y + h) / np.median(h), floor=pixel)
-    source, conflict_seen = "height", False
+    source, conflict_seen = "height" if heights else "none", False
     velocity, velocity_cov = MotionCue.head_velocity, MotionCue.head_velocity_cov
     if heads is not None:
         heads = np.asarray(heads, dtype=float)
@@ -240,7 +248,9 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
             travel, _ = _theil_sen(th, heads[hk, 0] / np.median(h))
             velocity = (float(path.velocity[0] / np.median(h)), float(path.velocity[1] / np.median(h)))
             velocity_cov = tuple(map(tuple, path.velocity_cov / np.median(h) ** 2))
-            if np.isfinite(se_head):
+            if not heights:
+                growth, se, source = g_head, se_head, "head"
+            elif np.isfinite(se_head):
                 if abs(growth - g_head) > conflict * np.hypot(se, se_head):
                     conflict_seen = True
                     if feet_cut:

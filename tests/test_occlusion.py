@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from estimator.appearance import save_model
-from estimator.cleanup import CleanupConfig
+from estimator.cleanup import CleanupConfig, fixed_edge
 from estimator.joints import JOINT_INDEX
 from estimator.mnbp import posture_sequences
 from estimator.mnbp3d import posture_sequence3d
@@ -12,11 +12,11 @@ from estimator.damage import damage_sequence
 from estimator.mnbp import measure_postures
 from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence, walker_score
 from estimator.rig import calibrate_rig, hidden_joints
-from estimator.occlusion import hidden_fraction
+from estimator.occlusion import hidden_fraction, hidden_shares
 from estimator.registration import register
 from estimator.sequence import Sequence
 from estimator.synth import SynthSpec, synthesize
-from estimator.viewpoint import azimuth_difference_deg
+from estimator.viewpoint import azimuth_difference_deg, head_points, motion_cue
 
 FRACTIONS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
 
@@ -186,3 +186,67 @@ def test_behind_a_wall_the_elevation_comes_from_the_path_and_hidden_joints_weigh
     rig = calibrate_rig(measured)
     assert rig.source == "self-calibration"
     assert any(f"joints placed below a silhouette hidden below weighed {0.3}" in n for n in rig.notes), rig.notes
+
+
+def _heights(frames):
+    return np.array([np.nan if s is None or not s.any() else np.ptp(np.flatnonzero(s.any(axis=1))) + 1.0
+                     for s in frames])
+
+
+def test_each_frame_behind_a_fixed_wall_hides_its_own_share():
+    """A wall's edge is fixed in the image: as the walker nears a camera that looks over it, more of
+    them is hidden and the visible height shrinks. The whole height follows the head's growth, so
+    the share per frame comes back exactly from the growth and the window's median share."""
+    t = np.arange(30.0)
+    whole = 120.0 * np.exp(0.012 * t)  # nearing: 120 -> 170 px
+    visible = 100.0 - 0.2 * (whole - 120.0)  # the head comes down towards the edge: 100 -> 90 px
+    truth = 1.0 - visible / whole
+    got = hidden_shares(visible, 0.012, float(np.median(truth)))
+    assert np.allclose(got, truth, atol=1e-9) and truth[-1] - truth[0] > 0.25
+    with_gap = visible.copy()
+    with_gap[[3, 7]] = np.nan
+    assert np.isnan(hidden_shares(with_gap, 0.012, 0.3)[[3, 7]]).all()
+    assert np.all(hidden_shares(visible, 0.05, 0.3, most=0.8) <= 0.8)  # clipped
+
+
+def test_a_fixed_wall_is_told_by_its_row_and_the_walker_size_by_the_head(small_model):
+    """Behind a wall fixed in the image (``fixed_wall``), cameras 5 m away look down 25 deg on a
+    walker who nears one and leaves the other: the clean-up says the silhouettes end on a fixed edge
+    even when the silhouettes' fit to the examples would not tell it (``hidden_gain`` out of reach),
+    each frame gets its own share (0.03 of the height from the truth in the median, 0.08 at most;
+    one share per window is more than 0.15 off at the ends), the growth is the head's, with the right sign, and the azimuths stay within 10 deg.
+    A whole walker and one behind a wall that moves with them (``low_wall``) end on no fixed edge."""
+    walk = synthesize(SynthSpec(n_cameras=2, n_frames=24, seed=5, azimuths=(20.0, 160.0), elevations=(25.0, 25.0),
+                                image_size=(320, 240), distance=5.0))
+    sils = damage_sequence(walk.silhouettes, "fixed_wall", seed=0, truth=walk.truth)
+    walled = tracks_from_sequence(Sequence(walk.fps, walk.cameras, walk.image_size, sils, walk.truth))
+    est = estimate_walk(walled, small_model, config=EstimateConfig(cleanup=CleanupConfig(hidden_gain=1.01)))
+    for cam, sign in zip(walk.cameras, (1, -1)):
+        c = est.cameras[cam]
+        assert c.cleanup.fixed_edge and c.cleanup.hidden_by == "something in front"
+        assert "end on one image row" in c.cleanup.note()
+        truth = 1.0 - _heights(sils[cam]) / _heights(walk.silhouettes[cam])
+        assert np.ptp(truth) > 0.3
+        err = np.abs(est.tracks[cam].hidden - truth)
+        assert np.median(err) <= 0.03 and err.max() <= 0.08, (cam, err)  # the whole height bobs with the gait
+        assert np.abs(np.median(truth) - truth).max() > 0.15
+        assert c.cue.source == "head" and np.sign(c.cue.growth) == sign and abs(c.cue.growth) > 3 * c.cue.growth_se
+        assert abs(azimuth_difference_deg(c.viewpoint.azimuth_deg, walk.truth["cameras"][cam]["azimuth_deg"])) <= 10
+        # The visible height says the opposite of the growth.
+        assert np.sign(np.polyfit(np.arange(24), np.log(_heights(sils[cam])), 1)[0]) == -sign
+    for kind in ("clean", "low_wall"):
+        frames = walk.silhouettes if kind == "clean" else damage_sequence(walk.silhouettes, kind, seed=0)
+        tracks = tracks_from_sequence(Sequence(walk.fps, walk.cameras, walk.image_size, frames, walk.truth))
+        assert not any(fixed_edge(t.silhouettes, t.boxes) for t in tracks.values()), kind
+
+
+def test_the_motion_cue_without_heights_is_the_heads():
+    """``heights=False``: the growth is the head path's alone, and no evidence without one."""
+    walk = synthesize(SynthSpec(n_cameras=1, n_frames=24, seed=5, azimuths=(20.0,), elevations=(10.0,),
+                                image_size=(320, 240), distance=5.0))
+    t = tracks_from_sequence(walk)["c0"]
+    heads = head_points(t.silhouettes, t.boxes)
+    both, head = motion_cue(t.boxes, heads), motion_cue(t.boxes, heads, heights=False)
+    assert head.source == "head" and both.source != "head" and head.growth > 3 * head.growth_se > 0
+    none = motion_cue(t.boxes, heights=False)
+    assert none.source == "none" and none.growth == 0.0 and none.growth_se == np.inf and none.signs()[0] == 0
