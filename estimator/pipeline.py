@@ -35,8 +35,7 @@ import numpy as np
 from .appearance import AppearanceModel
 from .body import PARTS
 from .cleanup import (CleanupConfig, CleanupReport, check_plausible, fixed_edge, hidden_feet, on_bottom_edge,
-                      select_walker,
-                      trim_shadow)
+                      select_walker, trim_shadow)
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
