@@ -23,6 +23,10 @@ not make (docs/ROBUSTNESS.md):
 - ``fixed_wall``: the same wall fixed in the image, as a real one is: every
   row below one row of the camera's frame hidden, so the share hidden changes
   as the walker nears or recedes (15-40 % at the camera's median walker box);
+- ``wall_end``: a fixed wall that ends in the image: the rows below one row
+  hidden on one side of one column only, where the walker crosses it midway
+  (30-70 % into the window), so they are behind it for part of the window
+  and whole for the rest (a bench, a parked car, the end of a wall);
 - ``all``: every one of the above on the same frames but ``side_shadow`` (one
   light casts one shadow) and the walls (a wall would hide the shadow at the feet).
 
@@ -43,7 +47,7 @@ import numpy as np
 from .joints import JOINT_NAMES
 
 __all__ = ["DAMAGE_KINDS", "damage", "damage_sequence", "detector_keypoints", "parse_damage", "salt", "blobs", "holes",
-           "cut_limb", "shadow", "side_shadow", "low_wall", "fixed_wall", "second_person"]
+           "cut_limb", "shadow", "side_shadow", "low_wall", "fixed_wall", "wall_end", "second_person"]
 
 _J = {name: i for i, name in enumerate(JOINT_NAMES)}
 # (upper joint, end joint) of the limbs a cut can remove: forearms and shins.
@@ -187,14 +191,24 @@ def low_wall(sil: np.ndarray, rng: np.random.Generator, *, hidden: tuple[float, 
 
 
 def fixed_wall(sil: np.ndarray, rng: np.random.Generator, *, row: int | None = None,
-               hidden: tuple[float, float] = (0.15, 0.4)) -> np.ndarray:
+               hidden: tuple[float, float] = (0.15, 0.4), end: tuple[int, bool] | None = None) -> np.ndarray:
     """Hide every row of the frame from ``row`` down (a wall's top edge, fixed in the image);
-    without a ``row``, :func:`low_wall` on this frame (:func:`damage_sequence` gives each camera one)."""
+    without a ``row``, :func:`low_wall` on this frame (:func:`damage_sequence` gives each camera one).
+    With ``end`` ``(column, left)`` the wall ends at that column: only the columns left of it (or
+    right of it, ``left`` false) are hidden (``wall_end``)."""
     if row is None:
         return low_wall(sil, rng, hidden=hidden)
     out = sil.copy()
-    out[max(0, int(row)):] = 0
+    cols = slice(None) if end is None else slice(None, max(0, end[0])) if end[1] else slice(max(0, end[0]), None)
+    out[max(0, int(row)):, cols] = 0
     return out
+
+
+def wall_end(sil: np.ndarray, rng: np.random.Generator, *, row: int | None = None,
+             end: tuple[int, bool] | None = None) -> np.ndarray:
+    """:func:`fixed_wall` ending at ``end`` ``(column, left)``: the walker is behind it on one side
+    of that column only (:func:`damage_sequence` draws the row and the end per camera)."""
+    return fixed_wall(sil, rng, row=row, end=end)
 
 
 def _wall_row(frames: list[np.ndarray | None], rng: np.random.Generator,
@@ -205,6 +219,17 @@ def _wall_row(frames: list[np.ndarray | None], rng: np.random.Generator,
         return None
     bottom, height = np.median(boxes[:, 1] + boxes[:, 3]), np.median(boxes[:, 3])
     return int(round(bottom - float(rng.uniform(*hidden)) * height))
+
+
+def _wall_end(frames: list[np.ndarray | None], rng: np.random.Generator,
+              crossed: tuple[float, float] = (0.3, 0.7)) -> tuple[int, bool] | None:
+    """Where a camera's wall ends, ``(column, left)``: at the walker's box centre in a frame drawn
+    ``crossed`` into the frames with a walker, the wall on the side the walker comes from or goes to."""
+    boxes = [b for b in (_box(s) for s in frames if s is not None) if b is not None]
+    if not boxes:
+        return None
+    x, _, w, _ = boxes[min(len(boxes) - 1, int(rng.uniform(*crossed) * len(boxes)))]
+    return int(round(x + w / 2)), bool(rng.random() < 0.5)
 
 
 def second_person(sil: np.ndarray, rng: np.random.Generator, *, scale: tuple[float, float] = (0.6, 0.9)) -> np.ndarray:
@@ -239,6 +264,7 @@ _KINDS: dict[str, Callable] = {
     "side_shadow": side_shadow,
     "low_wall": low_wall,
     "fixed_wall": fixed_wall,
+    "wall_end": wall_end,
     "holes": holes,
     "cut_limb": cut_limb,
     "second_person": second_person,
@@ -249,10 +275,11 @@ DAMAGE_KINDS: tuple[str, ...] = (*_KINDS, "all")
 """Damage kinds :func:`damage` knows, ``"all"`` applying every other one in turn but ``side_shadow``
 (one light casts one shadow: ``all`` has the one at the feet) and the walls (a wall in front would
 hide the shadow at the feet with them; docs/ROBUSTNESS.md, "A walker hidden below")."""
-_ALL = tuple(k for k in _KINDS if k not in ("side_shadow", "low_wall", "fixed_wall"))
+_WALLS = ("low_wall", "fixed_wall", "wall_end")
+_ALL = tuple(k for k in _KINDS if k != "side_shadow" and k not in _WALLS)
 
 
-_STEADY = ("shadow", "side_shadow", "low_wall", "fixed_wall", "second_person")  # one draw per camera
+_STEADY = ("shadow", "side_shadow", *_WALLS, "second_person")  # one draw per camera
 _SCALED = ("holes", "blobs")  # sized by the walker's box (and cut_limb, which also takes the joints)
 
 
@@ -267,13 +294,14 @@ def parse_damage(kind: str) -> tuple[str, ...]:
 
 
 def damage(sil: np.ndarray, kind: str, rng: np.random.Generator, joints2d: np.ndarray | None = None, *,
-           steady_rng: np.random.Generator | None = None, wall_row: int | None = None) -> np.ndarray:
+           steady_rng: np.random.Generator | None = None, wall_row: int | None = None,
+           wall_end_at: tuple[int, bool] | None = None) -> np.ndarray:
     """Apply damage ``kind`` (one of :data:`DAMAGE_KINDS`, or kinds joined by ``+``) to one
     full-frame silhouette.
 
     ``joints2d`` (13, 2), the frame's true joints, is used by ``cut_limb``;
     ``steady_rng`` (default ``rng``) draws the shadow and the second person;
-    ``wall_row`` is ``fixed_wall``'s row.
+    ``wall_row`` is ``fixed_wall``'s and ``wall_end``'s row, ``wall_end_at`` where the latter ends.
     Holes, the cut and blobs are sized (and blobs kept away) by the walker's
     box in ``sil``, not by the silhouette as damaged so far (a shadow or a
     bystander would make them larger and push blobs onto the walker).
@@ -289,8 +317,8 @@ def damage(sil: np.ndarray, kind: str, rng: np.random.Generator, joints2d: np.nd
             out = cut_limb(out, r, joints2d, box=walker)
         elif k in _SCALED:
             out = _KINDS[k](out, r, box=walker)
-        elif k == "fixed_wall":
-            out = fixed_wall(out, r, row=wall_row)
+        elif k in ("fixed_wall", "wall_end"):
+            out = fixed_wall(out, r, row=wall_row, end=wall_end_at if k == "wall_end" else None)
         else:
             out = _KINDS[k](out, r)
     return out
@@ -302,14 +330,16 @@ def damage_sequence(silhouettes: dict[str, list[np.ndarray | None]], kind: str, 
 
     The second person and the shadow keep one placement per camera over the
     sequence (drawn once per camera), as a bystander or a light would, and
-    ``fixed_wall`` one row of the frame; the other damage is drawn afresh per
+    ``fixed_wall`` one row of the frame (``wall_end`` a row and where it ends); the other damage is drawn afresh per
     frame. ``truth`` (a sequence's truth dict) gives ``cut_limb`` the true joints.
     """
     out = {}
     for c, (cam, frames) in enumerate(silhouettes.items()):
         rng = np.random.default_rng([seed, c])
         steady = int(rng.integers(2**31))  # one draw per camera for placement-like damage
-        row = _wall_row(frames, np.random.default_rng([seed, c, steady, 1])) if "fixed_wall" in kind else None
+        walled = "fixed_wall" in kind or "wall_end" in kind
+        row = _wall_row(frames, np.random.default_rng([seed, c, steady, 1])) if walled else None
+        end = _wall_end(frames, np.random.default_rng([seed, c, steady, 2])) if "wall_end" in kind else None
         damaged = []
         for t, sil in enumerate(frames):
             if sil is None:
@@ -319,7 +349,8 @@ def damage_sequence(silhouettes: dict[str, list[np.ndarray | None]], kind: str, 
             if truth is not None:
                 j2d = np.asarray(truth["frames"][t]["joints2d"].get(cam, np.full((13, 2), np.nan)), float)
             damaged.append(damage(sil, kind, np.random.default_rng([seed, c, t]), j2d,
-                                  steady_rng=np.random.default_rng([seed, c, steady]), wall_row=row))
+                                  steady_rng=np.random.default_rng([seed, c, steady]), wall_row=row,
+                                  wall_end_at=end))
         out[cam] = damaged
     return out
 

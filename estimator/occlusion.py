@@ -39,23 +39,33 @@ def whole_height(visible: np.ndarray | float, share: np.ndarray | float) -> np.n
     return visible / (1.0 - share)
 
 
-def hidden_shares(visible: np.ndarray, growth: float, share: float, *, most: float = 0.9) -> np.ndarray:
+def hidden_shares(visible: np.ndarray, growth: float, share: float, *, whole: np.ndarray | None = None,
+                  most: float = 0.9) -> np.ndarray:
     """Each frame's hidden share behind an edge fixed in the image (:func:`estimator.cleanup.fixed_edge`).
 
-    The visible heights ``visible`` (T,) (NaN where none) are the edge's row
-    less the walker's top, which tells nothing of the walker's size; the
-    whole height grows by ``growth`` per frame (log scale, the head's path:
-    :func:`estimator.viewpoint.motion_cue`), ``exp(c + growth t)``, with ``c``
-    such that the median frame hides ``share`` (the window's, from
-    :func:`hidden_fraction`). Shares are clipped to ``[0, most]``; NaN stays NaN.
+    The visible heights ``visible`` (T,) (NaN where none) behind the edge are
+    the edge's row less the walker's top, which tells nothing of the walker's
+    size; the whole height grows by ``growth`` per frame (log scale:
+    :func:`estimator.viewpoint.motion_cue`), ``exp(c + growth t)``. Frames
+    ``whole`` (T,) bool passed the edge's end and show the walker whole: with
+    3 of them or more, ``c`` makes their heights the whole ones (median), and
+    they hide 0; else ``c`` makes the median frame behind the edge hide
+    ``share`` (the window's, from :func:`hidden_fraction`). Shares are clipped
+    to ``[0, most]``; NaN stays NaN.
     """
     h = np.asarray(visible, float)
     t = np.arange(h.size, dtype=float)
+    whole = np.zeros(h.size, bool) if whole is None else np.asarray(whole, bool)
     ok = np.isfinite(h) & (h > 0)
     if not ok.any():
         return np.full(h.shape, np.nan)
-    c = np.log(np.median(h[ok] * np.exp(-growth * t[ok]))) - np.log1p(-share)
-    return np.clip(1.0 - h / np.exp(c + growth * t), 0.0, most)
+    if np.sum(ok & whole) >= 3:
+        c = np.median(np.log(h[ok & whole]) - growth * t[ok & whole])
+    else:
+        behind = ok & ~whole if (ok & ~whole).any() else ok
+        c = np.log(np.median(h[behind] * np.exp(-growth * t[behind]))) - np.log1p(-share)
+    out = np.clip(1.0 - h / np.exp(c + growth * t), 0.0, most)
+    return np.where(whole & ok, 0.0, out)
 
 
 @dataclass(frozen=True)

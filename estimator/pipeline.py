@@ -34,14 +34,14 @@ import numpy as np
 
 from .appearance import AppearanceModel
 from .body import PARTS
-from .cleanup import (CleanupConfig, CleanupReport, check_plausible, fixed_edge, hidden_feet, on_bottom_edge,
-                      select_walker, trim_shadow)
+from .cleanup import (CleanupConfig, CleanupReport, check_plausible, edge_share, fixed_edge, hidden_feet,
+                      on_bottom_edge, select_walker, trim_shadow)
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
 from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
-from .matchcache import MatchCache, derived, match
+from .matchcache import Matched, MatchCache, derived, match
 from .occlusion import hidden_fraction, hidden_shares, whole_height
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
@@ -788,18 +788,19 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
     out, reports = {}, {}
     for name, t in tracks.items():
         sils, boxes, report = select_walker(t.silhouettes, t.boxes, config=config)
-        cut, front = np.zeros(len(sils), bool), False
+        cut, below, front = np.zeros(len(sils), bool), np.zeros(len(sils), bool), False
         if score is not None:
             sils, boxes, kept, beside = trim_shadow(sils, boxes, score, config=config)
             below = kept < 1.0
             cut = beside | below
             report.side_cut = int(beside.sum())
             report.cut, report.cut_kept = int(below.sum()), float(np.median(kept[below])) if below.any() else 1.0
-            # A cut below the feet ends flat too. An edge fixed in the image needs no scoring.
-            report.fixed_edge = t.full_frame and not below.any() and fixed_edge(sils, boxes, config=config)
-            front = not below.any() and (report.fixed_edge or hidden_feet(sils, score, config=config) > 0)
+            front = not below.any() and hidden_feet(sils, score, config=config) > 0  # a cut below the feet ends flat too
         sils, boxes, reports[name] = check_plausible(sils, boxes, report,
                                                      image_size=t.image_size if t.full_frame else None, config=config)
+        if score is not None and t.full_frame and not below.any():  # on the frames of a plausible walker
+            report.on_edge = fixed_edge(sils, boxes, config=config)
+            front = front or report.fixed_edge
         if t.full_frame and t.image_size is not None and on_bottom_edge(boxes, t.image_size):
             report.hidden_by = "the image's bottom edge"
         elif front:
@@ -873,22 +874,44 @@ def _cleaned(tracks: dict[str, CameraTrack], model: AppearanceModel, config: Est
     tracks, reports = clean_tracks(tracks, config.cleanup, score=lambda s: walker_score(model, s, cache=cache))
     for name, report in reports.items():
         if hidden and report.hidden_by:
-            t = tracks[name]
-            report.hidden, _ = hidden_fraction(model, t.silhouettes, config.cleanup.hidden_matched,
-                                               score=walker_score, frames=config.cleanup.cut_frames)
-            if not report.hidden:  # a whole body fits best: a shadow at the edge, flat feet
-                report.hidden_by = ""
-                continue
-            present = np.array([s is not None for s in t.silhouettes])
-            share = report.hidden
-            if report.fixed_edge:  # the walker's size follows the head, not the visible height
-                cue = motion_cue(t.boxes, head_points(t.silhouettes, t.boxes), feet_cut=True, heights=False)
-                if cue is not None and np.isfinite(cue.growth_se):
-                    share = np.nan_to_num(hidden_shares(t.boxes[:, 3], cue.growth, report.hidden),
-                                          nan=report.hidden)
-            # The outline's bottom there is the wall's or the frame's (estimator.frontier leaves it out).
-            tracks[name] = replace(t, cut=t.cut | present, hidden=np.where(present, share, 0.0))
+            tracks[name] = _hidden_below(tracks[name], report, model, config.cleanup)
     return tracks, reports
+
+
+def _hidden_below(t: CameraTrack, report: CleanupReport, model: AppearanceModel,
+                  config: CleanupConfig) -> CameraTrack:
+    """A camera's track with the share of the walker hidden below each frame (``hidden``), its
+    ``report`` filled in (the window's share, or nothing hidden after all)."""
+    edge = report.on_edge if report.fixed_edge else np.ones(len(t.silhouettes), bool)
+    report.hidden, _ = hidden_fraction(model, [s if e else None for s, e in zip(t.silhouettes, edge)],
+                                       config.hidden_matched, score=walker_score, frames=config.cut_frames)
+    by_heights = edge_share(t.boxes, edge) if report.past_edge() is not None else np.nan
+    if not report.hidden or abs(by_heights - report.hidden) > config.edge_agree:
+        # A whole body fits best (a shadow at the edge, flat feet), or the walker's frames past the
+        # edge's end say another share than the examples do: a walker whose feet rest on one row.
+        report.hidden_by, report.hidden, report.on_edge = "", 0.0, None
+        return t
+    behind = edge & np.array([s is not None for s in t.silhouettes])
+    share = np.where(behind, report.hidden, 0.0)
+    if report.fixed_edge:  # each frame its own share: the walker's size from what shows it, not the edge
+        cue = motion_cue(t.boxes, head_points(t.silhouettes, t.boxes), **_sizes(report))
+        if cue is not None and np.isfinite(cue.growth_se):
+            shares = hidden_shares(t.boxes[:, 3], cue.growth, report.hidden, whole=~edge)
+            share = np.where(behind, np.nan_to_num(shares, nan=report.hidden), 0.0)
+    # The outline's bottom there is the wall's or the frame's (estimator.frontier leaves it out).
+    return replace(t, cut=t.cut | behind, hidden=share)
+
+
+def _sizes(report: CleanupReport | None) -> dict:
+    """:func:`~estimator.viewpoint.motion_cue`'s ``feet_cut`` and ``heights`` for a camera's clean-up:
+    behind an edge fixed in the image, the heights of the frames past its end
+    (:meth:`~estimator.cleanup.CleanupReport.past_edge`), else the head alone."""
+    if report is None:
+        return {}
+    if not report.fixed_edge:
+        return {"feet_cut": report.cut > 0 or report.hidden > 0}
+    past = report.past_edge()
+    return {"feet_cut": report.cut > 0, "heights": False if past is None else ~report.on_edge}
 
 
 def _camera_model(model: AppearanceModel, report: CleanupReport | None) -> AppearanceModel:
@@ -897,14 +920,32 @@ def _camera_model(model: AppearanceModel, report: CleanupReport | None) -> Appea
     return model.hidden_below(report.hidden) if report is not None and report.hidden else model
 
 
-def _matched(track: CameraTrack, model: AppearanceModel, cache: MatchCache | None
+def _matched(track: CameraTrack, model: AppearanceModel, cache: MatchCache | None,
+             whole: AppearanceModel | None = None
              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, list[bytes] | None]:
     """A camera's frames with a silhouette that registers, their registered silhouettes, eq. 8
-    distances to the cluster means and cache keys (:func:`~estimator.matchcache.match`)."""
+    distances to the cluster means and cache keys (:func:`~estimator.matchcache.match`).
+
+    A camera matched with a cut ``model`` whose walker passed the end of the edge on some frames
+    (``track.hidden`` 0 there): those are registered whole, from the uncut ``whole`` model, and
+    compared on the same rows (:meth:`~estimator.appearance.AppearanceModel.hidden_below`'s
+    ``compared``), so that every frame's distances are alike.
+    """
     present = np.array([k for k, s in enumerate(track.silhouettes) if s is not None], int)
     if not present.size:
         return present, None, None, None
-    m = match(model, [track.silhouettes[k] for k in present], cache)
+    sils = [track.silhouettes[k] for k in present]
+    shown = None if whole is None or model.hidden is None or track.hidden is None else track.hidden[present] == 0
+    if shown is None or not shown.any():
+        m = match(model, sils, cache)
+    else:
+        m = Matched(np.empty((len(sils), *model.size), np.float32), np.empty(len(sils), bool),
+                    np.empty((len(sils), model.n_clusters), np.float32), None)
+        for pick, by in ((shown, whole.hidden_below(0.0, compared=model.hidden.fraction)), (~shown, model)):
+            if pick.any():
+                part = match(by, [s for s, p in zip(sils, pick) if p])
+                m.registered[pick], m.valid[pick], m.means_distance[pick] = \
+                    part.registered, part.valid, part.means_distance
     keys = None if m.keys is None else [k for k, v in zip(m.keys, m.valid) if v]
     return present[m.valid], m.registered[m.valid], m.means_distance[m.valid], keys
 
@@ -947,9 +988,7 @@ def observe_cameras(
         cam_notes = []
         boxes = track.whole_boxes()  # heights, and the head's depth, of the whole body
         cue = motion_cue(boxes, head_points(track.silhouettes, boxes),
-                         feet_cut=name in reports and (reports[name].cut > 0 or reports[name].hidden > 0),
-                         heights=not (name in reports and reports[name].fixed_edge)
-                         ) if track.full_frame else None
+                         **_sizes(reports.get(name))) if track.full_frame else None
         note = reports[name].note() if name in reports else None
         if note:
             cam_notes.append(note)
@@ -958,7 +997,7 @@ def observe_cameras(
                 "cropped silhouettes: no position in the full frame, so no motion cue (ahead/behind decided by "
                 "the majority of matches), and joints2d are in each crop's own pixels"
             )
-        present, registered, d, keys = _matched(track, model, cache)
+        present, registered, d, keys = _matched(track, model, cache, whole)
         if present.size == 0:
             cam_notes.append("no silhouette in this window")
             vp = Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)

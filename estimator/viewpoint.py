@@ -188,7 +188,7 @@ def _theil_sen(t: np.ndarray, y: np.ndarray, *, floor: float = 0.0) -> tuple[flo
 
 
 def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: bool = False,
-               heights: bool = True, conflict: float = 3.0) -> MotionCue | None:
+               heights: bool | np.ndarray = True, conflict: float = 3.0) -> MotionCue | None:
     """Fit the walker's motion from full-frame boxes (and head points).
 
     Parameters
@@ -208,12 +208,14 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
         errors, the head alone counts if the feet were cut, the height alone
         otherwise (a walker who speeds up or slows down bends the head's path
         as approaching would: CMU 07_05).
-    heights : bool
-        False when the silhouettes' heights are not the walker's size: they end
-        on an edge fixed in the image (:func:`estimator.cleanup.fixed_edge`), and
-        the visible part shrinks as the walker nears a camera that looks over a
-        wall. The growth is then the head's alone, and 0 with an infinite error
-        (no evidence) without a head path.
+    heights : bool or ndarray of shape (T,), bool
+        The frames whose silhouette's height is the walker's size (all: True).
+        Not those that end on an edge fixed in the image
+        (:func:`estimator.cleanup.fixed_edge`): the visible part shrinks as
+        the walker nears a camera that looks over a wall. The heights and the
+        feet's fall are read on the others; with fewer than 3 of them the
+        growth is the head's alone, and 0 with an infinite error (no
+        evidence) without a head path.
 
     Returns
     -------
@@ -228,13 +230,17 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
         return None
     t = np.flatnonzero(ok).astype(float)
     x, y, w, h = boxes[ok].T
+    sized = np.broadcast_to(np.asarray(heights, bool), (len(boxes),))[ok]
+    sized = sized if sized.sum() >= 3 else np.zeros_like(sized)
     # Robust slopes (Theil-Sen: median of pairwise slopes) resist a bad frame.
     # Heights are whole pixels: their log is known to 1 / (sqrt(12) h) at best.
     pixel = 1.0 / (np.sqrt(12.0) * np.median(h))  # a whole-pixel edge, in walker heights
-    growth, se = _theil_sen(t, np.log(h), floor=pixel) if heights else (0.0, float("inf"))
+    unknown = (0.0, float("inf"))
+    growth, se = _theil_sen(t[sized], np.log(h[sized]), floor=pixel) if sized.any() else unknown
     travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
-    fall, fall_se = (0.0, float("inf")) if feet_cut else _theil_sen(t, (y + h) / np.median(h), floor=pixel)
-    source, conflict_seen = "height" if heights else "none", False
+    fall, fall_se = unknown if feet_cut or not sized.any() else \
+        _theil_sen(t[sized], (y + h)[sized] / np.median(h), floor=pixel)
+    source, conflict_seen = "height" if sized.any() else "none", False
     velocity, velocity_cov = MotionCue.head_velocity, MotionCue.head_velocity_cov
     if heads is not None:
         heads = np.asarray(heads, dtype=float)
@@ -248,7 +254,7 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
             travel, _ = _theil_sen(th, heads[hk, 0] / np.median(h))
             velocity = (float(path.velocity[0] / np.median(h)), float(path.velocity[1] / np.median(h)))
             velocity_cov = tuple(map(tuple, path.velocity_cov / np.median(h) ** 2))
-            if not heights:
+            if not sized.any():
                 growth, se, source = g_head, se_head, "head"
             elif np.isfinite(se_head):
                 if abs(growth - g_head) > conflict * np.hypot(se, se_head):
