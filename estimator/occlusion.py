@@ -15,7 +15,9 @@ that share of the target height and its top on the examples' top row
 (:func:`estimator.registration.register`, ``hidden``), and loses the same
 rows. The hidden share itself is searched per window
 (:func:`hidden_fraction`): the one at whose scale the head and trunk fit
-the examples best; 0 if a whole body does.
+the examples best; 0 if a whole body does. Behind an edge fixed in the
+image (a real wall: :func:`estimator.cleanup.fixed_edge`) each frame hides
+its own share, which the walker's growth tells (:func:`hidden_shares`).
 """
 
 from __future__ import annotations
