@@ -59,8 +59,8 @@ import cv2
 import numpy as np
 
 __all__ = ["CleanupConfig", "CleanupReport", "bounding_box", "check_plausible", "isolate_walker", "select_walker",
-           "trim_below_feet", "trim_beside_feet", "trim_shadow", "hidden_feet", "fixed_edge", "edge_share",
-           "on_bottom_edge"]
+           "trim_below_feet", "trim_beside_feet", "trim_shadow", "hidden_feet", "fixed_edge", "astride_edge",
+           "edge_share", "on_bottom_edge"]
 
 
 @dataclass(frozen=True)
@@ -220,6 +220,7 @@ class CleanupReport:
     hidden: float = 0.0  # the share of the body hidden below the silhouettes (estimator.occlusion)
     hidden_by: str = ""  # what hides it: "something in front" (hidden_feet) or "the image's bottom edge"
     on_edge: np.ndarray | None = None  # (T,) bool: frames ending on an edge fixed in the image (fixed_edge)
+    astride: np.ndarray | None = None  # (T,) bool: frames with a part ending on that edge only (astride_edge)
     kept_mask: np.ndarray | None = None  # (T,) bool
 
     @property
@@ -227,17 +228,18 @@ class CleanupReport:
         """Whether some frames end on an edge fixed in the image (:func:`fixed_edge`)."""
         return self.on_edge is not None and bool(self.on_edge.any())
 
-    def past_edge(self) -> np.ndarray | None:
-        """(T,) bool: behind an edge fixed in the image, the kept frames off it (the walker past its
-        end, whole), when they are at least half of the kept frames; else None. Fewer lie at one end
-        of the window, within a gait cycle whose bob passes for a growth (on seed 13's
-        ``fixed_wall`` walks 7-16 such frames took 2 cameras to the wrong side that the head alone
-        kept right), and their heights' line says little of the frames behind the edge."""
+    def past_edge(self, *, half: bool = True) -> np.ndarray | None:
+        """(T,) bool: behind an edge fixed in the image, the kept frames that show the walker whole
+        (past its end: neither on it nor astride it), with ``half`` only when they are at least
+        half of the kept frames; else None. Fewer lie at one end of the window, within a gait cycle
+        whose bob passes for a growth (on seed 13's ``fixed_wall`` walks 7-16 such frames took 2
+        cameras to the wrong side that the head alone kept right), and their heights' line says
+        little of the frames behind the edge."""
         if not self.fixed_edge:
             return None
         kept = np.ones_like(self.on_edge) if self.kept_mask is None else self.kept_mask
-        whole = kept & ~self.on_edge
-        return whole if whole.sum() >= 0.5 * kept.sum() else None
+        whole = kept & ~self.on_edge & (True if self.astride is None else ~self.astride)
+        return whole if not half or whole.sum() >= 0.5 * kept.sum() else None
 
     def note(self) -> str | None:
         """One line for a window's notes, or None when nothing was removed."""
@@ -857,19 +859,42 @@ def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
             return out  # a cut that moves with the walker ends flat on every frame
         edge = np.zeros(len(silhouettes), bool)
         edge[present[on]] = True
-        if edge_share(b, edge) < shorter:
+        if edge_share(b, edge, whole=~edge & ~astride_edge(silhouettes, b, edge)) < shorter:
             return out
     out[present[on]] = True
     return out
 
 
-def edge_share(boxes: np.ndarray, on_edge: np.ndarray) -> float:
+def astride_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, on_edge: np.ndarray, *,
+                 least: float = 0.25) -> np.ndarray:
+    """(T,) bool: the frames off a fixed edge (``on_edge``, :func:`fixed_edge`) that end on it in
+    part: a walker astride a wall's end, one leg cut on the edge's row and the other below it.
+    Their height is neither the walker's nor the edge's. A frame is astride when at least
+    ``least`` of its pixels on the edge's last visible row (and 2) have nothing below them."""
+    b = np.asarray(boxes, float)
+    out = np.zeros(len(silhouettes), bool)
+    if not np.any(on_edge):
+        return out
+    row = int(np.median(b[on_edge, 1] + b[on_edge, 3])) - 1  # the last row the edge lets show
+    for t, s in enumerate(silhouettes):
+        if s is None or on_edge[t] or not np.isfinite(b[t, 3]):
+            continue
+        r = row - int(b[t, 1])
+        if not 0 <= r < s.shape[0] - 1:
+            continue
+        on = s[r] > 0
+        ends = on & ~(s[r + 1:] > 0).any(axis=0)
+        out[t] = ends.sum() >= max(2, least * on.sum())
+    return out
+
+
+def edge_share(boxes: np.ndarray, on_edge: np.ndarray, *, whole: np.ndarray | None = None) -> float:
     """The median share of the walker hidden on the frames ``on_edge`` (T,) bool, from the heights
-    of the other frames with a box (the walker whole): a Theil-Sen line of their log heights over
-    time, against the frames on the edge. NaN with fewer than 3 others."""
+    of the frames ``whole`` with a box (default: the others): a Theil-Sen line of their log
+    heights over time, against the frames on the edge. NaN with fewer than 3 of them."""
     b = np.asarray(boxes, float)
     ok = np.isfinite(b[:, 3]) & (b[:, 3] > 0)
-    whole, behind = ok & ~on_edge, ok & on_edge
+    whole, behind = ok & (~on_edge if whole is None else whole), ok & on_edge
     if whole.sum() < 3 or not behind.any():
         return float("nan")
     t, h = np.arange(len(b), dtype=float), np.log(np.where(ok, b[:, 3], 1.0))

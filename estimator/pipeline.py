@@ -34,8 +34,8 @@ import numpy as np
 
 from .appearance import AppearanceModel
 from .body import PARTS
-from .cleanup import (CleanupConfig, CleanupReport, check_plausible, edge_share, fixed_edge, hidden_feet,
-                      on_bottom_edge, select_walker, trim_shadow)
+from .cleanup import (CleanupConfig, CleanupReport, astride_edge, check_plausible, edge_share, fixed_edge,
+                      hidden_feet, on_bottom_edge, select_walker, trim_shadow)
 from .camera import world_to_camera_rotation
 from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
@@ -800,6 +800,7 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
                                                      image_size=t.image_size if t.full_frame else None, config=config)
         if score is not None and t.full_frame and not below.any():  # on the frames of a plausible walker
             report.on_edge = fixed_edge(sils, boxes, config=config)
+            report.astride = astride_edge(sils, boxes, report.on_edge)
             front = front or report.fixed_edge
         if t.full_frame and t.image_size is not None and on_bottom_edge(boxes, t.image_size):
             report.hidden_by = "the image's bottom edge"
@@ -885,18 +886,19 @@ def _hidden_below(t: CameraTrack, report: CleanupReport, model: AppearanceModel,
     edge = report.on_edge if report.fixed_edge else np.ones(len(t.silhouettes), bool)
     report.hidden, _ = hidden_fraction(model, [s if e else None for s, e in zip(t.silhouettes, edge)],
                                        config.hidden_matched, score=walker_score, frames=config.cut_frames)
-    by_heights = edge_share(t.boxes, edge) if report.past_edge() is not None else np.nan
+    past = report.past_edge()
+    by_heights = edge_share(t.boxes, edge, whole=past) if past is not None else np.nan
     if not report.hidden or abs(by_heights - report.hidden) > config.edge_agree:
         # A whole body fits best (a shadow at the edge, flat feet), or the walker's frames past the
         # edge's end say another share than the examples do: a walker whose feet rest on one row.
-        report.hidden_by, report.hidden, report.on_edge = "", 0.0, None
+        report.hidden_by, report.hidden, report.on_edge, report.astride = "", 0.0, None, None
         return t
     behind = edge & np.array([s is not None for s in t.silhouettes])
     share = np.where(behind, report.hidden, 0.0)
     if report.fixed_edge:  # each frame its own share: the walker's size from what shows it, not the edge
         cue = motion_cue(t.boxes, head_points(t.silhouettes, t.boxes), **_sizes(report))
         if cue is not None and np.isfinite(cue.growth_se):
-            shares = hidden_shares(t.boxes[:, 3], cue.growth, report.hidden, whole=~edge)
+            shares = hidden_shares(t.boxes[:, 3], cue.growth, report.hidden, whole=report.past_edge(half=False))
             share = np.where(behind, np.nan_to_num(shares, nan=report.hidden), 0.0)
     # The outline's bottom there is the wall's or the frame's (estimator.frontier leaves it out).
     return replace(t, cut=t.cut | behind, hidden=share)
@@ -911,7 +913,7 @@ def _sizes(report: CleanupReport | None) -> dict:
     if not report.fixed_edge:
         return {"feet_cut": report.cut > 0 or report.hidden > 0}
     past = report.past_edge()
-    return {"feet_cut": report.cut > 0, "heights": False if past is None else ~report.on_edge}
+    return {"feet_cut": report.cut > 0, "heights": False if past is None else past}
 
 
 def _camera_model(model: AppearanceModel, report: CleanupReport | None) -> AppearanceModel:
