@@ -818,22 +818,25 @@ def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     (within a row of the commonest bottom row of the frames that end flat, on
     ``fixed_share`` of the frames with a box and ``fixed_frames`` at least)
     while the walker nears or recedes, and end flat there (their median
-    frame's lowest tenth, ``hidden_flat``). Neither alone is enough: a walker seen from the side
-    keeps their feet near one row, and feet in a shoe can end flat. The
-    frames on it are one stretch of the window (gaps of up to 2 frames: the
-    walker passes behind a wall once, while a real walker's flat feet rest
-    on one row now and then; on ``vtest.avi`` a window of a 73 px walker
-    turned to the wrong side without this rule). The frames off that row show the walker whole (they passed the wall's end),
-    so they must not end flat as well (a cut that moves with the walker,
-    ``low_wall``, can rest on one row for a few frames), and the frames on
-    it must be shorter than the line of the others' heights over time says,
-    by ``shorter`` in the median (a shadow's or a cut limb's flat bottom on a
-    few frames is not); with fewer than 3 others, nothing is checked.
-    Behind the edge the visible height is not the walker's size (it shrinks
-    as a walker comes nearer to a camera that looks over the wall), so
-    :func:`estimator.occlusion.hidden_shares` gives each such frame its own
-    share, and :func:`estimator.viewpoint.motion_cue` reads the growth from
-    the other frames and the head. ``boxes`` are the silhouettes' ``(x, y, w, h)`` in the full frame.
+    frame's lowest tenth, ``hidden_flat``). Neither alone is enough: a walker
+    seen from the side keeps their feet near one row, and feet in a shoe can
+    end flat. The frames on it are one stretch of the window (gaps of up to 2
+    frames): the walker passes behind a wall once. The frames off that row
+    show the walker whole (they passed the wall's end), so they must not end
+    flat as well (a cut that moves with the walker, ``low_wall``, can rest on
+    one row for a few frames), and the frames on it must be shorter than the
+    line of the others' heights over time says, by ``shorter`` in the median
+    (a shadow's or a cut limb's flat bottom on a few frames is not; frames
+    astride the wall's end, :func:`astride_edge`, are left out of the line);
+    with fewer than 3 others, nothing is checked. Give it the frames of a
+    plausible walker only (:func:`check_plausible`): on ``vtest.avi`` a window
+    whose 12 frames wider than a walker rested on one row was taken for a
+    wall. Behind the edge the visible height is not the walker's size (it
+    shrinks as a walker comes nearer to a camera that looks over the wall),
+    so :func:`estimator.occlusion.hidden_shares` gives each such frame its
+    own share, and :func:`estimator.viewpoint.motion_cue` reads the growth
+    from the other frames and the head. ``boxes`` are the silhouettes'
+    ``(x, y, w, h)`` in the full frame.
     """
     config = config or CleanupConfig()
     b = np.asarray(boxes, float)
