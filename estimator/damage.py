@@ -47,7 +47,7 @@ import numpy as np
 from .joints import JOINT_NAMES
 
 __all__ = ["DAMAGE_KINDS", "damage", "damage_sequence", "detector_keypoints", "parse_damage", "salt", "blobs", "holes",
-           "cut_limb", "shadow", "side_shadow", "low_wall", "fixed_wall", "wall_end", "second_person"]
+           "cut_limb", "shadow", "side_shadow", "low_wall", "fixed_wall", "second_person"]
 
 _J = {name: i for i, name in enumerate(JOINT_NAMES)}
 # (upper joint, end joint) of the limbs a cut can remove: forearms and shins.
@@ -204,13 +204,6 @@ def fixed_wall(sil: np.ndarray, rng: np.random.Generator, *, row: int | None = N
     return out
 
 
-def wall_end(sil: np.ndarray, rng: np.random.Generator, *, row: int | None = None,
-             end: tuple[int, bool] | None = None) -> np.ndarray:
-    """:func:`fixed_wall` ending at ``end`` ``(column, left)``: the walker is behind it on one side
-    of that column only (:func:`damage_sequence` draws the row and the end per camera)."""
-    return fixed_wall(sil, rng, row=row, end=end)
-
-
 def _wall_row(frames: list[np.ndarray | None], rng: np.random.Generator,
               hidden: tuple[float, float] = (0.15, 0.4)) -> int | None:
     """The row of a camera's fixed wall: ``hidden`` (drawn) of its median walker box above that box's bottom."""
@@ -264,7 +257,7 @@ _KINDS: dict[str, Callable] = {
     "side_shadow": side_shadow,
     "low_wall": low_wall,
     "fixed_wall": fixed_wall,
-    "wall_end": wall_end,
+    "wall_end": fixed_wall,  # with the end damage_sequence draws
     "holes": holes,
     "cut_limb": cut_limb,
     "second_person": second_person,
