@@ -1,8 +1,34 @@
+import faulthandler
 import os
 
 import pytest
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+# A test worker that dies in native code (a segfault, an abort) takes its traceback with it:
+# pytest-xdist says only "worker crashed". Each worker writes the native and Python stacks to a
+# file under CRASH_DIR instead, and the controller lists the tests that crashed and those that
+# failed; ./test.sh prints the stacks and runs the crashed tests once more, alone.
+CRASH_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".pytest-crash")
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+
+
+@pytest.hookimpl(trylast=True)  # after pytest's own faulthandler plugin, which points it at stderr
+def pytest_configure(config):
+    if _WORKER:
+        os.makedirs(CRASH_DIR, exist_ok=True)
+        config._crash_log = open(os.path.join(CRASH_DIR, f"{_WORKER}.log"), "w")  # open while the worker lives
+        faulthandler.enable(file=config._crash_log, all_threads=True)
+
+
+def pytest_runtest_logreport(report):
+    """In the xdist controller: note each failed test, as crashed (its worker died) or failed."""
+    if _WORKER or not report.failed or not hasattr(report, "node"):
+        return
+    os.makedirs(CRASH_DIR, exist_ok=True)
+    name = "crashed.txt" if report.when == "???" else "failed.txt"  # xdist's report of a dead worker
+    with open(os.path.join(CRASH_DIR, name), "a") as f:
+        f.write(report.nodeid + "\n")
 
 MOCAP = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "mocap"))
 
