@@ -46,7 +46,7 @@ from .occlusion import hidden_fraction, hidden_shares, whole_height
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import (FALL_MIN_ELEVATION_DEG, MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint,
-                        head_points, motion_cue, with_path_elevation)
+                        head_band, motion_cue, with_path_elevation)
 
 __all__ = ["CameraObservation", "CameraTrack", "EstimateConfig", "PhaseRefinement", "WalkEstimate", "clean_tracks",
            "concat_estimates", "decode_walk", "estimable_frames", "estimate_walk", "extrapolate_states",
@@ -896,7 +896,7 @@ def _hidden_below(t: CameraTrack, report: CleanupReport, model: AppearanceModel,
     behind = edge & np.array([s is not None for s in t.silhouettes])
     share = np.where(behind, report.hidden, 0.0)
     if report.fixed_edge:  # each frame its own share: the walker's size from what shows it, not the edge
-        cue = motion_cue(t.boxes, head_points(t.silhouettes, t.boxes), **_sizes(report))
+        cue = _cue(t.silhouettes, t.boxes, report)
         if cue is not None and np.isfinite(cue.growth_se):
             shares = hidden_shares(t.boxes[:, 3], cue.growth, report.hidden, whole=report.past_edge(half=False))
             share = np.where(behind, np.nan_to_num(shares, nan=report.hidden), 0.0)
@@ -904,16 +904,18 @@ def _hidden_below(t: CameraTrack, report: CleanupReport, model: AppearanceModel,
     return replace(t, cut=t.cut | behind, hidden=share)
 
 
-def _sizes(report: CleanupReport | None) -> dict:
-    """:func:`~estimator.viewpoint.motion_cue`'s ``feet_cut`` and ``heights`` for a camera's clean-up:
-    behind an edge fixed in the image, the heights of the frames past its end
-    (:meth:`~estimator.cleanup.CleanupReport.past_edge`), else the head alone."""
+def _cue(silhouettes: list[np.ndarray | None], boxes: np.ndarray, report: CleanupReport | None) -> MotionCue | None:
+    """A camera's :func:`~estimator.viewpoint.motion_cue` after its clean-up ``report``: behind an
+    edge fixed in the image, the heights of the frames past its end
+    (:meth:`~estimator.cleanup.CleanupReport.past_edge`), else the head's width and path alone."""
+    band = head_band(silhouettes, boxes)
     if report is None:
-        return {}
+        return motion_cue(boxes, band.points)
     if not report.fixed_edge:
-        return {"feet_cut": report.cut > 0 or report.hidden > 0}
+        return motion_cue(boxes, band.points, feet_cut=report.cut > 0 or report.hidden > 0)
     past = report.past_edge()
-    return {"feet_cut": report.cut > 0, "heights": False if past is None else past}
+    return motion_cue(boxes, band.points, feet_cut=report.cut > 0, heights=False if past is None else past,
+                      head_widths=band.widths)
 
 
 def _camera_model(model: AppearanceModel, report: CleanupReport | None) -> AppearanceModel:
@@ -989,8 +991,7 @@ def observe_cameras(
         dist = np.full((T, model.n_clusters), np.inf, np.float32)
         cam_notes = []
         boxes = track.whole_boxes()  # heights, and the head's depth, of the whole body
-        cue = motion_cue(boxes, head_points(track.silhouettes, boxes),
-                         **_sizes(reports.get(name))) if track.full_frame else None
+        cue = _cue(track.silhouettes, boxes, reports.get(name)) if track.full_frame else None
         note = reports[name].note() if name in reports else None
         if note:
             cam_notes.append(note)

@@ -54,12 +54,13 @@ class MotionCue:
     source : str
         What ``growth`` was measured from: ``"head"`` (the perspective curvature
         of the head's image path), ``"height"`` (the silhouette's height), or
-        ``"head+height"`` (both, weighted by their errors); ``"none"`` when
-        neither could be (the heights end on a fixed edge and the head's path
-        was not measured: ``growth_se`` is infinite).
+        ``"head+height"`` (both, weighted by their errors); where the heights
+        end on a fixed edge, ``"head width"`` (the head's size) or ``"head+head
+        width"``, and ``"none"`` when nothing could be measured (``growth_se``
+        is infinite).
     conflict : bool
-        The head and the height disagreed (by more than ``motion_cue``'s
-        ``conflict`` errors) and one of them was dropped: the sign of
+        The head's path and the height (or the head's width) disagreed (by
+        more than ``motion_cue``'s ``conflict`` errors) and one was dropped: the sign of
         ``growth`` is then contested, and :func:`estimator.pipeline.estimate_walk`
         lets the other cameras settle ahead/behind.
     fall, fall_se : float
@@ -107,26 +108,43 @@ class MotionCue:
         return int(np.sign(self.fall)) if abs(self.fall) > z * self.fall_se else 0
 
 
-def head_points(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *, depth: float = 0.08) -> np.ndarray:
-    """The top of the head per frame in the full frame: (T, 2), NaN where no silhouette.
+class HeadBand(NamedTuple):
+    """:func:`head_band`'s measures per frame, NaN where the frame has no silhouette."""
 
-    The centroid of the silhouette's top ``depth`` of the window's median
-    height. Shadows, reflections and cut limbs, all at the feet, leave it alone;
-    a raised arm or something carried overhead moves it (those frames are the
-    robust fit's outliers, :func:`motion_cue`).
+    points: np.ndarray  # (T, 2): the band's centroid in the full frame
+    widths: np.ndarray  # (T,): the band's mean width in pixels
+
+
+def head_band(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *, depth: float = 0.08) -> HeadBand:
+    """The top of the head per frame: the silhouette's top ``depth`` of the window's median height.
+
+    Its centroid is a point of the body that shadows, reflections, cut limbs and
+    walls, all at the feet, leave alone (a raised arm or something carried
+    overhead moves it: those frames are the robust fit's outliers,
+    :func:`motion_cue`). Its mean width is the head's size: the band holds the
+    head from the crown to about the eyes, so it grows and shrinks with the
+    walker's image while the pixels' depth stays fixed.
     ``silhouettes`` are tight crops whose boxes ``(x, y, w, h)`` are ``boxes``.
     """
     boxes = np.asarray(boxes, dtype=float)
-    out = np.full((len(silhouettes), 2), np.nan)
+    points, widths = np.full((len(silhouettes), 2), np.nan), np.full(len(silhouettes), np.nan)
     ok = [t for t, s in enumerate(silhouettes) if s is not None and np.isfinite(boxes[t, 3])]
     if not ok:
-        return out
+        return HeadBand(points, widths)
     rows = max(2, int(round(depth * np.median(boxes[ok, 3]))))
     for t in ok:
         v, u = np.nonzero(silhouettes[t][:rows])
         if u.size:
-            out[t] = boxes[t, 0] + u.mean(), boxes[t, 1] + v.mean()
-    return out
+            points[t] = boxes[t, 0] + u.mean(), boxes[t, 1] + v.mean()
+            if silhouettes[t].shape[0] >= rows:
+                widths[t] = u.size / rows
+    return HeadBand(points, widths)
+
+
+def head_points(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *, depth: float = 0.08) -> np.ndarray:
+    """The top of the head per frame in the full frame: (T, 2), NaN where no silhouette
+    (:func:`head_band`'s centroids)."""
+    return head_band(silhouettes, boxes, depth=depth).points
 
 
 class _HeadPath(NamedTuple):
@@ -188,7 +206,8 @@ def _theil_sen(t: np.ndarray, y: np.ndarray, *, floor: float = 0.0) -> tuple[flo
 
 
 def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: bool = False,
-               heights: bool | np.ndarray = True, conflict: float = 3.0) -> MotionCue | None:
+               heights: bool | np.ndarray = True, head_widths: np.ndarray | None = None,
+               conflict: float = 3.0) -> MotionCue | None:
     """Fit the walker's motion from full-frame boxes (and head points).
 
     Parameters
@@ -214,8 +233,15 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
         (:func:`estimator.cleanup.fixed_edge`): the visible part shrinks as
         the walker nears a camera that looks over a wall. The heights and the
         feet's fall are read on the others; with fewer than 3 of them the
-        growth is the head's alone, and 0 with an infinite error (no
-        evidence) without a head path.
+        growth is the head's: from ``head_widths`` and the head's path, and 0
+        with an infinite error (no evidence) without either.
+    head_widths : ndarray of shape (T,), optional
+        The head's width per frame (:func:`head_band`), for the growth where no
+        height tells it (fewer than 3 ``heights`` frames). Its log's slope is
+        combined with the head path's by their errors; where the two disagree
+        by more than ``conflict`` errors the width alone counts: a walker who
+        slows down bends the head's path as approaching would (CMU 07_05),
+        and only their distance changes the head's size.
 
     Returns
     -------
@@ -241,6 +267,15 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     fall, fall_se = unknown if feet_cut or not sized.any() else \
         _theil_sen(t[sized], (y + h)[sized] / np.median(h), floor=pixel)
     source, conflict_seen = "height" if sized.any() else "none", False
+    if not sized.any() and head_widths is not None:  # a wall across the window: the head's size instead
+        widths = np.asarray(head_widths, dtype=float)
+        if widths.shape != (len(boxes),):
+            raise ValueError(f"head_widths must have shape ({len(boxes)},), got {widths.shape}")
+        wk = ok & np.isfinite(widths) & (widths > 0)
+        if wk.sum() >= 6:
+            growth, se = _theil_sen(np.flatnonzero(wk).astype(float), np.log(widths[wk]),
+                                    floor=1.0 / (np.sqrt(12.0) * np.median(widths[wk])))
+            source = "head width"
     velocity, velocity_cov = MotionCue.head_velocity, MotionCue.head_velocity_cov
     if heads is not None:
         heads = np.asarray(heads, dtype=float)
@@ -254,17 +289,17 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
             travel, _ = _theil_sen(th, heads[hk, 0] / np.median(h))
             velocity = (float(path.velocity[0] / np.median(h)), float(path.velocity[1] / np.median(h)))
             velocity_cov = tuple(map(tuple, path.velocity_cov / np.median(h) ** 2))
-            if not sized.any():
+            if source == "none":
                 growth, se, source = g_head, se_head, "head"
             elif np.isfinite(se_head):
                 if abs(growth - g_head) > conflict * np.hypot(se, se_head):
                     conflict_seen = True
-                    if feet_cut:
+                    if feet_cut and source == "height":
                         growth, se, source = g_head, se_head, "head"
                 else:
                     wa, wb = 1 / se**2, 1 / se_head**2
                     growth, se, source = (wa * growth + wb * g_head) / (wa + wb), float(np.sqrt(1 / (wa + wb))), \
-                        "head+height"
+                        f"head+{source}"
     return MotionCue(growth=growth, travel=travel, n_frames=int(ok.sum()), growth_se=se, source=source,
                      conflict=conflict_seen, fall=fall, fall_se=fall_se, head_velocity=velocity,
                      head_velocity_cov=velocity_cov)

@@ -157,7 +157,7 @@ class _Open(BaseModel):
 class MotionCue(_Open):
     growth_per_frame: float = Field(description="relative change of the walker's image size per frame, > 0 approaching")
     growth_se: float | None = Field(description="standard error of growth_per_frame")
-    growth_from: Literal["height", "head", "head+height", "none"]
+    growth_from: Literal["height", "head", "head+height", "head width", "head+head width", "none"]
     growth_contested: bool = Field(False, description="head and height disagreed: one was dropped, and the "
                                    "other cameras' phase may settle ahead/behind (flip 'cameras')")
     travel_heights_per_frame: float = Field(description="horizontal motion per frame in body heights, > 0 rightwards")
