@@ -220,7 +220,7 @@ def _project(x: np.ndarray, rotvec: np.ndarray, centre: np.ndarray, focal: np.nd
 def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: np.ndarray, scales: np.ndarray,
                        links: list[tuple[int, int]], *, config: PerspectiveConfig = PerspectiveConfig(),
                        initial: PerspectiveRig | None = None, weights: np.ndarray | None = None,
-                       rotation_prior: tuple[np.ndarray, float] | None = None,
+                       rotation_prior: tuple[np.ndarray, float | np.ndarray] | None = None,
                        frame_times: np.ndarray | None = None) -> PerspectiveRig:
     """Adjust pinhole cameras and 3D joints to 2D joint tracks, from a scaled-orthographic rig.
 
@@ -243,10 +243,10 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     weights : ndarray of shape (C, T, 13), optional
         Each observation's reprojection residual is multiplied by this
         (e.g. a detector's confidence); default 1.
-    rotation_prior : (ndarray of shape (C, 3, 3), float), optional
-        Rotations ``R_c R_0^T`` known roughly and a weight: a camera's turn
-        away from its prior (rotation vector, radians) times the weight is
-        a residual beside the pixels (pixels per radian).
+    rotation_prior : (ndarray of shape (C, 3, 3), float or ndarray of shape (C,)), optional
+        Rotations ``R_c R_0^T`` known roughly and a weight (one, or per camera):
+        a camera's turn away from its prior (rotation vector, radians) times
+        its weight is a residual beside the pixels (pixels per radian).
     frame_times : ndarray of shape (T,), optional
         When each frame was taken (frame numbers, not jittered timestamps:
         gaps are matched to the commonest one), for ``config.smooth``: its
@@ -282,7 +282,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     bone_w = config.bone_weight  # a unit is a pixel of camera 0 at the walker
     if rotation_prior is not None:
         prior_rot = np.asarray(rotation_prior[0], float)[1:]
-        prior_w = float(rotation_prior[1])
+        prior_w = np.broadcast_to(np.asarray(rotation_prior[1], float), (n_cam,))[1:, None]
     a_up, b_up, per_tol = _angle_prior(UPRIGHT_FRAME_PRIORS, 1.0)  # per_tol: 1 / tolerance (radians)
     n_up = t * len(per_tol) if config.upright > 0 else 0
     up_w = np.zeros(len(per_tol))  # set once the first adjustment has read the noise
@@ -313,7 +313,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
         if free_focal:
             res.append((np.log(fo) - np.log(f0)) / config.focal_sigma)
         if rotation_prior is not None:
-            res.append(prior_w * _rotation_gap(rv[1:], prior_rot).ravel())
+            res.append((prior_w * _rotation_gap(rv[1:], prior_rot)).ravel())
         if len(ln):
             res.append([GAUGE_WEIGHT * (lk.mean() / scale0 - 1.0)])
         if n_up:
@@ -402,7 +402,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
             vals.append(np.full(n_cam, 1.0 / config.focal_sigma))
         if rotation_prior is not None:
             gap = _rotation_gap(rv[1:], prior_rot)
-            vals.append((prior_w * np.linalg.inv(_left_jacobian(gap)) @ _left_jacobian(rv[1:])).ravel())
+            vals.append((prior_w[..., None] * np.linalg.inv(_left_jacobian(gap)) @ _left_jacobian(rv[1:])).ravel())
         if len(ln):
             vals.append(np.full(len(ln), GAUGE_WEIGHT / (len(ln) * scale0)))
         if n_up:

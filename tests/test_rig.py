@@ -18,8 +18,8 @@ from estimator.joints import N_JOINTS
 from estimator.mnbp import measure_postures
 from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence
 from estimator.perspective import perspective_refine
-from estimator.rig import (RigConfig, aligned_error, attach_rig, calibrate_rig, person_frame,
-                           rotations_from_viewpoints, segment_lengths, smoothed, viewpoint_rotations)
+from estimator.rig import (RigConfig, _view_doubt, _viewpoint_prior, aligned_error, attach_rig, calibrate_rig,
+                           person_frame, rotations_from_viewpoints, segment_lengths, smoothed, viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 from estimator.skeleton import BodyShape, forward_kinematics
 from estimator.synth import SynthSpec, synthesize
@@ -264,6 +264,8 @@ def test_rotations_fuse_by_their_errors():
     fused, weight = _fuse(selfcal, np.array([[0.0, 0, 0], [7.0, 0, 0], [0.0, 0, 0]]), views, 7.0)
     assert np.allclose(weight, [1.0, 0.5, 1.0])  # equal errors: halfway; an exact one: itself
     assert np.allclose(Rotation.from_matrix(fused).as_euler("yxz", degrees=True)[:, 0], [0.0, 15.0, 60.0])
+    _, doubted = _fuse(selfcal, np.array([[0.0, 0, 0], [7.0, 0, 0], [0.0, 0, 0]]), views, np.array([7.0, 14.0, 7.0]))
+    assert np.allclose(doubted, [1.0, 0.8, 1.0])  # a viewpoint twice as unsure: 14^2 / (14^2 + 7^2)
     same, none = _fuse(selfcal, None, views, 7.0)
     assert none is None and np.array_equal(same, selfcal)
 
@@ -288,6 +290,42 @@ def test_pinhole_cameras_from_joint_tracks(noise_px):
     else:
         assert pinhole < 3.0 and pinhole < ortho, (pinhole, ortho)
         assert 0.8 * noise_px < pin.rmse_px < 1.2 * noise_px
+
+
+def test_the_pinhole_prior_on_the_viewpoints_weighs_each_camera_its_own():
+    """``rotation_prior``'s weight per camera: a camera held hard stays at its prior, one left free
+    goes where the joints put it."""
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=20, seed=12, azimuths=(20.0, 95.0, 230.0),
+                               elevations=(10.0, 25.0, 0.0), image_size=(640, 480)))
+    tracks = np.stack([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras]).astype(float)
+    cal = self_calibrate(tracks, refine=True, upright=True)
+    truth = _true_rig(seq)
+    prior = Rotation.from_euler("x", 5.0, degrees=True).as_matrix() @ truth  # 5 deg off
+    def refined(weight):
+        return perspective_refine(tracks, np.tile(seq.image_size, (3, 1)), cal.rotations, cal.scales,
+                                  list(RIGID_LINKS), rotation_prior=(prior, weight)).rotations
+
+    held = refined(1e6)  # one weight for all
+    assert max(geodesic_deg(a, b) for a, b in zip(held[1:], prior[1:])) < 0.1
+    one = refined(np.array([0.0, 1e6, 0.0]))
+    assert geodesic_deg(one[1], prior[1]) < 0.1  # held
+    assert geodesic_deg(one[2], truth[2]) < 2.5  # free: half way from its prior at most (with c1 5 deg off)
+
+
+def test_a_camera_whose_walker_is_hidden_below_has_a_viewpoint_less_sure(walk):
+    """``RigConfig.hidden_view_doubt``: the viewpoint of a camera whose walker a wall hides is
+    fused with the self-calibration, and held in the pinhole adjustment, as that much less sure
+    (a pair's by the root mean square of its two cameras')."""
+    seq, est, measured = walk
+    names = list(seq.cameras)
+    assert np.allclose(_view_doubt(measured, names, RigConfig()), 1.0)
+    hidden = {**measured.tracks, "c1": replace(measured.tracks["c1"], hidden=np.full(seq.n_frames, 0.3))}
+    walled = replace(measured, tracks=hidden)
+    assert np.allclose(_view_doubt(walled, names, RigConfig()), [1.0, np.sqrt(2.5), 1.0])
+    assert np.allclose(_view_doubt(walled, names, RigConfig(hidden_view_doubt=1.0)), 1.0)
+    views = viewpoint_rotations(measured)
+    _, w = _viewpoint_prior(walled, names, views, RigConfig())
+    assert np.allclose(w / w[0], [1.0, 1.0 / np.sqrt(2.5), 1.0])
 
 
 def test_a_camera_without_postures_is_left_out_of_the_rig(walk):
