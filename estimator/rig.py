@@ -672,6 +672,8 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
                          "weakly determined; the silhouettes' viewpoints started the adjustment (2.4-6.7 deg in the "
                          "median of a draw of synthetic walks 4-15 m away, three or four cameras 0.4-1.9; "
                          "docs/POSTURE.md); a third camera settles it")
+    elif len(use) == 2:
+        rig.notes.append(TWO_VIEWS)
     left_out = [n for c, n in enumerate(names) if c not in use]
     if left_out:
         rig.notes.append(f"not in the rig (postures on fewer than {config.min_frames} frames): {', '.join(left_out)}")
@@ -844,6 +846,14 @@ def _below_silhouette(track: CameraTrack | None, joints: np.ndarray | None, fram
 def _walker_height(estimate: WalkEstimate, names: list[str]) -> float:
     """The walker's median image height in pixels over the cameras ``names``, with what is hidden below."""
     return float(np.nanmedian(np.concatenate([estimate.tracks[n].whole_heights() for n in names])))
+
+
+TWO_VIEWS = ("two cameras: the rotation between two views of a person is weakly determined (a direction of it "
+             "the epipolar tangents cannot see); on videos of a walker composited into real footage, 7 two-camera "
+             "rigs were 2.4-24.9 deg off (median 10.1) against 4.1-21.0 (10.5) from the viewpoints, 4 of them worse "
+             "by more than 2 deg (exact silhouettes: 4.8 deg at p90, docs/ROBUSTNESS.md); a third camera settles it, "
+             "and --posture model (posture=model in a job) gives the viewpoints' rig")
+"""The note of a rig calibrated on the postures of two cameras (docs/ROBUSTNESS.md, "Two cameras")."""
 
 
 def _view_doubt(estimate: WalkEstimate, names: list[str], config: RigConfig) -> np.ndarray:

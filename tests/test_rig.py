@@ -18,8 +18,9 @@ from estimator.joints import N_JOINTS
 from estimator.mnbp import measure_postures
 from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence
 from estimator.perspective import perspective_refine
-from estimator.rig import (RigConfig, _view_doubt, _viewpoint_prior, aligned_error, attach_rig, calibrate_rig,
-                           person_frame, rotations_from_viewpoints, segment_lengths, smoothed, viewpoint_rotations)
+from estimator.rig import (TWO_VIEWS, RigConfig, _view_doubt, _viewpoint_prior, aligned_error, attach_rig,
+                           calibrate_rig, person_frame, rotations_from_viewpoints, segment_lengths, smoothed,
+                           viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate
 from estimator.skeleton import BodyShape, forward_kinematics
 from estimator.synth import SynthSpec, synthesize
@@ -330,7 +331,7 @@ def test_a_camera_whose_walker_is_hidden_below_has_a_viewpoint_less_sure(walk):
 
 def test_a_camera_without_postures_is_left_out_of_the_rig(walk):
     """A camera that saw nothing has no viewpoint and no posture: the others still make a rig,
-    and the result stays strict JSON."""
+    and the result stays strict JSON. A rig that rests on two cameras says it is weakly determined."""
     seq, _, measured = walk
     blind = replace(measured.cameras["c2"], joints2d=np.full_like(measured.cameras["c2"].joints2d, np.nan),
                     viewpoint=replace(measured.cameras["c2"].viewpoint, azimuth_deg=np.nan, elevation_deg=np.nan))
@@ -339,6 +340,10 @@ def test_a_camera_without_postures_is_left_out_of_the_rig(walk):
     d = rig.to_dict()
     json.dumps(d, allow_nan=False)
     assert d["cameras"]["c2"]["rotation"] is None and d["cameras"]["c1"]["rotation"] is not None
+    assert TWO_VIEWS in rig.notes  # the rig rests on two cameras
+    pair = calibrate_rig(replace(measured, cameras={"c0": measured.cameras["c0"], "c1": measured.cameras["c1"]}))
+    assert pair.source == "self-calibration" and TWO_VIEWS in pair.notes
+    assert TWO_VIEWS not in calibrate_rig(measured).notes
     gone = calibrate_rig(replace(measured, cameras={"c0": measured.cameras["c0"], "c2": blind}))
     assert gone.source == "viewpoints"
     json.dumps(gone.to_dict(), allow_nan=False)
