@@ -849,7 +849,7 @@ def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     if not np.any(flat >= config.hidden_flat):
         return out
     rows = bottom[flat >= config.hidden_flat]  # the edge's row: the commonest of the frames that end flat
-    row = rows[int(np.argmax([np.sum(np.abs(rows - r) <= 1) for r in rows]))]
+    row = rows[int(np.argmax(np.sum(np.abs(rows[:, None] - rows[None, :]) <= 1, axis=1)))]
     on = np.abs(bottom - row) <= 1
     if on.sum() < max(config.fixed_frames, config.fixed_share * present.size):
         return out

@@ -788,7 +788,7 @@ def clean_tracks(tracks: dict[str, CameraTrack], config: CleanupConfig | None = 
     out, reports = {}, {}
     for name, t in tracks.items():
         sils, boxes, report = select_walker(t.silhouettes, t.boxes, config=config)
-        cut, below, front = np.zeros(len(sils), bool), np.zeros(len(sils), bool), False
+        cut, front = np.zeros(len(sils), bool), False
         if score is not None:
             sils, boxes, kept, beside = trim_shadow(sils, boxes, score, config=config)
             below = kept < 1.0
