@@ -1279,10 +1279,11 @@ def _contested(camera: CameraEstimate) -> bool:
     The height alone is trusted on a conflict (a walker who changes speed
     bends the head's path); the head alone is not, when the feet were cut (the
     cut heights were dropped, and the head may be the one misled). Behind an
-    edge fixed in the image across most of the window the head alone is all
-    there is (the heights are not the walker's size), and it stands: the
-    other cameras' phase, all of them behind walls, turned 7 of 37 right
-    cameras of seed 23's CMU walks to the wrong side when asked. A cue too
+    edge fixed in the image across most of the window the head's width and
+    path are all there is (the heights are not the walker's size), and they
+    stand, the width as the height does on a conflict: the other cameras'
+    phase, all of them behind walls, turned 7 of 37 right cameras of seed
+    23's CMU walks to the wrong side when asked of the head's path alone. A cue too
     weak to decide is not contested: the window may hold a turn, where the
     cameras' phases agree best on a side that is right for half of it
     (measured: phase within 1/20 on 0.5 of the frames against 0.9).

@@ -60,9 +60,10 @@ class MotionCue:
         is infinite).
     conflict : bool
         The head's path and the height (or the head's width) disagreed (by
-        more than ``motion_cue``'s ``conflict`` errors) and one was dropped: the sign of
-        ``growth`` is then contested, and :func:`estimator.pipeline.estimate_walk`
-        lets the other cameras settle ahead/behind.
+        more than ``motion_cue``'s ``conflict`` errors) and one was dropped.
+        Where the head's path is what was kept, the sign of ``growth`` is
+        contested, and :func:`estimator.pipeline.estimate_walk` lets the other
+        cameras settle ahead/behind.
     fall, fall_se : float
         The foot point's motion down the image per frame, in body heights
         (> 0: approaching, for a camera above the ground), and its standard

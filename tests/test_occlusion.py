@@ -277,7 +277,7 @@ def test_behind_a_wall_the_heads_width_tells_a_walker_who_slows_down():
     """No height tells the walker's size (a wall across the window). A walker who nears the camera
     while slowing down bends the head's image path as a receding one would (CMU 07_05 does); the
     head's width grows as they near it whatever their speed, and counts alone where the two
-    disagree (the sign is then contested). At a steady speed the two are combined."""
+    disagree (``conflict`` says so). At a steady speed the two are combined."""
     boxes, heads, widths, truth = _walker_behind_a_wall(accel=-0.7)
     path = motion_cue(boxes, heads, heights=False)
     assert truth > 0 and path.growth < -3 * path.growth_se  # the path alone: the wrong way
