@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -54,6 +56,18 @@ def test_estimate_writes_the_result_to_stdout_by_default(small_model_path, tmp_p
     result = json.loads(out.out)  # standard output holds the result alone
     assert result["schema_version"] == 1 and len(result["frames"]) == 10
     assert "wrote standard output: 10 frames, 2 cameras" in out.err
+
+
+def test_estimate_says_one_camera_has_no_rig(small_model_path, tmp_path, capsys):
+    from estimator.sequence import write_sequence
+    from estimator.synth import SynthSpec, synthesize
+
+    write_sequence(tmp_path / "walk", synthesize(SynthSpec(n_cameras=1, n_frames=10, seed=4, image_size=(320, 240))))
+    assert main(["estimate", str(tmp_path / "walk"), "--model", small_model_path, "--posture", "model",
+                 "--out", str(tmp_path / "r.json")]) == 0
+    printed = capsys.readouterr()
+    assert "rig: one camera (c0), no rotations to give" in printed.out + printed.err
+    assert "rotations from" not in printed.out + printed.err
 
 
 def test_estimate_reads_a_folder_of_videos(small_model_path, tmp_path, capsys):
@@ -290,5 +304,9 @@ def test_demo_exit_codes(small_model_path, monkeypatch, capsys):
         raise RuntimeError("no room")
 
     monkeypatch.setattr(service.server, "BackgroundServer", refuse)
+    made = []
+    real_mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda **kw: made.append(real_mkdtemp(**kw)) or made[-1])
     assert main(["demo", "--model", small_model_path]) == 1
     assert "the service did not start: no room" in capsys.readouterr().err
+    assert made and not Path(made[0]).exists()  # its empty working folder is not left behind

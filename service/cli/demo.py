@@ -10,6 +10,7 @@ estimated viewpoints next to the truth and the REST URL.
 from __future__ import annotations
 
 import argparse
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -86,6 +87,8 @@ def run_demo(args: argparse.Namespace) -> int:
     try:
         server = BackgroundServer(settings, port=args.port or None)
     except (RuntimeError, OSError) as exc:
+        if not args.workdir:  # nothing was written there worth keeping
+            shutil.rmtree(workdir, ignore_errors=True)
         raise CliFailure(f"the service did not start: {exc}") from None
     with server:
         url = server.url

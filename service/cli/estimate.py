@@ -291,6 +291,9 @@ def _print_rig(rig: dict, truth: dict) -> None:
     from estimator.rig import rotations_from_viewpoints
 
     ref = rig["reference"]
+    if len(rig["cameras"]) < 2:
+        print(f"  rig: one camera ({ref}), no rotations to give")
+        return
     print(f"  rig ({rig['source']}), rotations from {ref}:")
     for name, cam in rig["cameras"].items():
         if name == ref:
