@@ -12,8 +12,13 @@ like a cylinder, edges feathered by a pixel), composited over real frames of
 some mirrored: real people walking past with their shadows, real daylight
 changes, real compression), given a ground shadow on every other walk (the
 silhouette's ground shadow, :func:`estimator.damage.shadow`'s geometry,
-darkening the real background by 25-50 % with a soft edge), and written as
-MJPG videos, one per camera. Then ``posecal estimate FOLDER`` runs on the
+darkening the real background by 25-50 % with a soft edge), taken through a
+camera's optics (:class:`Optics`: since session 46 the walk is rendered at 5
+instants per frame and each frame averages the 3 the shutter is open for,
+40 ms, so a swinging foot or hand smears as it does on a real 15 Hz camera;
+then the lens's blur, 0.7 px, and the sensor's noise, 2 grey levels;
+``--shutter 0 --defocus 0 --noise 0`` gives the sharp single instant of
+before), and written as MJPG videos, one per camera. Then ``posecal estimate FOLDER`` runs on the
 folder exactly as a user runs it, with no flags: the agent's segmenter
 (background bootstrapped with the walker in view), the tracker, the
 synchronisation from the walk, the viewpoints, the phase, mNBP postures and
@@ -39,7 +44,7 @@ about the image centre), where which person the segmenter follows matters
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_composite.py [--sequences 8] [--seed 5] \
         [--plot docs/img/composite_errors.png] [--montage docs/img/composite_frames.jpg] [--keep DIR] \
-        [--walker-scale 0.5] [--plates]
+        [--walker-scale 0.5] [--plates] [--shutter 0.6] [--defocus 0.7] [--noise 2]
 
 ``--plates`` puts an image of the empty scene beside each video (the median of
 the whole of ``vtest.avi``, mirrored as the camera's stretch), which
@@ -151,15 +156,76 @@ def dress(mask: np.ndarray, joints2d: np.ndarray, outfit: Outfit) -> tuple[np.nd
 
 
 def composite(background: np.ndarray, mask: np.ndarray, joints2d: np.ndarray, outfit: Outfit) -> np.ndarray:
-    """One camera frame: the real ``background`` (uint8 BGR), the walker's shadow darkening it, the
-    dressed walker over it."""
+    """One instant of a camera frame (float32 BGR): the real ``background`` (uint8 BGR), the walker's
+    shadow darkening it, the dressed walker over it."""
     frame = background.astype(np.float32)
     if outfit.shadow_gain < 1.0 and mask.any():
         cast = shadow(mask, np.random.default_rng(outfit.shadow_seed))
         cast = cv2.GaussianBlur(((cast > 0) & (mask == 0)).astype(np.float32), (5, 5), 1.5)
         frame *= (1.0 - (1.0 - outfit.shadow_gain) * cast)[..., None]
     image, alpha = dress(mask, joints2d, outfit)
-    frame = frame * (1.0 - alpha[..., None]) + image * alpha[..., None]
+    return frame * (1.0 - alpha[..., None]) + image * alpha[..., None]
+
+
+@dataclass(frozen=True)
+class Optics:
+    """What a real camera adds to the scene in front of it.
+
+    ``shutter``: the share of the frame interval the shutter is open; the
+    frame is the scene averaged over it, so a swinging foot or hand is a
+    smear (a 15 Hz camera indoors exposes 30-66 ms: 0.45-1.0); 0 renders
+    one instant, as this script did before session 46. ``defocus_px``: the
+    lens's blur (Gaussian sigma, pixels). ``noise``: the sensor's noise
+    (Gaussian sigma, grey levels), before the MJPG compression.
+    """
+
+    shutter: float = 0.6
+    defocus_px: float = 0.7
+    noise: float = 2.0
+
+    @property
+    def instants(self) -> np.ndarray:
+        """Offsets (in sub-frames of :data:`SUBFRAMES` per frame) of the instants rendered in one frame:
+        the odd number nearest ``shutter * SUBFRAMES``, centred on the frame's time."""
+        n = 2 * int(np.floor(self.shutter * SUBFRAMES / 2)) + 1 if self.shutter > 0 else 1
+        return np.arange(min(n, SUBFRAMES)) - min(n, SUBFRAMES) // 2
+
+
+SUBFRAMES = 5  # instants rendered per frame when the shutter is open for a while
+
+
+def render_walk(spec: SynthSpec, motion, optics: Optics, walker_scale: float = 1.0
+                ) -> tuple[Sequence, dict[str, list[list]], list[list[dict]]]:
+    """The walk at ``spec.fps`` (silhouettes and truth at each frame's mid-exposure; :func:`scaled` by
+    ``walker_scale``) and, per camera and frame, the masks of the instants the shutter is open, with
+    each frame's instants' truth frames."""
+    offsets = optics.instants
+    if len(offsets) == 1:
+        seq = scaled(synthesize(spec, motion=motion), walker_scale)
+        return seq, {c: [[m] for m in seq.silhouettes[c]] for c in seq.cameras}, [[f] for f in seq.truth["frames"]]
+    fast = scaled(synthesize(dataclasses.replace(spec, n_frames=spec.n_frames * SUBFRAMES, fps=spec.fps * SUBFRAMES),
+                             motion=motion), walker_scale)
+    mid = SUBFRAMES // 2 + SUBFRAMES * np.arange(spec.n_frames)
+    instants = mid[:, None] + offsets[None, :]
+    frames = [dict(fast.truth["frames"][k], index=i) for i, k in enumerate(mid)]
+    seq = dataclasses.replace(fast, fps=spec.fps, silhouettes={c: [fast.silhouettes[c][k] for k in mid]
+                                                              for c in fast.cameras},
+                              truth=dict(fast.truth, frames=frames))
+    masks = {c: [[fast.silhouettes[c][k] for k in row] for row in instants] for c in fast.cameras}
+    return seq, masks, [[fast.truth["frames"][k] for k in row] for row in instants]
+
+
+def exposed(background: np.ndarray, masks: list, truth_frames: list[dict], cam: str, outfit: Outfit,
+            optics: Optics, rng: np.random.Generator) -> np.ndarray:
+    """One camera frame as the camera takes it (uint8 BGR): the composite averaged over the instants the
+    shutter is open (motion blur), blurred by the lens, with the sensor's noise."""
+    empty = np.zeros(background.shape[:2], np.uint8)
+    frame = np.mean([composite(background, empty if m is None else m, f["joints2d"][cam], outfit)
+                     for m, f in zip(masks, truth_frames)], axis=0)
+    if optics.defocus_px > 0:
+        frame = cv2.GaussianBlur(frame, (0, 0), optics.defocus_px)
+    if optics.noise > 0:
+        frame = frame + rng.normal(0.0, optics.noise, frame.shape).astype(np.float32)
     return np.clip(frame, 0, 255).astype(np.uint8)
 
 
@@ -208,20 +274,28 @@ def scaled(seq: Sequence, k: float) -> Sequence:
 
 
 def write_videos(folder: Path, seq: Sequence, video: np.ndarray, rng: np.random.Generator, *, cast_shadow: bool,
-                 plate: np.ndarray | None = None) -> Outfit:
+                 plate: np.ndarray | None = None, masks: dict[str, list[list]] | None = None,
+                 instants: list[list[dict]] | None = None, optics: Optics = Optics(0.0, 0.0, 0.0)) -> Outfit:
     """Each camera's composite as ``<camera>.avi`` (MJPG, 15 fps), and ``plate`` (:func:`empty_scene`)
-    as ``<camera>.background.png``, mirrored as the camera's stretch, when given; returns the outfit."""
+    as ``<camera>.background.png``, mirrored as the camera's stretch, when given; returns the outfit.
+
+    ``masks`` and ``instants`` (:func:`render_walk`) are each frame's masks and truth frames over the
+    shutter's opening (default: ``seq``'s own, one instant), taken through ``optics`` (:func:`exposed`;
+    default: none)."""
     folder.mkdir(parents=True, exist_ok=True)
     outfit = Outfit.random(rng, shadow=cast_shadow)
+    if masks is None:
+        masks = {c: [[m] for m in seq.silhouettes[c]] for c in seq.cameras}
+        instants = [[f] for f in seq.truth["frames"]]
     for cam in seq.cameras:
         bg, mirrored = backgrounds(video, len(seq.silhouettes[cam]), rng)
         if plate is not None:
             cv2.imwrite(str(folder / f"{cam}.background.png"), np.ascontiguousarray(plate[:, ::-1] if mirrored
                                                                                    else plate))
         writer = cv2.VideoWriter(str(folder / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), FPS, SIZE)
-        for k, sil in enumerate(seq.silhouettes[cam]):
-            mask = np.zeros(SIZE[::-1], np.uint8) if sil is None else sil
-            writer.write(composite(bg[k], mask, seq.truth["frames"][k]["joints2d"][cam], outfit))
+        noise = np.random.default_rng([int(outfit.shadow_seed), len(cam), ord(cam[-1])])
+        for k in range(len(seq.silhouettes[cam])):
+            writer.write(exposed(bg[k], masks[cam][k], instants[k], cam, outfit, optics, noise))
         writer.release()
     return outfit
 
@@ -334,7 +408,15 @@ def main() -> None:
     parser.add_argument("--plates", action="store_true",
                         help="give each video an image of the empty scene (<camera>.background.png), as a user "
                              "who photographed it would; the command uses it as the background")
+    parser.add_argument("--shutter", type=float, default=Optics.shutter,
+                        help=f"share of the frame interval the shutter is open: motion blur (default "
+                             f"{Optics.shutter}; 0: one instant per frame, as before session 46)")
+    parser.add_argument("--defocus", type=float, default=Optics.defocus_px,
+                        help=f"the lens's blur, Gaussian sigma in pixels (default {Optics.defocus_px})")
+    parser.add_argument("--noise", type=float, default=Optics.noise,
+                        help=f"the sensor's noise, sigma in grey levels (default {Optics.noise})")
     args = parser.parse_args()
+    optics = Optics(args.shutter, args.defocus, args.noise)
     video = load_video(VIDEO)
     plate = empty_scene(video) if args.plates else None
     motions = [read_motion(MOCAP / "16_15.bvh"), read_motion(MOCAP / "07_05.amc")]
@@ -349,10 +431,11 @@ def main() -> None:
         n, shape, distance = int(rng.integers(2, 5)), body(rng), float(rng.uniform(5.0, 12.0))
         spec = SynthSpec(n_cameras=n, n_frames=args.frames, fps=FPS, seed=1000 * args.seed + i, shape=shape,
                          distance=distance, elevations=elevations(rng, n, shape.height, distance), image_size=SIZE)
-        seq = scaled(synthesize(spec, motion=motions[i % 2]), args.walker_scale)
+        seq, masks, instants = render_walk(spec, motions[i % 2], optics, args.walker_scale)
         walk_rng = np.random.default_rng([args.seed, i])
         videos, exact = work / f"walk{i}" / "videos", work / f"walk{i}" / "exact"
-        outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1, plate=plate)
+        outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1, plate=plate, masks=masks,
+                              instants=instants, optics=optics)
         shadows += outfit.shadow_gain < 1.0
         write_sequence(exact, seq)
         for name, kind, flags in runs:

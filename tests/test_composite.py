@@ -86,3 +86,32 @@ def test_a_right_prior_wider_than_the_walker_does_not_paint_a_rim(seed, azimuth,
     without, wide = mean_iou(segment(frames, settings)), mean_iou(segment(frames, settings, priors))
     assert without > 0.8, without  # the premise: the walker is found without help
     assert wide >= without - 0.04, (without, wide)
+
+
+def test_a_cameras_shutter_smears_a_swinging_limb():
+    """``Optics``: each frame is the composite averaged over the instants the shutter is open, the truth
+    is the middle one; a walker who moves within the exposure leaves pixels between the background
+    and the walker's colours, which one instant does not."""
+    spec = SynthSpec(n_cameras=1, n_frames=6, fps=15.0, seed=4, azimuths=(90.0,), elevations=(5.0,),
+                     distance=5.0, image_size=(320, 240))
+    optics = composite.Optics(shutter=0.6, defocus_px=0.0, noise=0.0)
+    assert list(optics.instants) == [-1, 0, 1]
+    assert list(composite.Optics(shutter=0.0).instants) == [0]
+    seq, masks, instants = composite.render_walk(spec, read_motion(composite.MOCAP / "16_15.bvh"), optics)
+    assert seq.fps == 15.0 and len(seq.silhouettes["c0"]) == 6 and [f["index"] for f in seq.truth["frames"]] == list(range(6))
+    k = 3
+    assert len(masks["c0"][k]) == 3 and np.array_equal(seq.silhouettes["c0"][k], masks["c0"][k][1])
+    assert seq.truth["frames"][k]["joints2d"] == instants[k][1]["joints2d"]
+    outfit = composite.Outfit.random(np.random.default_rng(1), shadow=False)
+    background = np.full((240, 320, 3), 250, np.uint8)  # pale: every garment stands out
+    rng = np.random.default_rng(0)
+    smeared = composite.exposed(background, masks["c0"][k], instants[k], "c0", outfit, optics, rng).astype(float)
+    sharp = composite.exposed(background, masks["c0"][k][1:2], instants[k][1:2], "c0", outfit,
+                              composite.Optics(0.0, 0.0, 0.0), rng).astype(float)
+    covered = np.stack([m > 0 for m in masks["c0"][k]])
+    moved = covered.any(axis=0) & ~covered.all(axis=0)  # the walker here for part of the exposure
+    assert moved.sum() > 50, moved.sum()
+    assert np.abs(smeared - sharp)[moved].mean() > 10.0
+    each = [composite.exposed(background, [m], [f], "c0", outfit, composite.Optics(0.0, 0.0, 0.0), rng)
+            for m, f in zip(masks["c0"][k], instants[k])]
+    assert np.abs(smeared - np.mean(each, axis=0)).max() <= 1.0  # the instants' average
