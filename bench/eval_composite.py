@@ -455,7 +455,9 @@ def main() -> None:
                                 else np.zeros(frames.shape[1:3], np.uint8)))
     cams = len(rows["exact silhouettes"].get("azimuth", []))
     print(f"\n{args.sequences} walks ({cams} cameras, {args.frames} frames at 15 Hz, CMU motion, random bodies; "
-          f"{shadows} with a ground shadow) composited over vtest.avi; `posecal estimate FOLDER`, no flags\n")
+          f"{shadows} with a ground shadow) composited over vtest.avi through a camera's optics (shutter "
+          f"{optics.shutter:g} of the frame interval, lens blur {optics.defocus_px:g} px, noise {optics.noise:g} grey "
+          f"levels); `posecal estimate FOLDER`, no flags\n")
     print(f"segmenter against the exact silhouettes: IoU median {np.median(ious):.3f}, "
           f"p10 {np.percentile(ious, 10):.3f}, "
           f"below 0.5 in {100 * np.mean(np.array(ious) < 0.5):.1f} % of {len(ious)} frames\n")

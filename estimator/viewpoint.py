@@ -20,7 +20,6 @@ from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
-from scipy.ndimage import median_filter
 
 __all__ = ["MotionCue", "Viewpoint", "azimuth_difference_deg", "circular_mean_deg", "elevation_from_path",
            "estimate_viewpoint", "head_points", "motion_cue", "with_path_elevation"]
@@ -198,46 +197,13 @@ def _head_path(t: np.ndarray, points: np.ndarray, *, floor_px: float = 0.3) -> _
     return _HeadPath(float(-c), float(np.sqrt(cov[4, 4])), np.array([bx - ax * c, by - ay * c]), jac @ cov @ jac.T)
 
 
-def _theil_sen(t: np.ndarray, y: np.ndarray, *, floor: float = 0.0, pieces: np.ndarray | None = None
-               ) -> tuple[float, float]:
-    """Median of pairwise slopes, and its standard error from the residuals' MAD (at least ``floor``).
-
-    With ``pieces`` (a label per sample) only pairs within a piece count, and
-    each piece has its own intercept: one slope through levels that jump
-    (:func:`_level_pieces`). ``(0, inf)`` when no piece has two samples.
-    """
-    labels = np.zeros(len(t), int) if pieces is None else np.asarray(pieces)
+def _theil_sen(t: np.ndarray, y: np.ndarray, *, floor: float = 0.0) -> tuple[float, float]:
+    """Median of pairwise slopes, and its standard error from the residuals' MAD (at least ``floor``)."""
     i, j = np.triu_indices(len(t), 1)
-    same = labels[i] == labels[j]
-    if not same.any():
-        return 0.0, float("inf")
-    i, j = i[same], j[same]
     slope = float(np.median((y[j] - y[i]) / (t[j] - t[i])))
-    resid, spread = y - slope * t, 0.0
-    for k in np.unique(labels):
-        at = labels == k
-        resid[at] -= np.median(resid[at])
-        spread += np.sum((t[at] - t[at].mean()) ** 2)
-    sigma = max(1.4826 * np.median(np.abs(resid)), floor)
-    return slope, float(sigma / np.sqrt(spread)) if spread > 0 else float("inf")
-
-
-def _level_pieces(y: np.ndarray, *, step: float = 0.1, width: int = 5) -> np.ndarray:
-    """Labels of the stretches of ``y`` (a log size per frame) between jumps of more than ``step``.
-
-    A walker's image size changes smoothly (at most a few per cent a frame at
-    15 Hz, even near the camera), a segmenter's output need not: a pale
-    shirt over a pale path lost for a stretch of frames and found again makes
-    the silhouette 15-20 % taller at once. The jumps are read on a running
-    median of ``width`` frames (which keeps a step and drops a frame or two
-    unlike their neighbours, which the robust slope already resists), so a
-    size measured from such silhouettes grows within each stretch and not
-    across the jump (:func:`motion_cue`).
-    """
-    if len(y) < width:
-        return np.zeros(len(y), int)
-    level = median_filter(np.asarray(y, float), size=width, mode="nearest")
-    return np.r_[0, np.cumsum(np.abs(np.diff(level)) > step)]
+    resid = y - slope * t
+    sigma = max(1.4826 * np.median(np.abs(resid - np.median(resid))), floor)
+    return slope, float(sigma / np.sqrt(np.sum((t - t.mean()) ** 2)))
 
 
 def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: bool = False,
@@ -249,9 +215,7 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     ----------
     boxes : ndarray of shape (T, 4)
         ``(x, y, width, height)`` of the silhouette in the full frame per frame;
-        NaN rows where the camera has no silhouette. The height's growth is
-        one slope through the stretches between jumps of the size
-        (:func:`_level_pieces`: a segmenter that loses and finds a pale shirt).
+        NaN rows where the camera has no silhouette.
     heads : ndarray of shape (T, 2), optional
         The head's image position per frame (:func:`head_points`). Its path's
         perspective curvature gives the growth independently of the feet,
@@ -299,8 +263,7 @@ def motion_cue(boxes: np.ndarray, heads: np.ndarray | None = None, *, feet_cut: 
     # Heights are whole pixels: their log is known to 1 / (sqrt(12) h) at best.
     pixel = 1.0 / (np.sqrt(12.0) * np.median(h))  # a whole-pixel edge, in walker heights
     unknown = (0.0, float("inf"))
-    growth, se = _theil_sen(t[sized], np.log(h[sized]), floor=pixel, pieces=_level_pieces(np.log(h[sized]))) \
-        if sized.any() else unknown
+    growth, se = _theil_sen(t[sized], np.log(h[sized]), floor=pixel) if sized.any() else unknown
     travel, _ = _theil_sen(t, (x + w / 2) / np.median(h))
     fall, fall_se = unknown if feet_cut or not sized.any() else \
         _theil_sen(t[sized], (y + h)[sized] / np.median(h), floor=pixel)

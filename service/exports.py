@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import warnings
 from collections.abc import Sequence
@@ -79,10 +80,19 @@ def _array(values) -> str:
 
 
 def write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path``, making its folder."""
+    """Write ``text`` to ``path``, making its folder; all or nothing (a temporary file beside it, then
+    renamed), so a reader never finds half a file."""
     path = Path(path)
+    if path.exists() and not path.is_file():  # a device or a pipe (/dev/stdout): nothing to rename onto
+        path.write_text(text)
+        return
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        partial.write_text(text)
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
 
 
 def write_calibration_toml(path: Path, names: Sequence[str], sizes: np.ndarray, cameras: PinholeCameras, *,

@@ -314,3 +314,22 @@ def test_selfcal_export_codes(tmp_path, tracks_doc, capsys):
                  "--export-calibration", str(tmp_path / "h.toml"), "--export-bvh", str(tmp_path / "h.bvh")])
     assert code == 1 and "'head' is never placed" in capsys.readouterr().err
     assert (tmp_path / "h.toml").exists() and not (tmp_path / "h.bvh").exists()
+
+
+def test_a_file_is_written_whole_or_not_at_all(tmp_path):
+    """``write_text`` (results, exports): a write that fails leaves the file as it was and no partial
+    file beside it (an unserialisable result once left half a JSON file for the next reader)."""
+    from service.exports import write_text
+
+    path = tmp_path / "deep" / "result.json"
+    write_text(path, '{"old": 1}')
+    assert path.read_text() == '{"old": 1}'
+
+    with pytest.raises(UnicodeEncodeError):  # a lone surrogate: no encoding writes it
+        write_text(path, '{"new": "' + "x" * 10000 + '\udc80"}')
+    assert path.read_text() == '{"old": 1}'
+    assert sorted(p.name for p in path.parent.iterdir()) == ["result.json"]
+    write_text(path, '{"new": 2}')
+    assert path.read_text() == '{"new": 2}'
+    write_text(Path("/dev/null"), "nothing")  # not a file: written through, not replaced
+    assert Path("/dev/null").is_char_device()

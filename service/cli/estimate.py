@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -162,15 +161,15 @@ def run(args: argparse.Namespace) -> int:
         result["sequence"] = {"fps": sequence.fps, "image_size": list(sequence.image_size),
                               "frames": sequence.n_frames}
         shape = (sequence.n_frames, len(sequence.cameras), sequence.truth)
+    text = json.dumps(result, allow_nan=False)  # before anything is written: never half a result
     if args.out == "-":
-        json.dump(result, sys.stdout, allow_nan=False)
-        sys.stdout.write("\n")
+        sys.stdout.write(text + "\n")
         with contextlib.redirect_stdout(sys.stderr):
             _summary(result, shape, "standard output")
     else:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as fh:
-            json.dump(result, fh, allow_nan=False)
+        from service.exports import write_text
+
+        write_text(Path(args.out), text)
         _summary(result, shape, args.out)
     _export(result, exports)
     return 0
