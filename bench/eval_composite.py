@@ -167,6 +167,9 @@ def composite(background: np.ndarray, mask: np.ndarray, joints2d: np.ndarray, ou
     return frame * (1.0 - alpha[..., None]) + image * alpha[..., None]
 
 
+SUBFRAMES = 5  # instants rendered per frame when the shutter is open for a while
+
+
 @dataclass(frozen=True)
 class Optics:
     """What a real camera adds to the scene in front of it.
@@ -187,11 +190,13 @@ class Optics:
     def instants(self) -> np.ndarray:
         """Offsets (in sub-frames of :data:`SUBFRAMES` per frame) of the instants rendered in one frame:
         the odd number nearest ``shutter * SUBFRAMES``, centred on the frame's time."""
-        n = 2 * int(np.floor(self.shutter * SUBFRAMES / 2)) + 1 if self.shutter > 0 else 1
-        return np.arange(min(n, SUBFRAMES)) - min(n, SUBFRAMES) // 2
+        n = min(2 * int(np.floor(self.shutter * SUBFRAMES / 2)) + 1, SUBFRAMES) if self.shutter > 0 else 1
+        return np.arange(n) - n // 2
 
 
-SUBFRAMES = 5  # instants rendered per frame when the shutter is open for a while
+def one_instant(seq: Sequence) -> tuple[dict[str, list[list]], list[list[dict]]]:
+    """``seq``'s own silhouettes and truth frames as :func:`render_walk`'s instants: one per frame."""
+    return {c: [[m] for m in seq.silhouettes[c]] for c in seq.cameras}, [[f] for f in seq.truth["frames"]]
 
 
 def render_walk(spec: SynthSpec, motion, optics: Optics, walker_scale: float = 1.0
@@ -202,7 +207,7 @@ def render_walk(spec: SynthSpec, motion, optics: Optics, walker_scale: float = 1
     offsets = optics.instants
     if len(offsets) == 1:
         seq = scaled(synthesize(spec, motion=motion), walker_scale)
-        return seq, {c: [[m] for m in seq.silhouettes[c]] for c in seq.cameras}, [[f] for f in seq.truth["frames"]]
+        return seq, *one_instant(seq)
     fast = scaled(synthesize(dataclasses.replace(spec, n_frames=spec.n_frames * SUBFRAMES, fps=spec.fps * SUBFRAMES),
                              motion=motion), walker_scale)
     mid = SUBFRAMES // 2 + SUBFRAMES * np.arange(spec.n_frames)
@@ -285,8 +290,7 @@ def write_videos(folder: Path, seq: Sequence, video: np.ndarray, rng: np.random.
     folder.mkdir(parents=True, exist_ok=True)
     outfit = Outfit.random(rng, shadow=cast_shadow)
     if masks is None:
-        masks = {c: [[m] for m in seq.silhouettes[c]] for c in seq.cameras}
-        instants = [[f] for f in seq.truth["frames"]]
+        masks, instants = one_instant(seq)
     for cam in seq.cameras:
         bg, mirrored = backgrounds(video, len(seq.silhouettes[cam]), rng)
         if plate is not None:

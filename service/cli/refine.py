@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from pathlib import Path
 
 from . import CliError, CliFailure
 
@@ -140,10 +141,11 @@ def _write(out: str, refined, kind: str) -> None:
 
 
 def _write_summary(out: str, estimate, kind: str, n_priors: int, notes: dict[str, str] | None = None) -> None:
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "refine.json"), "w") as fh:
-        json.dump({"input": kind, "priors": n_priors, "estimate": estimate.to_result(),
-                   "notes": dict(sorted((notes or {}).items()))}, fh)
+    from service.exports import write_text
+
+    summary = {"input": kind, "priors": n_priors, "estimate": estimate.to_result(),
+               "notes": dict(sorted((notes or {}).items()))}
+    write_text(Path(out) / "refine.json", json.dumps(summary))
 
 
 __all__ = ["register", "run"]

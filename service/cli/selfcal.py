@@ -281,8 +281,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out is None:
         sys.stdout.write(text + "\n")
     else:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        write_text(args.out, text + "\n")
     if not out.get("reliable", True):  # the computation ran on valid input and failed: exit 1, not 2
         print("posecal selfcal: error: the calibration is unreliable (the pinhole cameras do not fit the "
               "keypoints); it is written for inspection, with its notes", file=sys.stderr)

@@ -75,7 +75,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out == "-":
         print(text)
     else:
-        Path(args.out).write_text(text + "\n")
+        from service.exports import write_text
+
+        write_text(Path(args.out), text + "\n")
     for c, off in result.offsets_s.items():
         flag = "  AMBIGUOUS" if result.ambiguous[c] and c != result.reference else ""
         print(f"  {c}: {off:+.4f} s ({off * result.fps[c]:+.2f} frames at {result.fps[c]:g} fps){flag}",
