@@ -964,6 +964,12 @@ class Segmenter:
         (their bounding rectangle padded by the closing's reach), which is
         exactly the closing of the whole region there.
 
+        A shadow lies on the ground the walker stands on (:func:`_cast`): a
+        shadow-coloured stretch that rests on the rest of the body and does
+        not reach the feet band is kept (a grey shirt over a grey path passes
+        the colour and, on plain ground, the texture tests, above legs or a
+        lower shirt of another colour).
+
         Returns the mask (``fg`` itself when nothing is removed) and the feet
         band it used (``feet``, computed when not given; None without one).
         """
@@ -975,6 +981,9 @@ class Segmenter:
             feet = self._feet_band(fg, g)
         texture = same_texture.view(np.uint8)
         removed = cv2.bitwise_and(coloured, texture if feet is None else cv2.bitwise_or(texture, feet.view(np.uint8)))
+        if not cv2.countNonZero(removed):
+            return fg, feet
+        removed = cv2.bitwise_and(removed, _cast(coloured, fg, feet, max(1, g.close_px)))
         bx, by, bw, bh = cv2.boundingRect(removed)
         if bw == 0:
             return fg, feet
@@ -1246,6 +1255,48 @@ class Segmenter:
         self._prime(base)
         self._static = []
         self.ghosts += 1
+
+
+def _cast(coloured: np.ndarray, fg: np.ndarray, feet: np.ndarray | None, reach: int) -> np.ndarray:
+    """Which shadow-coloured pixels may be a cast shadow (0/1 uint8 mask of ``coloured``).
+
+    ``coloured`` (0/1 uint8) holds the shadow-coloured pixels of ``fg``. A
+    shadow lies on the ground from where the walker stands: below its
+    8-connected stretches is ground, or the stretch reaches the feet band
+    (``feet``, bool, or None). A stretch that rests on the rest of ``fg``
+    (in most of its columns, foreground of another colour within ``reach``
+    pixels below its lowest pixel: a belt's seam may part them) and does not
+    reach the feet band is clothing, not a shadow, if it is at least a
+    ``2 reach`` square's area (smaller stretches are edges' noise). Computed
+    on the bounding rectangle of ``coloured`` and the ``reach`` rows below it.
+    """
+    x, y, w, h = cv2.boundingRect(coloured)
+    cast = np.zeros_like(coloured)
+    if w == 0:
+        return cast
+    n, labels = cv2.connectedComponents(coloured[y:y + h, x:x + w], connectivity=8)
+    ys, xs = np.nonzero(labels)
+    stretch = labels[ys, xs]
+    key = stretch * w + xs  # one per stretch and column
+    by_column = np.lexsort((-ys, key))  # grouped by it, the lowest pixel first
+    key = key[by_column]
+    first = by_column[np.r_[True, key[1:] != key[:-1]]]
+    label, col, low = stretch[first], xs[first], ys[first]
+    y1 = min(y + h + reach, fg.shape[0])
+    body = cv2.bitwise_and(cv2.compare(fg[y:y1, x:x + w], 0, cv2.CMP_GT),
+                           cv2.compare(coloured[y:y1, x:x + w], 0, cv2.CMP_EQ))
+    under = cv2.dilate(body, np.ones((reach, 1), np.uint8), anchor=(0, 0))  # row r: body in rows r..r+reach-1
+    below = low + 1
+    on_body = below < under.shape[0]
+    on_body[on_body] = under[below[on_body], col[on_body]] > 0
+    rests = np.bincount(label[on_body], minlength=n) > 0.5 * np.bincount(label, minlength=n)
+    rests &= np.bincount(stretch, minlength=n) >= (2 * reach) ** 2  # less is an edge's noise
+    if feet is not None:
+        rests[labels[feet[y:y + h, x:x + w]]] = False  # reaching the feet band: a shadow may start there
+    keep = (~rests).astype(np.uint8)
+    keep[0] = 0
+    cast[y:y + h, x:x + w] = keep[labels]
+    return cast
 
 
 def _shifted(box, dx: int, dy: int) -> tuple[int, int, int, int]:
