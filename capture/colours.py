@@ -23,21 +23,26 @@ form:
   window of ``window`` times the blob's height (a passer-by is a region, not
   single pixels); where the average says the colour is ``ratio`` times
   likelier among the others, the pixel is cut;
+- a cut region lying wholly in the blob's lowest :data:`FEET` of its height
+  is given back: a passer-by reaches above the walker's feet, the walker's
+  own shoes in the others' colour (black shoes among passers-by in black) do
+  not;
 - of what is left, pieces smaller than :data:`PIECE` of the largest are
   dropped (the passer-by's fringe that shared the walker's colours).
 
 Where the walker and the passers-by wear the same colours the evidence is
-even and nothing is cut. What can be lost is a small part of the walker in a
-colour the others wear much more (dark shoes among passers-by in black), and
-walker pieces the cut leaves smaller than :data:`PIECE` of the largest. The
-walker's model is reset when a new track starts (another person). It learns
-from the track's first three detections whatever they hold, and from any
-blob within :data:`STABLE` of the median area: a passer-by who adds less
-than that, or who stays joined for more than about half of the detections
-the median is taken over (``SegmentSettings.track_frames``), is learned as
-the walker's. Measured (docs/ROBUSTNESS.md): composite IoU and the
-downstream errors with and without, and vtest.avi's reference masks (real
-people, dark clothes like most passers-by) unchanged.
+even and nothing is cut. What can be lost is a small part of the walker above
+the feet in a colour the others wear much more (a black belt or hair among
+passers-by in black), and walker pieces the cut leaves smaller than
+:data:`PIECE` of the largest. The walker's model is reset when a new track
+starts (another person). It learns from the track's first three detections
+whatever they hold, and from any blob within :data:`STABLE` of the median
+area: a passer-by who adds less than that, or who stays joined for more than
+about half of the detections the median is taken over
+(``SegmentSettings.track_frames``), is learned as the walker's. Measured
+(docs/ROBUSTNESS.md): composite IoU and the downstream errors with and
+without, and vtest.avi's reference masks (real people, dark clothes like
+most passers-by) unchanged.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ import numpy as np
 
 from .masks import large_components
 
-__all__ = ["BINS", "PIECE", "STABLE", "ColourSplit", "colour_bins"]
+__all__ = ["BINS", "FEET", "PIECE", "STABLE", "ColourSplit", "colour_bins"]
 
 _SHIFT = 5
 BINS = 256 >> _SHIFT
@@ -58,6 +63,9 @@ STABLE = 1.15
 """A blob at most this many times the walker's median area teaches the walker's colours."""
 PIECE = 0.2
 """After the cut, pieces smaller than this fraction of the largest are dropped."""
+FEET = 0.15
+"""Cut regions wholly within this fraction of the blob's height above its lowest row are
+kept: the walker's shoes (0.90-1.0 of the blob on the composite walks), not a passer-by."""
 _EPS = 1e-3  # frequency floor: a colour never seen on either side is no evidence
 
 
@@ -138,7 +146,7 @@ class ColourSplit:
         weight = inside.astype(np.float32)
         mean = (cv2.blur(evidence * weight, (k, k), borderType=cv2.BORDER_CONSTANT)
                 / np.maximum(cv2.blur(weight, (k, k), borderType=cv2.BORDER_CONSTANT), 1e-6))
-        cut = inside & (mean < -np.log(self.ratio))
+        cut = _above_feet(inside & (mean < -np.log(self.ratio)), rows)
         if not cut.any():
             return crop
         out = crop.copy()
@@ -146,3 +154,14 @@ class ColourSplit:
         if not out.any():
             return crop  # all of it the others' colours: not a merge this rule can split
         return large_components(out, PIECE, of_largest=True)
+
+
+def _above_feet(cut: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The regions of ``cut`` (bool) that reach above the blob's feet band, the lowest
+    :data:`FEET` of the blob's rows ``rows`` (sorted indices of rows with blob pixels)."""
+    if not cut.any():
+        return cut
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(cut.view(np.uint8), connectivity=8)
+    reaches = stats[:, cv2.CC_STAT_TOP] < rows[-1] + 1 - FEET * (rows[-1] - rows[0] + 1)
+    reaches[0] = False  # the background label
+    return reaches[labels]
