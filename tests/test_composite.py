@@ -49,12 +49,12 @@ def test_videos_of_a_synchronised_rig_over_a_real_scene(small_model_path, tmp_pa
     # The default feedback pass (§7.1): segmented again with the model's priors, estimated again
     assert result["feedback"]["done"] and result["feedback"]["priors"] > 0, result["feedback"]
     errors = composite.score(result, seq)
-    # Within one azimuth step of the small model (15 deg). c1 lies between two of its bins: 0.7 / 3.9 deg
-    # when written, 4.9 for c1 until session 29's shadow rounds (c1's silhouettes went from 5 px below
-    # the feet, median, to 4 px short of them), 11.2-12.0 since (bisected in session 47; the full model
-    # gives 0.8 / 6.7 on the same videos; the cast shadow is what costs: without it 1.8 / 4.2).
-    assert np.all(np.isfinite(errors["azimuth"])) and max(errors["azimuth"]) < 15.0, errors["azimuth"]
-    assert min(errors["azimuth"]) < 5.0, errors["azimuth"]  # the other camera near its bin (3.8)
+    # The small model has 15 deg azimuth steps. c1 lies between two of its bins: 0.7 / 3.9 deg when
+    # written, 4.9 for c1 until session 29's shadow rounds, 11.2-12.0 from then (bisected in session 47:
+    # c1's silhouettes 4 px short of the feet, median) until session 48 gave the colour split's cut of
+    # the walker's black shoes back: 0.6 / 4.7 (the full model 0.8 / 6.7 in session 47).
+    assert np.all(np.isfinite(errors["azimuth"])) and max(errors["azimuth"]) < 12.0, errors["azimuth"]
+    assert min(errors["azimuth"]) < 5.0, errors["azimuth"]
     assert len(errors["phase"]) >= 40  # of the 45 frames
     assert np.mean(np.asarray(errors["phase"]) <= 0.1) >= 0.9, errors["phase"]
 
