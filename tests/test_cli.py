@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -310,3 +311,24 @@ def test_demo_exit_codes(small_model_path, monkeypatch, capsys):
     assert main(["demo", "--model", small_model_path]) == 1
     assert "the service did not start: no room" in capsys.readouterr().err
     assert made and not Path(made[0]).exists()  # its empty working folder is not left behind
+
+
+@pytest.mark.parametrize("where", ["process", "spawned worker"])
+def test_a_native_crash_prints_the_python_stack(where):
+    """A native library's crash (here a read of address 0) still says where it happened in
+    Python, in the CLI's process and in the worker processes it spawns. Without
+    report_native_crashes the process dies with no line on stderr."""
+    crash = "import ctypes; ctypes.string_at(0)"
+    if where == "spawned worker":
+        crash = ("import ctypes, multiprocessing as mp\n"
+                 "p = mp.get_context('spawn').Process(target=ctypes.string_at, args=(0,))\n"
+                 "p.start(); p.join(60); print('worker exit', p.exitcode)")
+    for setup, stack in (("", False), ("from service.cli import report_native_crashes; report_native_crashes()\n", True)):
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONFAULTHANDLER"}
+        done = subprocess.run([sys.executable, "-c", setup + crash], capture_output=True, text=True, timeout=120,
+                              cwd=Path(__file__).resolve().parents[1], env=env)
+        if where == "process":
+            assert done.returncode < 0, done  # killed by the signal
+        else:
+            assert "worker exit -" in done.stdout, done
+        assert ("Fatal Python error" in done.stderr and "string_at" in done.stderr) == stack, done.stderr

@@ -10,13 +10,14 @@ arguments). Both errors become a one-line message on stderr with the reason.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import logging
 import os
 import sys
 from pathlib import Path
 
-__all__ = ["CliError", "CliFailure", "export_formats", "main", "positive_int"]
+__all__ = ["CliError", "CliFailure", "export_formats", "main", "positive_int", "report_native_crashes"]
 
 # Modules that provide sub-commands, imported lazily so that ``posecal synth``
 # never pays for importing the web stack.
@@ -99,9 +100,24 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+def report_native_crashes() -> None:
+    """Print every thread's Python stack to stderr if a native library crashes the process,
+    here and in the processes it starts (``PYTHONFAULTHANDLER``, for spawned workers).
+
+    Heap corruption inside a native library (OpenCV 5.0, Mesa's software renderer) was seen to
+    abort a few of the long evaluation runs on this project's machine, without a trace and
+    not reproducibly (docs/SERVICE.md, "When a process crashes"); the stack says which call
+    it was. A handler already installed (pytest's, pointed at a crash log) is left alone.
+    """
+    if not faulthandler.is_enabled():
+        faulthandler.enable(all_threads=True)
+    os.environ.setdefault("PYTHONFAULTHANDLER", "1")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    report_native_crashes()
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
