@@ -57,6 +57,7 @@ __all__ = ["MAX_PRIORS", "PriorStats", "SegmentSettings", "Segmentation", "Segme
            "box_iou", "describe", "filled", "sample_indices"]
 
 MAX_PRIORS = 64  # priors kept per segmenter, newest frame indices first
+JOIN_STEP = 0.1  # a joined walker's height moves the learned one by at most this share (walking nearer)
 TORN = 0.75  # a candidate shorter than this share of the walker's height may be a piece of them (stack_gap)
 
 
@@ -494,6 +495,7 @@ class Segmenter:
         self._colours = ColourSplit(ratio=settings.colour_ratio, window=settings.colour_window,
                                     rate=settings.colour_rate, frames=settings.colour_frames)
         self._static: list[list] = []  # [box, frames seen in place] per still component
+        self._noise: tuple[tuple[float, ...], float] | None = None  # the last refined frame's offset, variance
         self.ghosts = 0  # ghost regions absorbed into the background
 
     @property
@@ -828,15 +830,15 @@ class Segmenter:
         x0, y0, x1, y1 = _padded((rx, ry, rw, rh), pad, fg.shape[1::-1])
         coarse = fg[y0:y1, x0:x1]
         near = cv2.dilate(coarse, g.near)  # the pixels re-tested
-        d = cv2.addWeighted(image[y0:y1, x0:x1], 1.0 / gain, self._full_bg[y0:y1, x0:x1], -1.0,
-                            0.0, dtype=cv2.CV_32F)  # with the global gain divided out
+        d = _difference(image[y0:y1, x0:x1], self._full_bg[y0:y1, x0:x1], gain)
         # Lighting moves between updates: remove the local offset measured on the sure
         # background (outside the dilated mask), whose spread is then the noise.
         offset, spread = cv2.meanStdDev(d, mask=cv2.bitwise_not(near))
-        d = cv2.subtract(d, tuple(float(v) for v in offset.ravel()) + (0.0,))
-        d2 = cv2.transform(cv2.multiply(d, d), np.ones((1, 3), np.float32))
+        offset = tuple(float(v) for v in offset.ravel())
+        d2 = _squared(d, offset)
         # Variance summed over channels, bounded like MOG2's (4..75 by default).
         var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
+        self._noise = (offset, var)  # this frame's, for _bridged
         level = max(self.settings.refine_threshold * var, self.settings.refine_floor ** 2)
         refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
         frame = image[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / gain)  # gain divided out
@@ -1087,6 +1089,8 @@ class Segmenter:
         blob = cv2.compare(window, best, cv2.CMP_EQ) if len(parts) == 1 else \
             np.isin(window, parts).astype(np.uint8) * 255
         x, y = rx + x, ry + y  # the blob's box in the full frame
+        if len(parts) > 1 and image is not None and self._full_bg is not None and self._noise is not None:
+            blob = self._bridged(blob, image[y:y + h, x:x + w], self._full_bg[y:y + h, x:x + w], gain, g)
         areas = [a for _, a in self._walker]
         area = int(stats[best, cv2.CC_STAT_AREA])
         if self.settings.colour_split and image is not None:
@@ -1099,8 +1103,11 @@ class Segmenter:
             if cut is not blob:  # the box tightened around what is left
                 bx, by, w, h = cv2.boundingRect(cut)
                 blob, x, y = cut[by:by + h, bx:bx + w], x + bx, y + by
-        if len(parts) == 1:  # the walker's height once cut off the others; a join is measured by it, not learned
+        if len(parts) == 1:  # the walker's height once cut off the others
             self._walker.append((h, area))
+        else:  # a join is measured by it, and moves it by at most JOIN_STEP: torn frames do not make it short
+            tall, usual = np.median(np.array(self._walker, float), axis=0)
+            self._walker.append((float(np.clip(h, (1 - JOIN_STEP) * tall, (1 + JOIN_STEP) * tall)), usual))
         if self.settings.fill_holes is not None:
             blob = filled(blob, self.settings.fill_holes)
         m = self.settings.margin_px
@@ -1152,6 +1159,37 @@ class Segmenter:
             pieces = [p for p in pieces if p != k]
             box = bounding_box([box, stats[k, :4]])
         return parts
+
+    def _bridged(self, blob: np.ndarray, frame: np.ndarray, background: np.ndarray, gain: float,
+                 g: _Geometry) -> np.ndarray:
+        """A torn walker's stacked pieces (:meth:`_groups`) joined across the rows between them.
+
+        What tore the walker is clothing the colour of the ground behind: those
+        rows hold the walker, only weakly different from the background. Inside
+        the convex hull of the few rows bordering each gap, the pixels that pass
+        the weak test of a trusted prior (``prior_threshold`` times the frame's
+        noise variance, ``prior_floor``) are added, then closed (``close_px``)
+        within the hull: the torso the head and the legs frame, not a guess of
+        its shape.
+        """
+        rows = np.flatnonzero(blob.any(axis=1))
+        gaps = np.flatnonzero(np.diff(rows) > 1)
+        if not gaps.size:
+            return blob
+        hull = np.zeros_like(blob)
+        for i in gaps:
+            border = [r for r in (*range(max(rows[i] - 2, rows[0]), rows[i] + 1),
+                                  *range(rows[i + 1], min(rows[i + 1] + 3, rows[-1] + 1))) if blob[r].any()]
+            ys, xs = np.nonzero(blob[border])
+            points = np.stack([xs, np.asarray(border)[ys]], axis=1).astype(np.int32)
+            cv2.fillConvexPoly(hull, cv2.convexHull(points), 255)
+        (offset, var), s = self._noise, self.settings
+        d2 = _squared(_difference(frame, background, gain), offset)
+        weak = cv2.compare(d2, max(s.prior_threshold * var, s.prior_floor ** 2), cv2.CMP_GT)
+        torso = cv2.bitwise_or(blob, cv2.bitwise_and(weak, hull))
+        if g.close is not None:
+            torso = cv2.bitwise_and(cv2.morphologyEx(torso, cv2.MORPH_CLOSE, g.close), hull)
+        return cv2.bitwise_or(blob, torso)
 
     @staticmethod
     def _wide(labels: np.ndarray, stats: np.ndarray, k: int, g: _Geometry) -> bool:
@@ -1255,6 +1293,18 @@ class Segmenter:
         self._prime(base)
         self._static = []
         self.ghosts += 1
+
+
+def _difference(image: np.ndarray, background: np.ndarray, gain: float) -> np.ndarray:
+    """``image`` (uint8 BGR) with the global ``gain`` divided out, less ``background`` (float32)."""
+    return cv2.addWeighted(image, 1.0 / gain, background, -1.0, 0.0, dtype=cv2.CV_32F)
+
+
+def _squared(difference: np.ndarray, offset: tuple[float, ...]) -> np.ndarray:
+    """Squared colour distance, channels summed, of a :func:`_difference` less the local
+    lighting ``offset`` (BGR)."""
+    d = cv2.subtract(difference, offset + (0.0,))
+    return cv2.transform(cv2.multiply(d, d), np.ones((1, 3), np.float32))
 
 
 def _cast(coloured: np.ndarray, fg: np.ndarray, feet: np.ndarray | None, reach: int) -> np.ndarray:

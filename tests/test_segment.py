@@ -115,11 +115,13 @@ def test_a_torn_walker_is_not_left_for_the_people_joined_to_a_piece():
                 cv2.line(image, (right - 2, y + 80), (x + w // 2, y + 80), (30, 30, 30), 4)
         seg = segmenter.apply(image, frame.index)
         if 120 <= frame.index < 123:
-            torn.append((seg.n_candidates, iou(seg.full_mask(), frame.mask)))
+            others = np.count_nonzero((seg.full_mask() > 0) & (frame.mask == 0))
+            torn.append((seg.n_candidates, others / np.count_nonzero(frame.mask)))
         if frame.index >= 123:
             after.append(iou(seg.full_mask(), frame.mask))
-    # The premise: torn in two, the track is on the legs and the group, not on the walker.
-    assert all(n >= 2 and v < 0.5 for n, v in torn), torn
+    # The premise: torn in two, the track is on the legs and the group joined to them (the group
+    # at least half the walker's area in the mask).
+    assert all(n >= 2 and share > 0.5 for n, share in torn), torn
     assert len(after) == 7 and min(after) > 0.9, after
 
 
@@ -156,6 +158,54 @@ def test_a_walker_torn_at_the_waist_is_joined_again():
     assert len(joined) == 24 and min(joined) > 0.8, joined
     alone = _torn_and_topped(band=True, above=False, stack_gap=0)
     assert max(alone) < 0.6, alone  # the premise: one half only
+
+
+def _torn_from_the_start(band_shift: int) -> tuple[list[float], list[float]]:
+    """IoU with the walker over frames 103-129 of SMALL, and the share of the band's walker pixels
+    in the mask: from frame 103 (three frames after the warm-up) a 12-row band across the walker's
+    middle is the ground's colour shifted by ``band_shift`` grey levels (a white shirt on a pale
+    path); in frames 108-111 it is 26 rows, too wide a gap for a join. No lighting drift: frame 0's
+    ground is the ground's colour throughout."""
+    frames = list(scene_frames(dataclasses.replace(SMALL, drift=0.0)))
+    empty = frames[0].image
+    segmenter = Segmenter(SegmentSettings(warmup_frames=100))
+    ious, band_kept = [], []
+    for frame in frames:
+        image = frame.image
+        x, y, w, h = cv2.boundingRect(frame.mask)
+        rows = slice(y + 41, y + 67) if 108 <= frame.index < 112 else slice(y + 42, y + 54)
+        if frame.index >= 103:
+            image = image.copy()
+            ground = cv2.add(empty[rows], np.full_like(empty[rows], band_shift))
+            image[rows] = np.where(frame.mask[rows, :, None] > 0, ground, image[rows])
+        seg = segmenter.apply(image, frame.index)
+        if frame.index >= 112:
+            ious.append(iou(seg.full_mask(), frame.mask))
+            band = frame.mask[rows] > 0
+            band_kept.append(float(np.mean(seg.full_mask()[rows][band] > 0)))
+    return ious, band_kept
+
+
+def test_a_walker_torn_from_the_start_stays_whole():
+    """Torn from the third frame on, and for four frames too far apart to be joined: the learned
+    height is the whole walker's still, so the halves are joined again once the gap closes (a join
+    keeps the height it was measured by; seed 7's walk 5 c1 in docs/ROBUSTNESS.md, where the frames
+    torn too wide made the legs the walker's height until then)."""
+    ious, _ = _torn_from_the_start(band_shift=0)
+    assert len(ious) == 18 and min(ious) > 0.8, ious
+
+
+def test_the_gap_between_a_torn_walkers_halves_is_filled_from_weak_evidence():
+    """The band 12 grey levels off the ground: below the refinement's level, above a trusted
+    prior's. Between the joined halves that weak evidence is taken (``Segmenter._bridged``): most
+    of the band's walker pixels are in the mask, where without the bridge none were. It is the
+    evidence that fills it, not the pieces' outline: with the band the ground's very colour, the
+    halves are joined but the band stays out."""
+    ious, band_kept = _torn_from_the_start(band_shift=12)
+    assert min(band_kept) > 0.5 and np.median(band_kept) > 0.7, band_kept  # 0.0 without
+    assert min(ious) > 0.9, ious
+    _, no_evidence = _torn_from_the_start(band_shift=0)
+    assert max(no_evidence) < 0.2, no_evidence
 
 
 def test_a_person_just_above_the_walkers_head_is_not_joined():
