@@ -168,7 +168,9 @@ class Renderer:
         gl._renderer.delete()
         EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
         EGL.eglDestroyContext(display, platform._egl_context)
-        # Disarm OffscreenRenderer.__del__, which would call eglTerminate.
+        # Disarm the platform's __del__ (it would destroy the context again, and call
+        # eglTerminate if that did not fail) and OffscreenRenderer's (its delete).
+        platform._egl_context = platform._egl_display = None
         gl._renderer = gl._platform = None
 
     def __enter__(self) -> "Renderer":
