@@ -491,7 +491,7 @@ class Segmenter:
         self._track: tuple[int, int, int, int] | None = None  # last tracked walker box
         self._track_missed = 0
         # The tracked walker's blob (box height, area) over its last track_frames (at least 3) detections.
-        self._walker: deque[tuple[int, int]] = deque(maxlen=max(3, settings.track_frames))
+        self._walker: deque[tuple[float, float]] = deque(maxlen=max(3, settings.track_frames))
         self._colours = ColourSplit(ratio=settings.colour_ratio, window=settings.colour_window,
                                     rate=settings.colour_rate, frames=settings.colour_frames)
         self._static: list[list] = []  # [box, frames seen in place] per still component
@@ -713,6 +713,7 @@ class Segmenter:
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be (H, W, 3) uint8, got {image.dtype} {image.shape}")
         self.learn()
+        self._noise = None  # this frame's, once _refine has measured it
         size = (image.shape[1], image.shape[0])
         g = self._geometry_for(size)
         small = self._small(image, g)
@@ -1165,8 +1166,8 @@ class Segmenter:
         """A torn walker's stacked pieces (:meth:`_groups`) joined across the rows between them.
 
         What tore the walker is clothing the colour of the ground behind: those
-        rows hold the walker, only weakly different from the background. Inside
-        the convex hull of the few rows bordering each gap, the pixels that pass
+        rows hold the walker, only weakly different from the background. In the
+        gap's rows, inside the convex hull of the few rows bordering it, the pixels that pass
         the weak test of a trusted prior (``prior_threshold`` times the frame's
         noise variance, ``prior_floor``) are added, then closed (``close_px``)
         within the hull: the torso the head and the legs frame, not a guess of
@@ -1182,7 +1183,9 @@ class Segmenter:
                                   *range(rows[i + 1], min(rows[i + 1] + 3, rows[-1] + 1))) if blob[r].any()]
             ys, xs = np.nonzero(blob[border])
             points = np.stack([xs, np.asarray(border)[ys]], axis=1).astype(np.int32)
-            cv2.fillConvexPoly(hull, cv2.convexHull(points), 255)
+            spanned = np.zeros_like(blob)
+            cv2.fillConvexPoly(spanned, cv2.convexHull(points), 255)
+            hull[rows[i] + 1:rows[i + 1]] = spanned[rows[i] + 1:rows[i + 1]]  # the gap's rows only
         (offset, var), s = self._noise, self.settings
         d2 = _squared(_difference(frame, background, gain), offset)
         weak = cv2.compare(d2, max(s.prior_threshold * var, s.prior_floor ** 2), cv2.CMP_GT)

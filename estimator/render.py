@@ -164,14 +164,16 @@ class Renderer:
             return
         from OpenGL import EGL
 
-        platform.make_current()
-        gl._renderer.delete()
-        EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
-        EGL.eglDestroyContext(display, platform._egl_context)
-        # Disarm the platform's __del__ (it would destroy the context again, and call
-        # eglTerminate if that did not fail) and OffscreenRenderer's (its delete).
-        platform._egl_context = platform._egl_display = None
-        gl._renderer = gl._platform = None
+        try:
+            platform.make_current()
+            gl._renderer.delete()
+            EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+            EGL.eglDestroyContext(display, platform._egl_context)
+        finally:
+            # Disarm the platform's __del__ (it would destroy the context again, and call
+            # eglTerminate if that did not fail) and OffscreenRenderer's (its delete).
+            platform._egl_context = platform._egl_display = None
+            gl._renderer = gl._platform = None
 
     def __enter__(self) -> "Renderer":
         return self

@@ -92,9 +92,10 @@ def test_a_torn_walker_is_not_left_for_the_people_joined_to_a_piece():
     """The walker leaves a group standing by (three dark figures, half as tall); for three
     frames a band across the chest shows the ground (clothing its colour) and a hand joins
     the legs to the group. The track, which followed the legs and the group through those
-    frames, goes back to the walker: the candidates' height is weighed against the walker's
-    recent height. By overlap with the tracked box alone it went on with the group (IoU 0
-    for the rest of the clip when this was written; docs/ROBUSTNESS.md, seed 7's walk 5).
+    frames (on the legs, since session 49 with the head piece joined, and the group with them),
+    goes back to the walker: the candidates' height is weighed against the walker's recent
+    height. By overlap with the tracked box alone it went on with the group (IoU 0 for the rest
+    of the clip when this was written; docs/ROBUSTNESS.md, seed 7's walk 5).
     The colour split is off: it cuts the dark group off the legs, which would hide the rule."""
     frames = list(scene_frames(SMALL))
     empty = frames[0].image
