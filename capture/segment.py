@@ -495,7 +495,6 @@ class Segmenter:
         self._colours = ColourSplit(ratio=settings.colour_ratio, window=settings.colour_window,
                                     rate=settings.colour_rate, frames=settings.colour_frames)
         self._static: list[list] = []  # [box, frames seen in place] per still component
-        self._noise: tuple[tuple[float, ...], float] | None = None  # the last refined frame's offset, variance
         self.ghosts = 0  # ghost regions absorbed into the background
 
     @property
@@ -713,7 +712,6 @@ class Segmenter:
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be (H, W, 3) uint8, got {image.dtype} {image.shape}")
         self.learn()
-        self._noise = None  # this frame's, once _refine has measured it
         size = (image.shape[1], image.shape[0])
         g = self._geometry_for(size)
         small = self._small(image, g)
@@ -752,11 +750,13 @@ class Segmenter:
             fg = self._fuse(fg, small, background, prior[0])
         if self._open is not None:
             fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, self._open)
+        noise = None
         if g.downscaled:  # back to full resolution, smoothing the steps
             fg = cv2.compare(cv2.resize(fg, size, interpolation=cv2.INTER_LINEAR), 127, cv2.CMP_GT)
             if g.refine_px:
-                fg = self._refine(fg, image, None if prior is None else prior[1], g, gain)
-        return self._largest(fg, g, used_prior=prior is not None, image=image, gain=gain, guide=guide)
+                fg, noise = self._refine(fg, image, None if prior is None else prior[1], g, gain)
+        return self._largest(fg, g, used_prior=prior is not None, image=image, gain=gain, guide=guide,
+                             noise=noise)
 
     @staticmethod
     def _level(image: np.ndarray) -> np.ndarray:
@@ -807,8 +807,9 @@ class Segmenter:
             cv2.accumulateWeighted(image, self._full_bg, self.settings.learning_rate, mask=keep)
 
     def _refine(self, fg: np.ndarray, image: np.ndarray, prior: np.ndarray | None,
-                g: _Geometry, gain: float = 1.0) -> np.ndarray:
-        """Re-test at full resolution every pixel within ``refine_px`` model pixels of the mask.
+                g: _Geometry, gain: float = 1.0) -> tuple[np.ndarray, tuple[tuple[float, ...], float] | None]:
+        """Re-test at full resolution every pixel within ``refine_px`` model pixels of the mask;
+        with the mask, the lighting offset and noise variance measured (None on an empty mask).
 
         A pixel is foreground if its squared colour distance to the
         full-resolution background exceeds ``refine_threshold`` times the noise
@@ -826,7 +827,7 @@ class Segmenter:
         """
         rx, ry, rw, rh = cv2.boundingRect(fg)
         if rw == 0 or rh == 0:
-            return fg
+            return fg, None
         pad = 2 * g.refine_px + g.close_px  # room for the dilation, the noise sample, closing
         x0, y0, x1, y1 = _padded((rx, ry, rw, rh), pad, fg.shape[1::-1])
         coarse = fg[y0:y1, x0:x1]
@@ -839,7 +840,6 @@ class Segmenter:
         d2 = _squared(d, offset)
         # Variance summed over channels, bounded like MOG2's (4..75 by default).
         var = min(max(float(np.sum(spread ** 2)), self._mog.getVarMin()), self._mog.getVarMax())
-        self._noise = (offset, var)  # this frame's, for _bridged
         level = max(self.settings.refine_threshold * var, self.settings.refine_floor ** 2)
         refined = cv2.bitwise_and(cv2.compare(d2, level, cv2.CMP_GT), near)
         frame = image[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / gain)  # gain divided out
@@ -868,7 +868,7 @@ class Segmenter:
                 if np.array_equal(feet, before):
                     break  # the same band: so too
         fg[y0:y1, x0:x1] = refined
-        return fg
+        return fg, (offset, var)
 
     @staticmethod
     def _split_edges(fg: np.ndarray, frame: np.ndarray, d2: np.ndarray,
@@ -1037,7 +1037,8 @@ class Segmenter:
 
     def _largest(self, fg: np.ndarray, g: _Geometry, *, used_prior: bool,
                  image: np.ndarray | None = None, gain: float = 1.0,
-                 guide: tuple[int, int, int, int] | None = None) -> Segmentation:
+                 guide: tuple[int, int, int, int] | None = None,
+                 noise: tuple[tuple[float, ...], float] | None = None) -> Segmentation:
         """Close holes, keep the tracked walker's component (else the tallest, ``pick``) with the
         pieces of them stacked on it (:meth:`_groups`), crop it.
 
@@ -1090,8 +1091,8 @@ class Segmenter:
         blob = cv2.compare(window, best, cv2.CMP_EQ) if len(parts) == 1 else \
             np.isin(window, parts).astype(np.uint8) * 255
         x, y = rx + x, ry + y  # the blob's box in the full frame
-        if len(parts) > 1 and image is not None and self._full_bg is not None and self._noise is not None:
-            blob = self._bridged(blob, image[y:y + h, x:x + w], self._full_bg[y:y + h, x:x + w], gain, g)
+        if len(parts) > 1 and image is not None and noise is not None:  # noise: refined against _full_bg
+            blob = self._bridged(blob, image[y:y + h, x:x + w], self._full_bg[y:y + h, x:x + w], gain, g, noise)
         areas = [a for _, a in self._walker]
         area = int(stats[best, cv2.CC_STAT_AREA])
         if self.settings.colour_split and image is not None:
@@ -1162,14 +1163,15 @@ class Segmenter:
         return parts
 
     def _bridged(self, blob: np.ndarray, frame: np.ndarray, background: np.ndarray, gain: float,
-                 g: _Geometry) -> np.ndarray:
+                 g: _Geometry, noise: tuple[tuple[float, ...], float]) -> np.ndarray:
         """A torn walker's stacked pieces (:meth:`_groups`) joined across the rows between them.
 
         What tore the walker is clothing the colour of the ground behind: those
         rows hold the walker, only weakly different from the background. In the
         gap's rows, inside the convex hull of the few rows bordering it, the pixels that pass
         the weak test of a trusted prior (``prior_threshold`` times the frame's
-        noise variance, ``prior_floor``) are added, then closed (``close_px``)
+        noise variance ``noise``, measured by :meth:`_refine` with the lighting
+        offset, and ``prior_floor``) are added, then closed (``close_px``)
         within the hull: the torso the head and the legs frame, not a guess of
         its shape.
         """
@@ -1186,7 +1188,7 @@ class Segmenter:
             spanned = np.zeros_like(blob)
             cv2.fillConvexPoly(spanned, cv2.convexHull(points), 255)
             hull[rows[i] + 1:rows[i + 1]] = spanned[rows[i] + 1:rows[i + 1]]  # the gap's rows only
-        (offset, var), s = self._noise, self.settings
+        (offset, var), s = noise, self.settings
         d2 = _squared(_difference(frame, background, gain), offset)
         weak = cv2.compare(d2, max(s.prior_threshold * var, s.prior_floor ** 2), cv2.CMP_GT)
         torso = cv2.bitwise_or(blob, cv2.bitwise_and(weak, hull))
