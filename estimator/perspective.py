@@ -175,6 +175,10 @@ class PerspectiveRig:
     upright : bool
         The upright walker's per-frame priors were used (:attr:`PerspectiveConfig.upright`: the
         perspective was weak).
+    cost : float
+        The adjustment's objective where it ended: half the sum of its squared residuals (pixels as
+        weighted, bone lengths, priors), to compare the ends of two starts on the same data and
+        settings (NaN when not adjusted).
     """
 
     rotations: np.ndarray
@@ -187,6 +191,7 @@ class PerspectiveRig:
     principal_px: np.ndarray | None = None
     median_px: float = float("nan")
     upright: bool = False
+    cost: float = float("nan")
 
     def depth_spread(self) -> np.ndarray:
         """Per camera, how far the joints' depths spread over the walk (5th to 95th percentile) over
@@ -445,7 +450,8 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     # weights are not a noise level (with them it said 1-2 % for focal lengths 30-160 % off at 60 m).
     data = np.concatenate([np.arange(y_obs.size), 2 * n_obs + t * len(ln) + np.arange(n_f)])
     log_std = _focal_log_std(sol.jac[data], sigma, o_f, n_f) if free_focal else None
-    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal, median, bool(upright))
+    return PerspectiveRig(rots, ce, fo, x, rmse, size / size[0], log_std, principal, median, bool(upright),
+                          sol.cost)
 
 
 KEYPOINT_REWEIGHT = 2

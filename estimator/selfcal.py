@@ -40,6 +40,7 @@ un-calibrated cameras", §4.1–4.3, eqs. 4–14.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -69,7 +70,7 @@ from ._selfcal_core import (
 from .joints import JOINT_INDEX, N_JOINTS
 from .viewpoint import azimuth_difference_deg
 
-__all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "UPRIGHT_PRIORS", "SelfCalibration", "input_warnings",
+__all__ = ["RIGID_LINKS", "SYMMETRIC_RATIOS", "UPRIGHT_PRIORS", "SelfCalibration", "input_warnings", "named_note",
            "self_calibrate"]
 
 Link = tuple[int, int]
@@ -777,6 +778,12 @@ def input_warnings(tracks: np.ndarray, rotations: np.ndarray, joints3d: np.ndarr
         notes.append(f"camera {c} sees the walker (4+ joints) in only {frames[c]} of {y.shape[1]} frames "
                      f"(fewer than {need}): its rotation rests on few poses")
     return notes
+
+
+def named_note(note: str, cameras: Sequence[str]) -> str:
+    """A note of :func:`input_warnings` with the cameras' names in place of their indices."""
+    return re.sub(r"\bcameras? (\d+)(?: and (\d+))?", lambda m: ("cameras " if m.group(2) else "camera ")
+                  + " and ".join(repr(cameras[int(g)]) for g in m.groups() if g is not None), note)
 
 
 def _check_rotations(rotations: np.ndarray, n_cam: int) -> np.ndarray:

@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimator._selfcal_core import geodesic_deg
+from estimator.camera import world_to_camera_rotation
 from estimator.damage import detector_keypoints
 from estimator.gait import load_gait
 from estimator.joints import JOINT_INDEX as J
@@ -18,7 +19,7 @@ from estimator.joints import N_JOINTS
 from estimator.mnbp import measure_postures
 from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence
 from estimator.perspective import perspective_refine
-from estimator.rig import (TWO_VIEWS, RigConfig, _view_doubt, _viewpoint_prior, aligned_error, attach_rig,
+from estimator.rig import (TWO_VIEWS, RigConfig, _pinhole, _view_doubt, _viewpoint_prior, aligned_error, attach_rig,
                            calibrate_rig, person_frame, rotations_from_viewpoints, segment_lengths, smoothed,
                            viewpoint_rotations)
 from estimator.selfcal import RIGID_LINKS, self_calibrate
@@ -172,7 +173,7 @@ def test_a_camera_aimed_where_it_sees_the_walker():
     """estimator.camera.aimed_rotation: from the walker's viewpoint and where a camera sees it in the
     image, that camera's rotation, exactly (random cameras, walkers up to 2 m off their aim); the
     camera looking straight at the walker is up to tens of degrees off."""
-    from estimator.camera import Camera, aimed_rotation, world_to_camera_rotation
+    from estimator.camera import Camera, aimed_rotation
 
     rng = np.random.default_rng(0)
     aimed, straight = [], []
@@ -354,6 +355,56 @@ def test_an_implausible_pinhole_result_is_refused(walk):
     rig = calibrate_rig(measured, RigConfig(pinhole_max_rms=1e-6))
     assert rig.source == "self-calibration" and rig.focal_px is None and rig.euler_std_deg is not None
     assert any("pinhole cameras refused" in n for n in rig.notes)
+
+
+def _two_views(model, azimuths):
+    """A 24-frame walk seen by two cameras, estimated and its postures measured."""
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=24, seed=8, azimuths=azimuths, elevations=(5.0, 15.0),
+                               image_size=(320, 240)))
+    return seq, measure_postures(estimate_walk(tracks_from_sequence(seq), model))
+
+
+@pytest.fixture(scope="module")
+def two_views(small_model):
+    return _two_views(small_model, (40.0, 110.0))
+
+
+def test_the_pinhole_adjustment_keeps_the_lower_cost_of_two_starts(two_views):
+    """With the viewpoints' prior the pinhole adjustment also starts from the viewpoints' rig and keeps
+    the end of lower cost: two views hardly see a turn about the vertical, and a start turned so stops
+    on the slope; a start that is the viewpoints' rig already is not run twice."""
+    seq, measured = two_views
+    names = list(measured.cameras)
+    tracks = np.stack([measured.cameras[n].joints2d for n in names])
+    views = viewpoint_rotations(measured)
+    c0 = seq.truth["cameras"]["c0"]
+    up = world_to_camera_rotation(c0["azimuth_deg"], c0["elevation_deg"])[:, 2]  # the vertical in camera 0's frame
+    turned = views.copy()
+    turned[1] = views[1] @ Rotation.from_rotvec(np.radians(20.0) * up).as_matrix()
+    scales = np.ones(len(names))
+
+    def alone(start):
+        found, why, kept = _pinhole(measured, names, tracks, start, scales,
+                                    RigConfig(pinhole_viewpoint_start=False), views)
+        assert found is not None and kept == "fused", why
+        return found
+
+    ends = {"fused": alone(turned), "viewpoints": alone(views)}
+    assert ends["viewpoints"].cost < ends["fused"].cost
+    both, _, kept = _pinhole(measured, names, tracks, turned, scales, RigConfig(), views)
+    assert kept == "viewpoints" and both.cost == ends[kept].cost
+    assert np.allclose(both.rotations, ends[kept].rotations)
+    _, _, same = _pinhole(measured, names, tracks, views, scales, RigConfig(), views)
+    assert same == "fused"
+
+
+def test_a_rig_of_two_cameras_looking_the_same_way_says_so(two_views, small_model):
+    """Cameras 7 deg apart: the person's depth along their common axis is hardly seen, and the rig's
+    notes name them (:func:`estimator.selfcal.input_warnings`); cameras 70 deg apart are not named."""
+    _, close = _two_views(small_model, (40.0, 47.0))
+    same = [n for n in calibrate_rig(close).notes if "look along nearly the same axis" in n]
+    assert len(same) == 1 and "cameras 'c0' and 'c1'" in same[0], same
+    assert not any("same axis" in n for n in calibrate_rig(two_views[1]).notes)
 
 
 def test_the_scaled_orthographic_start_on_fewer_frames(walk):

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import tomllib
 from pathlib import Path
@@ -31,7 +30,7 @@ from estimator.epipolar import refine_from_starts
 from estimator.perspective import KEYPOINT_SETTINGS, WEAK_PERSPECTIVE, PerspectiveConfig
 from estimator.pinhole import floor_frame, image_height, triangulate
 from estimator.rig import RigConfig, stature_scale
-from estimator.selfcal import RIGID_LINKS, self_calibrate
+from estimator.selfcal import RIGID_LINKS, named_note, self_calibrate
 
 from ..exports import bvh_text, csv_text, write_calibration, write_text, write_trc
 from ..keypoints_io import KeypointError, Keypoints, match_cameras, read_keypoints, video_sizes
@@ -161,12 +160,6 @@ def load_tracks(doc: Any) -> tuple[list[str], np.ndarray]:
     return list(cams), out
 
 
-def _named(note: str, cameras: list[str]) -> str:
-    """A note of :func:`estimator.selfcal.input_warnings` with the cameras' names for their indices."""
-    return re.sub(r"\bcameras? (\d+)(?: and (\d+))?", lambda m: ("cameras " if m.group(2) else "camera ")
-                  + " and ".join(repr(cameras[int(g)]) for g in m.groups() if g is not None), note)
-
-
 def _nullable(a: np.ndarray) -> list:
     return [None if not np.isfinite(p).all() else [float(v) for v in p] for p in a]
 
@@ -190,7 +183,7 @@ def result_to_json(result, cameras: list[str]) -> dict:
         },
         "reflection_confidence": result.reflection_confidence,
         "start": result.start,
-        "notes": [_named(note, cameras) for note in result.notes],
+        "notes": [named_note(note, cameras) for note in result.notes],
         "joints3d_frame": f"camera {cameras[0]!r}: x = image u, y = image v, z = viewing "
                           "direction; its pixels; origin at each frame's joint centroid",
         "frames": [{"index": i, "joints3d": _nullable(j)} for i, j in enumerate(result.joints3d)],
