@@ -94,17 +94,29 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
     first pass followed someone else; the note saying so, else None.
 
     ``plate``, an image of the empty scene, is the background only where the walker stayed in
-    place (:func:`held_walker`; segmented once more then): where the walker crosses the view, the
-    background learned from the clip is the better one (it has the light of the moment and
-    whoever stood still in it: docs/ROBUSTNESS.md, "A walker held in the background").
+    place (:func:`held_walker`; segmented once more then, guided by the walker followed so far):
+    where the walker crosses the view, the background learned from the clip is the better one (it
+    has the light of the moment and whoever stood still in it: docs/ROBUSTNESS.md, "A walker held
+    in the background").
     """
     segs = segment(frames(), settings, fps=fps)
     boxes, note = guide(segs, settings)
     if boxes is not None:
         segs = segment(frames(), settings, fps=fps, guide=boxes)
     if plate is not None and held_walker(segs):
-        segs = segment(frames(), settings, fps=fps, guide=boxes, plate=plate)
+        # on the walker followed so far: against the plate someone who stood still all along shows,
+        # and a walker dressed like the ground shows partly (docs/ROBUSTNESS.md, "Small walkers")
+        segs = segment(frames(), settings, fps=fps, guide=_nearest(walker_boxes(segs)), plate=plate)
     return segs, note
+
+
+def _nearest(boxes: list[tuple[int, int, int, int] | None]) -> list[tuple[int, int, int, int] | None]:
+    """Each frame's box, or where there is none the nearest frame's: a walker held in place is where
+    they were seen last (or first)."""
+    seen = np.flatnonzero([b is not None for b in boxes])
+    if not len(seen):
+        return boxes
+    return [boxes[int(seen[np.argmin(np.abs(seen - t))])] for t in range(len(boxes))]
 
 
 def background_note(segs: list[Segmentation | None], plate: Path | None) -> str | None:

@@ -115,7 +115,7 @@ class RigConfig:
         the minimum in the direction two views hardly see: on the composite
         videos (docs/ROBUSTNESS.md, "Two starts of the pinhole adjustment")
         it took seed 7's two-camera walk 5 from 16.7 to 5.8 deg, seed 5's
-        walk 2 from 8.8 to 5.1.
+        walk 2 from 8.8 to 3.7.
     pinhole_focal_widths : (float, float)
         ... or when a focal length lies outside this many image widths (a far
         camera's focal length is loosely determined, 10-20 widths for a true
@@ -881,8 +881,7 @@ TWO_VIEWS = ("two cameras: the rotation between two views of a person is weakly 
              "the epipolar tangents cannot see); on videos of a walker composited into real footage, 7 two-camera "
              "rigs were 1.7-11.4 deg off (median 3.7) against 4.0-11.7 (7.2) from the viewpoints, 1 of them worse "
              "by more than 2 deg (docs/ROBUSTNESS.md, \"Two starts of the pinhole adjustment\"); a third camera "
-             "settles it, "
-             "and --posture model (posture=model in a job) gives the viewpoints' rig")
+             "settles it, and --posture model (posture=model in a job) gives the viewpoints' rig")
 """The note of a rig calibrated on the postures of two cameras (docs/ROBUSTNESS.md, "Two cameras")."""
 
 
