@@ -163,7 +163,8 @@ def main() -> int:
         "frame_sets_looked_at_early": warmed,  # warm_every: sent to the workers, or skipped (busy)
         "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "live_rig": None if args.no_live_rig else {
-            "calibration": {k: cal.json()[k] for k in ("source", "postures", "frames", "windows", "lag_windows")}
+            "calibration": {k: cal.json().get(k) for k in ("source", "postures", "frames", "windows", "lag_windows",
+                                                           "notes")}
             if cal.status_code == 200 else cal.json()["detail"],
             "rotation_error_deg": _rig_errors(cal.json(), cams, views(args.cameras))
             if cal.status_code == 200 else None,
