@@ -697,6 +697,9 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
     return rig
 
 
+_SAME_START_DEG = 1.0  # the viewpoints' start is not tried when every camera starts this close to it
+
+
 def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotations: np.ndarray,
              scales: np.ndarray, config: RigConfig, views: np.ndarray, weights: np.ndarray | None = None,
              frames: np.ndarray | None = None) -> tuple[PerspectiveRig | None, str, str]:
@@ -715,10 +718,11 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
     if (prior is not None and config.pinhole_viewpoint_start
             and max(float(geodesic_deg(a, b)) for a, b in zip(rotations, views)) > _SAME_START_DEG):
         starts["viewpoints"] = views
+    epipolar = config.pinhole_epipolar_start and prior is None and len(names) >= 3  # one start then
     ends, why_not = {}, ""
     for name, start in starts.items():
         try:
-            if config.pinhole_epipolar_start and prior is None and len(names) >= 3:
+            if epipolar:
                 pin, _ = refine_from_starts(tracks, sizes, start, scales, list(RIGID_LINKS), config=config.pinhole,
                                             frame_times=frames)
             else:
@@ -734,9 +738,6 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
         return None, why_not, ""
     kept = min(ends, key=lambda k: ends[k].cost if np.isfinite(ends[k].cost) else np.inf)
     return ends[kept], "", kept
-
-
-_SAME_START_DEG = 1.0  # the viewpoints' start is not tried when every camera starts this close to it
 
 
 _LOW_WEIGHT = 0.05  # a camera-frame whose posture explains its silhouette badly (RigConfig.posture_weight_below)

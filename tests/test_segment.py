@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import cv2
@@ -161,7 +162,8 @@ def test_a_walker_torn_at_the_waist_is_joined_again():
     assert max(alone) < 0.6, alone  # the premise: one half only
 
 
-def _torn_from_the_start(band_shift: int) -> tuple[list[float], list[float]]:
+@functools.cache  # each shift's clip segmented once for the tests that read it
+def _torn_from_the_start(band_shift: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """IoU with the walker over frames 103-129 of SMALL, and the share of the band's walker pixels
     in the mask: from frame 103 (three frames after the warm-up) a 12-row band across the walker's
     middle is the ground's colour shifted by ``band_shift`` grey levels (a white shirt on a pale
@@ -184,7 +186,7 @@ def _torn_from_the_start(band_shift: int) -> tuple[list[float], list[float]]:
             ious.append(iou(seg.full_mask(), frame.mask))
             band = frame.mask[rows] > 0
             band_kept.append(float(np.mean(seg.full_mask()[rows][band] > 0)))
-    return ious, band_kept
+    return tuple(ious), tuple(band_kept)
 
 
 def test_a_walker_torn_from_the_start_stays_whole():
