@@ -72,6 +72,11 @@ class PerspectiveConfig:
         Start of a free focal length, in image widths (1.5: a 37 deg field of view).
     focal_sigma : float
         Standard deviation of the log focal length's prior (free focal only).
+    depth_start : {"fixed", "frames"}
+        Where the start from the scaled-orthographic rig places the walker
+        (:func:`_start`): at one depth from camera 0 in every frame, the
+        focal lengths at their start; or at the depth its image size gives
+        in each frame, the focal lengths solved with the positions.
     bone_weight : float
         Weight of a bone's change of length against a pixel of reprojection
         (lengths are in camera 0's pixels at the walker).
@@ -128,6 +133,7 @@ class PerspectiveConfig:
     principal_px: tuple[tuple[float, float], ...] | None = None
     focal_start: float = 1.5
     focal_sigma: float = 0.5
+    depth_start: str = "fixed"
     bone_weight: float = 1.0
     max_nfev: int = 100
     reweight: int = 0
@@ -267,8 +273,7 @@ def perspective_refine(tracks: np.ndarray, image_sizes: np.ndarray, rotations: n
     if initial is not None:
         rotations, centres, x0, focal = initial.rotations, initial.centres, initial.joints3d, initial.focal_px
     else:
-        centres, x0 = _start(y, observed, rotations, scales, f0, principal)
-        focal = f0
+        centres, x0, focal = _start(y, observed, rotations, scales, f0, principal, config.depth_start)
     ln = np.asarray(links, int).reshape(-1, 2)
     lengths0 = np.nanmedian(np.linalg.norm(x0[:, ln[:, 0]] - x0[:, ln[:, 1]], axis=-1), axis=0)
     scale0 = float(np.nanmean(lengths0)) if len(ln) else 1.0
@@ -561,25 +566,93 @@ def _focal_log_std(jac, sigma_px: float, start: int, n: int) -> np.ndarray:
 
 
 def _start(y: np.ndarray, observed: np.ndarray, rotations: np.ndarray, scales: np.ndarray, f0: np.ndarray,
-           principal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centres (C, 3) and joints (T, J, 3) from the scaled-orthographic rig: each camera's
-    pixels per unit s_c (camera 0: 1), the walker at depth f_0 in camera 0 (1 unit = 1 pixel of
-    camera 0 at the walker), centred where camera 0 sees its centroid."""
+           principal: np.ndarray, depth: str = "fixed") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera centres (C, 3), joints (T, J, 3) and focal lengths (C,) from the scaled-orthographic rig.
+
+    ``depth="fixed"``: each camera's pixels per unit ``s_c`` (camera 0: 1), the walker at depth
+    ``f_0`` in camera 0 in every frame (1 unit = 1 pixel of camera 0 at the walker), centred
+    where camera 0 sees its centroid; the focal lengths ``f0``. ``depth="frames"``: each frame
+    seen through weak-perspective cameras, camera c showing frame t's walker at ``s_ct`` pixels
+    per unit (:func:`_magnification`), so at depth ``f_c / s_ct``; given the rotations, the
+    walker's positions, the centres and the focal lengths solve one linear least-squares problem
+    (:func:`_weak_perspective_positions`): a walker who nears and recedes tells the focal
+    lengths (1 unit = 1 pixel of camera 0 at the walker's median depth)."""
+    if depth not in ("fixed", "frames"):
+        raise ValueError(f"depth_start must be 'fixed' or 'frames', got {depth!r}")
     n_cam, t = y.shape[:2]
     count = observed.sum(axis=2)[..., None]  # (C, T, 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         centroid = np.where(observed[..., None], y, 0.0).sum(axis=2) / count  # (C, T, 2), NaN where none
     filled = np.where(np.isfinite(centroid), centroid, np.nanmean(centroid, axis=1, keepdims=True))
+    rel = rotations @ rotations[0].T
+    if depth == "frames":
+        s = _magnification(y, observed)  # (C, T)
+        body = triangulate(y, observed, rel, s, filled)  # (T, J, 3) about each frame's centroid
+        where, centres, focal = _weak_perspective_positions(filled - principal[:, None], s, rel,
+                                                            observed.sum(axis=2) >= 4, f0)
+        return centres, where[:, None, :] + body, focal
     ray0 = np.concatenate([(filled[0] - principal[0]) / f0[0], np.ones((t, 1))], axis=1) * f0[0]  # (T, 3)
     # The body about its centroid through the scaled-orthographic cameras, placed on camera 0's ray.
-    x0 = ray0[:, None, :] + triangulate(y, observed, rotations @ rotations[0].T, scales, filled)
+    x0 = ray0[:, None, :] + triangulate(y, observed, rel, scales, filled)
     walker = x0.reshape(-1, 3).mean(axis=0)
     centres = np.zeros((n_cam, 3))
     for c in range(1, n_cam):
         d = f0[c] / scales[c]  # depth at which camera c sees 1 unit as s_c pixels
         p_cam = np.append((np.nanmean(filled[c], axis=0) - principal[c]) / f0[c], 1.0) * d
         centres[c] = walker - rotations[c].T @ p_cam
-    return centres, x0
+    return centres, x0, f0
+
+
+def _magnification(y: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """(C, T) each camera-frame's rms vertical spread of the joints about their centroid over camera
+    0's median: pixels per unit of an upright walker, whatever the view (the median where fewer
+    than 4 joints are seen)."""
+    v = np.where(observed, y[..., 1], np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # frames or cameras with nothing seen
+        spread = np.sqrt(np.nanmean((v - np.nanmean(v, axis=2, keepdims=True)) ** 2, axis=2))
+        spread = np.where(observed.sum(axis=2) >= 4, spread, np.nan)
+        m = spread / np.nanmedian(spread[0])
+        m = np.where(np.isfinite(m) & (m > 0), m, np.nanmedian(m, axis=1, keepdims=True))
+    return np.where(np.isfinite(m), m, 1.0)
+
+
+_FOCAL_HOLD = 1e-2  # weight of a focal length's start (per pixel) where the walk does not determine it
+
+
+def _weak_perspective_positions(offsets: np.ndarray, s: np.ndarray, rotations: np.ndarray, seen: np.ndarray,
+                                f0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The walker's positions (T, 3), camera centres (C, 3; camera 0 at the origin) and focal
+    lengths (C,) that place each frame as every camera sees it: camera c at frame t, the walker's
+    image ``offsets[c, t]`` (pixels from the principal point) at ``s[c, t]`` pixels per unit, says
+    ``W_t = C_c + R_c^T ((u, v) / s, f_c / s)`` -- linear in W, C and f. ``seen`` (C, T): the
+    camera-frames that count. Each focal length is held weakly at ``f0`` (``_FOCAL_HOLD``) for a
+    walk that does not determine it; where one falls outside 0.2-33 times ``f0`` (0.3-50 image
+    widths from the default start) all are held at ``f0`` and the rest solved again."""
+    n_cam, t = s.shape
+    n_w, n_c = 3 * t, 3 * (n_cam - 1)
+    cc, tt = np.nonzero(seen)
+    rt = np.swapaxes(rotations, 1, 2)[cc]  # (N, 3, 3): R_c^T
+    a = np.zeros((len(cc), 3, n_w + n_c + n_cam))
+    a[np.arange(len(cc))[:, None], np.arange(3), 3 * tt[:, None] + np.arange(3)] = 1.0
+    moved = cc > 0
+    a[np.flatnonzero(moved)[:, None], np.arange(3), n_w + 3 * (cc[moved] - 1)[:, None] + np.arange(3)] = -1.0
+    a[np.arange(len(cc)), :, n_w + n_c + cc] = -rt[:, :, 2] / s[cc, tt][:, None]
+    b = np.einsum("nab,nb->na", rt[:, :, :2], offsets[cc, tt] / s[cc, tt][:, None])
+    hold = np.zeros((n_cam, a.shape[2]))
+    hold[np.arange(n_cam), n_w + n_c + np.arange(n_cam)] = _FOCAL_HOLD
+    sol = np.linalg.lstsq(np.concatenate([a.reshape(-1, a.shape[2]), hold]),
+                          np.concatenate([b.ravel(), _FOCAL_HOLD * f0]), rcond=None)[0]
+    focal = sol[n_w + n_c:]
+    ok = np.isfinite(focal) & (focal > 0.2 * f0) & (focal < 33.0 * f0)
+    if not ok.all():
+        focal = f0
+        sol = np.linalg.lstsq(np.concatenate([a.reshape(-1, a.shape[2]), np.eye(a.shape[2])[n_w + n_c:]]),
+                              np.concatenate([b.ravel(), f0]), rcond=None)[0]
+    where = sol[:n_w].reshape(t, 3)
+    where[~seen.any(axis=0)] = np.nanmean(where[seen.any(axis=0)], axis=0)
+    centres = np.concatenate([np.zeros((1, 3)), sol[n_w:n_w + n_c].reshape(-1, 3)])
+    return where, centres, np.asarray(focal, float)
 
 
 def _rotation_gap(rotvec: np.ndarray, rotations: np.ndarray) -> np.ndarray:

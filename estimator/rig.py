@@ -21,6 +21,7 @@ model's body at the given stature (:class:`RigConfig`).
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from dataclasses import dataclass, field, replace
 
@@ -116,6 +117,18 @@ class RigConfig:
         videos (docs/ROBUSTNESS.md, "Two starts of the pinhole adjustment")
         it took seed 7's two-camera walk 5 from 16.7 to 5.8 deg, seed 5's
         walk 2 from 8.8 to 3.7.
+    pinhole_depth_starts : tuple of str
+        Where each rotation start places the walker
+        (:attr:`estimator.perspective.PerspectiveConfig.depth_start`):
+        ``"fixed"``, at one depth from camera 0 in every frame with the focal
+        lengths at their prior; ``"frames"``, at the depth its image size
+        gives in each frame, with the focal lengths this tells. Each is tried
+        and the end of lowest cost kept. A walker who nears and recedes
+        (the live benchmark's walk across 100 deg of views, focal lengths
+        0.37 image widths) leaves the first start 7-34 deg off where the
+        second ends 3-7 deg off; on the composite videos the two end the same
+        on 20 of 24 walks (docs/POSTURE.md, "A walker who nears and
+        recedes").
     pinhole_focal_widths : (float, float)
         ... or when a focal length lies outside this many image widths (a far
         camera's focal length is loosely determined, 10-20 widths for a true
@@ -237,6 +250,7 @@ class RigConfig:
     pinhole_viewpoint_weight: float = 0.01
     pinhole_epipolar_start: bool = False
     pinhole_viewpoint_start: bool = True
+    pinhole_depth_starts: tuple[str, ...] = ("fixed", "frames")
     pinhole_focal_widths: tuple[float, float] = (0.3, 50.0)
     max_frames: int = 60
     start_frames: int = 30
@@ -693,7 +707,10 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
                          + "rotations fused with the viewpoints' rig by their errors (self-calibration's weight: "
                          + ", ".join(f"{names[c]} {w:.2f}" for c, w in zip(use[1:], weight[1:])) + ")"
                          + ("; also from the viewpoints' rig, whose end had the lower cost and was kept"
-                            if pinhole_start == "viewpoints" else ""))
+                            if pinhole_start[0] == "viewpoints" else ""))
+    if pinhole_start[1] == "frames":
+        rig.notes.append("pinhole adjustment kept from the start that places the walker at the depth its image size "
+                         "gives in each frame, with the focal lengths that tells (its end had the lowest cost)")
     return rig
 
 
@@ -702,16 +719,18 @@ _SAME_START_DEG = 1.0  # the viewpoints' start is not tried when every camera st
 
 def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotations: np.ndarray,
              scales: np.ndarray, config: RigConfig, views: np.ndarray, weights: np.ndarray | None = None,
-             frames: np.ndarray | None = None) -> tuple[PerspectiveRig | None, str, str]:
-    """The pinhole adjustment when it can run and its result is sane: (rig, "", the start kept), or
-    (None, why not, ""). ``weights`` (C, T, 13): each joint's (:func:`_joint_weights`); ``frames``: the
-    tracks' frame numbers. With the viewpoints' prior it is started from ``rotations`` and, where they
-    differ, from the viewpoints' rig (:attr:`RigConfig.pinhole_viewpoint_start`); the lower cost wins."""
+             frames: np.ndarray | None = None) -> tuple[PerspectiveRig | None, str, tuple[str, str]]:
+    """The pinhole adjustment when it can run and its result is sane: (rig, "", the start kept: its
+    rotations' and its depths'), or (None, why not, ("", "")). ``weights`` (C, T, 13): each joint's
+    (:func:`_joint_weights`); ``frames``: the tracks' frame numbers. With the viewpoints' prior it is
+    started from ``rotations`` and, where they differ, from the viewpoints' rig
+    (:attr:`RigConfig.pinhole_viewpoint_start`), each with the walker placed as each of
+    :attr:`RigConfig.pinhole_depth_starts` says; the lowest cost wins."""
     if not config.perspective:
-        return None, "", ""
+        return None, "", ("", "")
     tr = estimate.tracks or {}
     if not all(n in tr and tr[n].full_frame and tr[n].image_size is not None for n in names):
-        return None, "no pinhole cameras: the silhouettes are crops without a full frame", ""
+        return None, "no pinhole cameras: the silhouettes are crops without a full frame", ("", "")
     sizes = np.array([tr[n].image_size for n in names], float)
     prior = _viewpoint_prior(estimate, names, views, config)
     starts = {"fused": rotations}
@@ -720,22 +739,24 @@ def _pinhole(estimate: WalkEstimate, names: list[str], tracks: np.ndarray, rotat
         starts["viewpoints"] = views
     epipolar = config.pinhole_epipolar_start and prior is None and len(names) >= 3  # one start then
     ends, why_not = {}, ""
-    for name, start in starts.items():
+    depths = ("fixed",) if epipolar else config.pinhole_depth_starts
+    for (name, start), depth in itertools.product(starts.items(), depths):
+        pc = replace(config.pinhole, depth_start=depth)
         try:
             if epipolar:
-                pin, _ = refine_from_starts(tracks, sizes, start, scales, list(RIGID_LINKS), config=config.pinhole,
+                pin, _ = refine_from_starts(tracks, sizes, start, scales, list(RIGID_LINKS), config=pc,
                                             frame_times=frames)
             else:
-                pin = perspective_refine(tracks, sizes, start, scales, list(RIGID_LINKS), config=config.pinhole,
+                pin = perspective_refine(tracks, sizes, start, scales, list(RIGID_LINKS), config=pc,
                                          rotation_prior=prior, weights=weights, frame_times=frames)
         except (ValueError, np.linalg.LinAlgError) as exc:
             why_not = f"the pinhole adjustment failed ({exc})"
             continue
         why_not = _insane(pin, estimate, names, config, tracks, weights)
         if not why_not:
-            ends[name] = pin
+            ends[name, depth] = pin
     if not ends:
-        return None, why_not, ""
+        return None, why_not, ("", "")
     kept = min(ends, key=lambda k: ends[k].cost if np.isfinite(ends[k].cost) else np.inf)
     return ends[kept], "", kept
 

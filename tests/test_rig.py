@@ -18,7 +18,7 @@ from estimator.joints import JOINT_INDEX as J
 from estimator.joints import N_JOINTS
 from estimator.mnbp import measure_postures
 from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence
-from estimator.perspective import perspective_refine
+from estimator.perspective import PerspectiveConfig, perspective_refine
 from estimator.rig import (TWO_VIEWS, RigConfig, _pinhole, _view_doubt, _viewpoint_prior, aligned_error, attach_rig,
                            calibrate_rig, person_frame, rotations_from_viewpoints, segment_lengths, smoothed,
                            viewpoint_rotations)
@@ -357,6 +357,32 @@ def test_an_implausible_pinhole_result_is_refused(walk):
     assert any("pinhole cameras refused" in n for n in rig.notes)
 
 
+def test_a_walker_who_nears_and_recedes_starts_the_pinhole_cameras_at_each_frames_depth():
+    """The live benchmark's walk (a long path across 100 deg of views from wide-angle cameras,
+    focal lengths 0.37 image widths), exact joints with 1 px of noise: the scaled-orthographic rig
+    is a depth flip away, and from a start with the walker at one depth the adjustment stays
+    there; placed at the depth its image size gives in each frame (``depth_start="frames"``) it
+    finds the cameras and their focal lengths, at a far lower cost."""
+    seq = synthesize(SynthSpec(n_cameras=4, n_frames=60, fps=3.0, seed=5, azimuths=(45.0, 135.0, 225.0, 315.0),
+                               elevations=(10.0, 15.0, 20.0, 10.0)))
+    tracks = np.stack([[f["joints2d"][c] for f in seq.truth["frames"]] for c in seq.cameras]).astype(float)
+    tracks += np.random.default_rng(1).normal(0.0, 1.0, tracks.shape)
+    cal = self_calibrate(tracks, refine=True, upright=True, temporal_prior=False)
+    truth = _true_rig(seq)
+    truth = truth @ truth[0].T
+    ends = {d: perspective_refine(tracks, np.tile(seq.image_size, (4, 1)), cal.rotations, cal.scales,
+                                  list(RIGID_LINKS), config=PerspectiveConfig(depth_start=d))
+            for d in ("fixed", "frames")}
+    errors = {d: max(geodesic_deg(a, b) for a, b in zip(e.rotations[1:], truth[1:])) for d, e in ends.items()}
+    assert errors["frames"] < 2.0 < 20.0 < errors["fixed"], errors
+    assert ends["frames"].cost < 0.2 * ends["fixed"].cost
+    focal = np.array([seq.truth["cameras"][c]["focal_px"] for c in seq.cameras])
+    assert np.allclose(ends["frames"].focal_px, focal, rtol=0.05)
+    with pytest.raises(ValueError, match="depth_start"):
+        perspective_refine(tracks, np.tile(seq.image_size, (4, 1)), cal.rotations, cal.scales, list(RIGID_LINKS),
+                           config=PerspectiveConfig(depth_start="nearest"))
+
+
 def _two_views(model, azimuths):
     """A 24-frame walk seen by two cameras, estimated and its postures measured."""
     seq = synthesize(SynthSpec(n_cameras=2, n_frames=24, seed=8, azimuths=azimuths, elevations=(5.0, 15.0),
@@ -383,19 +409,24 @@ def test_the_pinhole_adjustment_keeps_the_lower_cost_of_two_starts(two_views):
     turned[1] = views[1] @ Rotation.from_rotvec(np.radians(20.0) * up).as_matrix()
     scales = np.ones(len(names))
 
+    fixed = RigConfig(pinhole_depth_starts=("fixed",))  # the rotation starts alone
+
     def alone(start):
         found, why, kept = _pinhole(measured, names, tracks, start, scales,
-                                    RigConfig(pinhole_viewpoint_start=False), views)
-        assert found is not None and kept == "fused", why
+                                    replace(fixed, pinhole_viewpoint_start=False), views)
+        assert found is not None and kept == ("fused", "fixed"), why
         return found
 
     ends = {"fused": alone(turned), "viewpoints": alone(views)}
     assert ends["viewpoints"].cost < ends["fused"].cost
-    both, _, kept = _pinhole(measured, names, tracks, turned, scales, RigConfig(), views)
-    assert kept == "viewpoints" and both.cost == ends[kept].cost
-    assert np.allclose(both.rotations, ends[kept].rotations)
-    _, _, same = _pinhole(measured, names, tracks, views, scales, RigConfig(), views)
-    assert same == "fused"
+    both, _, kept = _pinhole(measured, names, tracks, turned, scales, fixed, views)
+    assert kept == ("viewpoints", "fixed") and both.cost == ends[kept[0]].cost
+    assert np.allclose(both.rotations, ends[kept[0]].rotations)
+    _, _, same = _pinhole(measured, names, tracks, views, scales, fixed, views)
+    assert same == ("fused", "fixed")
+    # by default each rotation start also places the walker at each frame's depth: the lowest of four costs
+    every, _, kept = _pinhole(measured, names, tracks, turned, scales, RigConfig(), views)
+    assert every.cost <= both.cost and kept[0] in ends and kept[1] in ("fixed", "frames")
 
 
 def test_a_rig_of_two_cameras_looking_the_same_way_says_so(two_views, small_model):
