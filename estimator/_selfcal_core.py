@@ -278,14 +278,11 @@ def triangulate(y: np.ndarray, observed: np.ndarray, rots: np.ndarray, scales: n
     (C, T) for a scale per camera and frame (weak perspective)."""
     w = observed[..., None].astype(float)  # (C, T, J, 1)
     obs = np.where(observed[..., None], y - centroids[:, :, None, :], 0.0)  # (C, T, J, 2)
-    if np.ndim(scales) == 1:
-        a = scales[:, None, None] * rots[:, :2, :]  # (C, 2, 3)
-        normal = np.einsum("ctjk,cka,ckb->tjab", np.repeat(w, 2, axis=-1), a, a)
-        rhs = np.einsum("ctjk,cka->tja", obs, a)
-    else:
-        a = np.asarray(scales)[:, :, None, None] * rots[:, None, :2, :]  # (C, T, 2, 3)
-        normal = np.einsum("ctjk,ctka,ctkb->tjab", np.repeat(w, 2, axis=-1), a, a)
-        rhs = np.einsum("ctjk,ctka->tja", obs, a)
+    s = np.asarray(scales, float)
+    s = np.broadcast_to(s[:, None] if s.ndim == 1 else s, y.shape[:2])
+    a = s[:, :, None, None] * rots[:, None, :2, :]  # (C, T, 2, 3)
+    normal = np.einsum("ctjk,ctka,ctkb->tjab", np.repeat(w, 2, axis=-1), a, a)
+    rhs = np.einsum("ctjk,ctka->tja", obs, a)
     eps = 1e-9 * np.trace(normal, axis1=2, axis2=3)[..., None, None] + 1e-12
     x = np.linalg.solve(normal + eps * np.eye(3), rhs[..., None])[..., 0]
     return x - x.mean(axis=1, keepdims=True)
