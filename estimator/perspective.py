@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import scipy.sparse
@@ -133,7 +134,7 @@ class PerspectiveConfig:
     principal_px: tuple[tuple[float, float], ...] | None = None
     focal_start: float = 1.5
     focal_sigma: float = 0.5
-    depth_start: str = "fixed"
+    depth_start: Literal["fixed", "frames"] = "fixed"
     bone_weight: float = 1.0
     max_nfev: int = 100
     reweight: int = 0
