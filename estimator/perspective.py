@@ -590,7 +590,7 @@ def _start(y: np.ndarray, observed: np.ndarray, rotations: np.ndarray, scales: n
         s = _magnification(y, observed)  # (C, T)
         body = triangulate(y, observed, rel, s, filled)  # (T, J, 3) about each frame's centroid
         where, centres, focal = _weak_perspective_positions(filled - principal[:, None], s, rel,
-                                                            observed.sum(axis=2) >= 4, f0)
+                                                            observed.sum(axis=2) >= _MIN_JOINTS, f0)
         return centres, where[:, None, :] + body, focal
     ray0 = np.concatenate([(filled[0] - principal[0]) / f0[0], np.ones((t, 1))], axis=1) * f0[0]  # (T, 3)
     # The body about its centroid through the scaled-orthographic cameras, placed on camera 0's ray.
@@ -604,15 +604,18 @@ def _start(y: np.ndarray, observed: np.ndarray, rotations: np.ndarray, scales: n
     return centres, x0, f0
 
 
+_MIN_JOINTS = 4  # joints a camera-frame shows for its walker's size and place to count in the per-frame start
+
+
 def _magnification(y: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """(C, T) each camera-frame's rms vertical spread of the joints about their centroid over camera
     0's median: pixels per unit of an upright walker, whatever the view (the median where fewer
-    than 4 joints are seen)."""
+    than ``_MIN_JOINTS`` joints are seen)."""
     v = np.where(observed, y[..., 1], np.nan)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # frames or cameras with nothing seen
         spread = np.sqrt(np.nanmean((v - np.nanmean(v, axis=2, keepdims=True)) ** 2, axis=2))
-        spread = np.where(observed.sum(axis=2) >= 4, spread, np.nan)
+        spread = np.where(observed.sum(axis=2) >= _MIN_JOINTS, spread, np.nan)
         m = spread / np.nanmedian(spread[0])
         m = np.where(np.isfinite(m) & (m > 0), m, np.nanmedian(m, axis=1, keepdims=True))
     return np.where(np.isfinite(m), m, 1.0)
@@ -639,17 +642,22 @@ def _weak_perspective_positions(offsets: np.ndarray, s: np.ndarray, rotations: n
     moved = cc > 0
     a[np.flatnonzero(moved)[:, None], np.arange(3), n_w + 3 * (cc[moved] - 1)[:, None] + np.arange(3)] = -1.0
     a[np.arange(len(cc)), :, n_w + n_c + cc] = -rt[:, :, 2] / s[cc, tt][:, None]
-    b = np.einsum("nab,nb->na", rt[:, :, :2], offsets[cc, tt] / s[cc, tt][:, None])
+    b = np.einsum("nab,nb->na", rt[:, :, :2], offsets[cc, tt] / s[cc, tt][:, None]).ravel()
+    rows = a.reshape(-1, a.shape[2])
     hold = np.zeros((n_cam, a.shape[2]))
-    hold[np.arange(n_cam), n_w + n_c + np.arange(n_cam)] = _FOCAL_HOLD
-    sol = np.linalg.lstsq(np.concatenate([a.reshape(-1, a.shape[2]), hold]),
-                          np.concatenate([b.ravel(), _FOCAL_HOLD * f0]), rcond=None)[0]
+    hold[np.arange(n_cam), n_w + n_c + np.arange(n_cam)] = 1.0
+
+    def solve(weight: float) -> np.ndarray:
+        """The least-squares solution with each focal length held at ``f0`` by ``weight`` per pixel."""
+        return np.linalg.lstsq(np.concatenate([rows, weight * hold]), np.concatenate([b, weight * f0]),
+                               rcond=None)[0]
+
+    sol = solve(_FOCAL_HOLD)
     focal = sol[n_w + n_c:]
     ok = np.isfinite(focal) & (focal > 0.2 * f0) & (focal < 33.0 * f0)
     if not ok.all():
         focal = f0
-        sol = np.linalg.lstsq(np.concatenate([a.reshape(-1, a.shape[2]), np.eye(a.shape[2])[n_w + n_c:]]),
-                              np.concatenate([b.ravel(), f0]), rcond=None)[0]
+        sol = solve(1.0)
     where = sol[:n_w].reshape(t, 3)
     where[~seen.any(axis=0)] = np.nanmean(where[seen.any(axis=0)], axis=0)
     centres = np.concatenate([np.zeros((1, 3)), sol[n_w:n_w + n_c].reshape(-1, 3)])
