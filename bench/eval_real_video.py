@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from capture.merges import LiveUnmerge
 from capture.scene import iou
 from capture.segment import Segmenter, SegmentSettings, sample_indices
 
@@ -81,12 +82,14 @@ def crop(a: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
 def segment(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:
     """Segment a clip as the agent segments a file: (the tracked walker's ``Segmentation`` per frame,
     None where there is none; ms per frame)."""
-    seg = Segmenter(settings)
+    seg, unmerge = Segmenter(settings), LiveUnmerge.of(settings)
     if settings.background == "bootstrap":
         seg.bootstrap([frames[i] for i in sample_indices(len(frames), FPS, settings)])
     out, t = [], time.perf_counter()
     for k, image in enumerate(frames):
         s = seg.apply(image, k)
+        if unmerge is not None:
+            s = unmerge.see(s)
         seg.learn()
         out.append(None if s is None or s.box.empty else s)
     return out, (time.perf_counter() - t) * 1e3 / len(frames)

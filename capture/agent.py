@@ -36,6 +36,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .choose import LiveChoice
+from .merges import LiveUnmerge
 from .receiver import ValidatingSubscriber
 from .scene import iou
 from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
@@ -112,6 +113,7 @@ class AgentStats:
     with_walker: int = 0  # ... in which a walker was found
     candidates: int = 0  # person-sized candidates seen in the last frame
     walker_moves: int = 0  # the track moved to another person by a look back (capture.choose.LiveChoice)
+    joined_cut: int = 0  # silhouettes cut back to the walker where someone joined them (capture.merges.LiveUnmerge)
     walker_held: bool = False  # a look back found the walker held in place with no background image (warned)
     areas: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
     stability: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
@@ -373,6 +375,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
         last_index, seq = None, 0
         choice = LiveChoice(segmenter.settings) if segmenter.settings.walker_choice == "centred" else None
         onto = None  # the box the next frame's track moves to (a look back chose another person)
+        unmerge = LiveUnmerge.of(segmenter.settings)
         started = last_log = time.monotonic()
         cpu_started = time.process_time()
         sent_at_log = 0
@@ -389,6 +392,9 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
             if stats.priors:  # the feedback loop runs: was this frame's prior in time?
                 clock.check(frame, stats)
             seg = segmenter.apply(frame.image, frame.index, onto)
+            if unmerge is not None:
+                seg = unmerge.see(seg)
+                stats.joined_cut = unmerge.cut
             stats.segmented_index = frame.index
             stats.observe(seg)
             msg = SilhouetteMessage(

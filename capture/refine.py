@@ -36,6 +36,7 @@ from estimator.sequence import Sequence
 from estimator.windows import SegmentedWalk
 
 from .choose import guide, held_walker, walker_boxes
+from .merges import MergeTest, unmerge
 from .segment import Segmentation, Segmenter, SegmentSettings, sample_indices
 from .sources import PLATE_SUFFIXES, VideoFileSource, read_plate
 from .wire import Box, FeedbackMessage
@@ -98,6 +99,9 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
     where the walker crosses the view, the background learned from the clip is the better one (it
     has the light of the moment and whoever stood still in it: docs/ROBUSTNESS.md, "A walker held
     in the background").
+
+    Last, the frames where someone joined the walker's blob are cut back to the walker
+    (:func:`capture.merges.unmerge`, ``settings.unmerge_jump``), and the note says how many.
     """
     segs = segment(frames(), settings, fps=fps)
     boxes, note = guide(segs, settings)
@@ -107,6 +111,12 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
         # on the walker followed so far: against the plate someone who stood still all along shows,
         # and a walker dressed like the ground shows partly (docs/ROBUSTNESS.md, "Small walkers")
         segs = segment(frames(), settings, fps=fps, guide=_nearest(walker_boxes(segs)), plate=plate)
+    if settings.unmerge_jump:
+        segs, cut = unmerge(segs, MergeTest(jump=settings.unmerge_jump))
+        if cut:
+            joined = (f"{cut} frames where someone behind or in front joined the walker's silhouette were cut "
+                      "back to the walker's height")
+            note = joined if note is None else f"{note}; {joined}"
     return segs, note
 
 

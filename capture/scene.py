@@ -39,6 +39,7 @@ class SceneSpec:
     crossing: int = 120  # frames per crossing of the view (~4 s at 30 fps: walking speed)
     walker_alpha: float = 0.7  # walker = blend of background and clothing colour (0 = invisible)
     walker_bgr: tuple[int, int, int] = (40, 50, 120)
+    passer_behind: bool = False  # someone dressed alike walking the other way, farther off (higher in the image)
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -78,6 +79,12 @@ def scene_frames(spec: SceneSpec = SceneSpec()) -> Iterator[Frame]:
             inside = mask > 0
             a = spec.walker_alpha  # clothing colour over the background texture
             image[inside] = (1 - a) * image[inside] + a * np.array(spec.walker_bgr, np.float32)
+            if spec.passer_behind:  # their feet at the walker's head height; crossing it mid-clip
+                other = np.zeros_like(mask)
+                cv2.ellipse(other, (int(spec.width * (0.625 - 0.0053 * (index - spec.empty))), int(spec.height * 0.26)),
+                            (max(3, spec.width // 27), max(6, spec.height // 6)), 0, 0, 360, 255, -1)
+                seen = (other > 0) & ~inside  # behind the walker
+                image[seen] = (1 - a) * image[seen] + a * np.array(spec.walker_bgr, np.float32)
         np.maximum(image, 0, out=image)
         yield Frame(cv2.convertScaleAbs(image), index, 0, mask)  # rounds, saturates at 255
 

@@ -201,6 +201,12 @@ class SegmentSettings(BaseModel):
                                "whose colours are the other people's rather than the walker's (running "
                                "colour histograms of both; capture/colours.py): a passer-by touching the "
                                "walker is otherwise one blob with them (docs/ROBUSTNESS.md)")
+    unmerge_jump: float = Field(0.12, ge=0, description="a change of the walker's blob height by more "
+                                "than this fraction between consecutive frames is someone joining or "
+                                "leaving them: the frames above the walker's own height, where another "
+                                "person's box explains the extra rows, are cut back to it (on a file over "
+                                "the whole clip, capture.refine.segment_clip; live from the frames before, "
+                                "capture.merges.LiveUnmerge in the agent); 0 = off")
     colour_ratio: float = Field(2.7, gt=1, description="a region is cut where its colours are this many "
                                 "times likelier among the other people than on the walker")
     colour_window: float = Field(0.04, gt=0, description="the colour evidence is averaged over a square "
