@@ -83,17 +83,21 @@ def _nearest_alone(frames: np.ndarray, alone: np.ndarray, reach: int) -> list[tu
     return ends
 
 
-def _joined_by(joined: Segmentation, alone: Segmentation, keep_feet: bool, cover: float = 0.5) -> bool:
+def _joined_by(joined: Segmentation, alone: Segmentation, keep_feet: bool, cover: float = 0.5,
+               upright: float = 1.2) -> bool:
     """Whether, in the frame where the walker is ``alone``, another person's box spans at least
     ``cover`` of the rows the ``joined`` blob of the next (or previous) frame has beyond the walker
-    (above their head when ``keep_feet``, else below their feet) and overlaps its columns."""
+    (above their head when ``keep_feet``, else below their feet) and overlaps its columns.
+
+    A person's box is at least ``upright`` times taller than wide: a piece of the walker torn
+    off (their head and shoulders, the colour of what is behind them) is squatter."""
     (jx, jy, jw, jh), (ax, ay, aw, ah) = _tight(joined), _tight(alone)
     lo, hi = (jy, ay) if keep_feet else (ay + ah, jy + jh)
     if hi - lo < 1:
         return False
     for cx, cy, cw, ch in alone.candidates:
-        if box_iou((cx, cy, cw, ch), (ax, ay, aw, ah)) > 0.5:
-            continue  # the walker
+        if box_iou((cx, cy, cw, ch), (ax, ay, aw, ah)) > 0.5 or ch < upright * cw:
+            continue  # the walker, or not a whole person
         rows = min(hi, cy + ch) - max(lo, cy)
         cols = min(jx + jw, cx + cw) - max(jx, cx)
         if rows >= cover * (hi - lo) and cols > 0:

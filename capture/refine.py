@@ -98,7 +98,8 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
     place (:func:`held_walker`; segmented once more then, guided by the walker followed so far):
     where the walker crosses the view, the background learned from the clip is the better one (it
     has the light of the moment and whoever stood still in it: docs/ROBUSTNESS.md, "A walker held
-    in the background").
+    in the background"); the walker is then chosen over the clip once more, on that pass, where the
+    plate shows them whole (the first pass may have followed someone else, having only their pieces).
 
     Last, the frames where someone joined the walker's blob are cut back to the walker
     (:func:`capture.merges.unmerge`, ``settings.unmerge_jump``), and the note says how many.
@@ -111,6 +112,9 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
         # on the walker followed so far: against the plate someone who stood still all along shows,
         # and a walker dressed like the ground shows partly (docs/ROBUSTNESS.md, "Small walkers")
         segs = segment(frames(), settings, fps=fps, guide=_nearest(walker_boxes(segs)), plate=plate)
+        boxes, chosen = guide(segs, settings)  # chosen again where the plate shows the walker whole
+        if boxes is not None:
+            segs, note = segment(frames(), settings, fps=fps, guide=boxes, plate=plate), chosen
     if settings.unmerge_jump:
         segs, cut = unmerge(segs, MergeTest(jump=settings.unmerge_jump))
         if cut:
