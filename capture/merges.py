@@ -225,13 +225,14 @@ def _cut(s: Segmentation, height: float, keep_feet: bool) -> Segmentation | None
 
 
 class LiveUnmerge:
-    """:func:`unmerge` for a live camera, which cannot look ahead: frame by frame, a jump of the
-    walker's blob above their height in the frame before, after at least ``reference`` frames
-    alone without a jump, with one end in place and another person's box there the frame before
-    (:func:`_joined_by`), starts a join; until the blob comes
-    back within ``jump`` of the walker's height (carried on at the trend of their last frames
-    alone, at most :data:`TREND` per frame) or the kept end moves, each frame is cut back to it.
-    A join that starts while the walker was never seen alone cannot be told and is left.
+    """:func:`unmerge` for a live camera, which cannot look ahead.
+
+    Frame by frame, a jump of the walker's blob above their height in the frame before, after at
+    least ``reference`` frames alone without a jump, with one end in place and another person's
+    box there the frame before (:func:`_joined_by`), starts a join. Until the blob comes back
+    within ``jump`` of the walker's height (carried on at the trend of their last frames alone, at
+    most :data:`TREND` per frame) or the kept end moves, each frame is cut back to it. A join that
+    starts before the walker was seen alone cannot be told, and is left.
 
     ``see`` takes the segmenter's output (:meth:`capture.segment.Segmenter.apply`) and returns it,
     or it cut; ``cut`` counts the frames cut.

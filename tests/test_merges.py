@@ -37,11 +37,16 @@ def _other(t: int) -> tuple[int, int, int, int]:
     return (100 + 2 * t, 40, 24, 70)
 
 
-def test_frames_where_someone_behind_stands_on_the_walkers_head_are_cut_back_to_the_walker():
-    walker = _walk()
-    joined = range(10, 20)
-    segs = [_seg([w, _other(t)]) if t in joined else _seg([w], candidates=(w, _other(t)))
+def _joined_clip(walker: list, joined: range) -> list[Segmentation]:
+    """The walker with someone farther off on their head in the ``joined`` frames, beside them
+    (a candidate of their own) in the others."""
+    return [_seg([w, _other(t)]) if t in joined else _seg([w], candidates=(w, _other(t)))
             for t, w in enumerate(walker)]
+
+
+def test_frames_where_someone_behind_stands_on_the_walkers_head_are_cut_back_to_the_walker():
+    walker, joined = _walk(), range(10, 20)
+    segs = _joined_clip(walker, joined)
     out, cut = unmerge(segs)
     assert cut == len(joined)
     for t in joined:
@@ -64,16 +69,20 @@ def test_a_walker_joined_below_by_someone_nearer_keeps_the_head():
         assert rows[0] == walker[t][1] and rows[-1] + 1 - rows[0] <= 1.03 * walker[t][3] + 1
 
 
-def test_a_walker_torn_for_a_while_is_not_cut_to_the_torn_height():
-    """Legs lost against the ground for the first frames: the blob grows by a jump when they come
-    back, but the short frames are squat (a torso is not a whole person), so nothing is cut, even
-    with the legs seen as another candidate."""
-    walker = _walk()
+def _torn_legs() -> list[Segmentation]:
+    """Legs lost against the ground for the first 10 frames, seen as a candidate of their own."""
     segs = []
-    for t, (x, y, w, h) in enumerate(walker):
+    for t, (x, y, w, h) in enumerate(_walk()):
         torso = (x - 10, y, w + 20, h // 2)  # arms out: wider than half as tall
         legs = (x, y + h // 2, w, h - h // 2)
         segs.append(_seg([torso], candidates=(torso, legs)) if t < 10 else _seg([(x, y, w, h)]))
+    return segs
+
+
+def test_a_walker_torn_for_a_while_is_not_cut_to_the_torn_height():
+    """The blob grows by a jump when the legs come back, but the short frames are squat (a torso
+    is not a whole person), so nothing is cut, even with the legs seen as another candidate."""
+    segs = _torn_legs()
     out, cut = unmerge(segs)
     assert cut == 0 and out == segs
 
@@ -123,10 +132,8 @@ def test_on_a_clip_a_walker_passing_in_front_of_someone_is_cut_back_when_on(jump
 def test_live_the_frames_after_a_join_are_cut_back_to_the_walker():
     """The first test's clip fed frame by frame: the join is cut from its first frame on, with
     the walker's height from the frames before (a live agent cannot look ahead)."""
-    walker = _walk()
-    joined = range(10, 20)
-    segs = [_seg([w, _other(t)]) if t in joined else _seg([w], candidates=(w, _other(t)))
-            for t, w in enumerate(walker)]
+    walker, joined = _walk(), range(10, 20)
+    segs = _joined_clip(walker, joined)
     live = LiveUnmerge()
     out = [live.see(s) for s in segs]
     assert live.cut == len(joined)
@@ -138,11 +145,6 @@ def test_live_the_frames_after_a_join_are_cut_back_to_the_walker():
 
 
 def test_live_a_walker_who_grows_back_from_torn_is_not_cut():
-    walker = _walk()
-    segs = []
-    for t, (x, y, w, h) in enumerate(walker):
-        torso = (x - 10, y, w + 20, h // 2)
-        legs = (x, y + h // 2, w, h - h // 2)
-        segs.append(_seg([torso], candidates=(torso, legs)) if t < 10 else _seg([(x, y, w, h)]))
+    segs = _torn_legs()
     live = LiveUnmerge()
     assert [live.see(s) for s in segs] == segs and live.cut == 0
