@@ -282,8 +282,10 @@ def _log_stats(stats: AgentStats, sent_before: int, seconds: float, what: str) -
              if stats.iou_frames else "")
     q = stats.quality()
     log.info("%s quality: walker in %.0f%% of %d frames, median area %.0f px, stability %s, "
-             "candidates %d", what, 100 * q.walker_fraction, stats.segmented, q.area_median,
-             "-" if q.stability is None else f"{q.stability:.2f}", stats.candidates)
+             "candidates %d, track moved to the walker %d times, %d frames cut back where someone joined",
+             what, 100 * q.walker_fraction, stats.segmented, q.area_median,
+             "-" if q.stability is None else f"{q.stability:.2f}", stats.candidates, stats.walker_moves,
+             stats.joined_cut)
 
 
 class CaptureView(Protocol):

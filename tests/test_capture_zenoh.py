@@ -182,9 +182,10 @@ def test_agent_streams_a_video_and_takes_priors(endpoint, video):
     assert before < 0.3 and after > 0.6, (before, after)  # measured 0.05 -> 0.77
 
 
-def test_agent_cuts_back_a_walker_joined_by_someone_behind(endpoint, tmp_path):
+def test_agent_cuts_back_a_walker_joined_by_someone_behind(endpoint, tmp_path, caplog):
     """Live, the walker passes in front of a person dressed alike farther off (capture.merges.LiveUnmerge):
     the silhouettes sent for the frames where they are one blob are the walker's."""
+    caplog.set_level(logging.INFO, logger="capture.agent")
     spec = SceneSpec(width=320, height=240, frames=160, empty=100, passer_behind=True)
     path = tmp_path / "behind.avi"
     truth = write_video(path, spec)
@@ -200,6 +201,7 @@ def test_agent_cuts_back_a_walker_joined_by_someone_behind(endpoint, tmp_path):
                        if truth[r.message.frame_index].any()])
     assert stats.joined_cut >= 5  # measured 14: without the cut their IoU is 0.6-0.7
     assert np.mean(scores > 0.8) > 0.95, np.round(scores, 2)
+    assert f"{stats.joined_cut} frames cut back where someone joined" in caplog.text  # the totals' log
 
 
 def test_agent_ignores_stale_priors_and_priors_for_another_run(endpoint, video):
