@@ -45,10 +45,18 @@ TREND = 0.015
 at 4 m walking at 1.5 m/s straight at a 15 Hz camera: 2.5 %)."""
 
 
-def _extent(s: Segmentation | None) -> tuple[float, float]:
-    """Top and bottom+1 rows of the mask in the full frame (NaN when empty)."""
-    box = None if s is None or s.box.empty else _tight(s)
-    return (np.nan, np.nan) if box is None else (float(box[1]), float(box[1] + box[3]))
+Box4 = tuple[int, int, int, int]
+
+
+def _box(s: Segmentation | None) -> Box4 | None:
+    """The full-frame box (x, y, w, h) of the mask's pixels (None without any)."""
+    if s is None or s.box.empty:
+        return None
+    ys, xs = np.nonzero(s.mask)
+    if not ys.size:
+        return None
+    return (s.box.x + int(xs.min()), s.box.y + int(ys.min()), int(xs.max() - xs.min() + 1),
+            int(ys.max() - ys.min() + 1))
 
 
 def _levels(log_h: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:
@@ -61,12 +69,12 @@ def _levels(log_h: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:
     return run, levels
 
 
-def _anchor(joined: tuple[float, float], alone: tuple[float, float], tolerance: float) -> str | None:
-    """Which end stayed between the ``joined`` blob's (top, bottom) rows and the walker's ``alone``:
-    'bottom', 'top', or None when both or neither did."""
-    h = alone[1] - alone[0]
-    feet = abs(joined[1] - alone[1]) <= tolerance * h
-    head = abs(joined[0] - alone[0]) <= tolerance * h
+def _anchor(joined: Box4, alone: Box4, tolerance: float) -> str | None:
+    """Which end stayed between the ``joined`` blob's box and the walker's ``alone``: 'bottom',
+    'top', or None when both or neither did."""
+    h = alone[3]
+    feet = abs((joined[1] + joined[3]) - (alone[1] + alone[3])) <= tolerance * h
+    head = abs(joined[1] - alone[1]) <= tolerance * h
     return "bottom" if feet and not head else "top" if head and not feet else None
 
 
@@ -83,19 +91,20 @@ def _nearest_alone(frames: np.ndarray, alone: np.ndarray, reach: int) -> list[tu
     return ends
 
 
-def _joined_by(joined: Segmentation, alone: Segmentation, keep_feet: bool, cover: float = 0.5,
+def _joined_by(joined: Box4, alone: Box4, others: tuple[Box4, ...], keep_feet: bool, cover: float = 0.5,
                upright: float = 1.2) -> bool:
-    """Whether, in the frame where the walker is ``alone``, another person's box spans at least
-    ``cover`` of the rows the ``joined`` blob of the next (or previous) frame has beyond the walker
-    (above their head when ``keep_feet``, else below their feet) and overlaps its columns.
+    """Whether, in the frame where the walker is ``alone`` (their box; ``others``: the candidates'
+    boxes there), another person's box spans at least ``cover`` of the rows the ``joined`` blob of
+    the next (or previous) frame has beyond the walker (above their head when ``keep_feet``, else
+    below their feet) and overlaps its columns.
 
     A person's box is at least ``upright`` times taller than wide: a piece of the walker torn
     off (their head and shoulders, the colour of what is behind them) is squatter."""
-    (jx, jy, jw, jh), (ax, ay, aw, ah) = _tight(joined), _tight(alone)
+    (jx, jy, jw, jh), (ax, ay, aw, ah) = joined, alone
     lo, hi = (jy, ay) if keep_feet else (ay + ah, jy + jh)
     if hi - lo < 1:
         return False
-    for cx, cy, cw, ch in alone.candidates:
+    for cx, cy, cw, ch in others:
         if box_iou((cx, cy, cw, ch), (ax, ay, aw, ah)) > 0.5 or ch < upright * cw:
             continue  # the walker, or not a whole person
         rows = min(hi, cy + ch) - max(lo, cy)
@@ -103,15 +112,6 @@ def _joined_by(joined: Segmentation, alone: Segmentation, keep_feet: bool, cover
         if rows >= cover * (hi - lo) and cols > 0:
             return True
     return False
-
-
-def _tight(s: Segmentation) -> tuple[int, int, int, int] | None:
-    """The full-frame box (x, y, w, h) of the mask's pixels (None when it has none)."""
-    ys, xs = np.nonzero(s.mask)
-    if not ys.size:
-        return None
-    return (s.box.x + int(xs.min()), s.box.y + int(ys.min()), int(xs.max() - xs.min() + 1),
-            int(ys.max() - ys.min() + 1))
 
 
 def _walker_heights(log_h: np.ndarray, alone: np.ndarray, near: int = 10) -> np.ndarray:
@@ -160,58 +160,61 @@ class MergeTest:
     reach: int = 3
     upright: float = 2.0
 
+    @classmethod
+    def of(cls, settings: SegmentSettings) -> MergeTest | None:
+        """The test a segmenter with ``settings`` runs (``unmerge_jump``), None when it is off."""
+        return cls(jump=settings.unmerge_jump) if settings.unmerge_jump else None
+
 
 def unmerge(segs: list[Segmentation | None], test: MergeTest = MergeTest()
             ) -> tuple[list[Segmentation | None], int]:
     """``segs`` (one clip's segmentations in frame order, :func:`capture.refine.segment`) with the
     frames where someone joined the walker cut back to the walker, and how many."""
-    top, bottom = np.array([_extent(s) for s in segs], float).reshape(-1, 2).T
+    boxes = [_box(s) for s in segs]
+    size = np.array([(np.nan, np.nan) if b is None else b[2:] for b in boxes], float).reshape(-1, 2)
     out, n_cut = list(segs), 0
-    valid = np.isfinite(top) & (bottom > top)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], valid.astype(int), [0]])))
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.isfinite(size[:, 1]).astype(int), [0]])))
     for a, b in zip(edges[::2], edges[1::2]):  # each stretch of frames with a silhouette
-        log_h = np.log(bottom[a:b] - top[a:b])
+        log_h = np.log(size[a:b, 1])
         run, levels = _levels(log_h, test.jump)
         excess = levels - levels.min()
         low = excess < 0.5 * np.log1p(test.jump)
         alone = low[run]
         if alone.sum() < test.reference or alone.all():
             continue
-        widths = np.array([_tight(segs[a + f])[2] for f in np.flatnonzero(alone)], float)
-        if np.median(np.exp(log_h[alone]) / widths) < test.upright:
+        if np.median(size[a:b][alone, 1] / size[a:b][alone, 0]) < test.upright:
             continue  # the lowest level is not a whole person (legs, a torso): torn, not joined
         walker = _walker_heights(log_h, alone)
         for r in np.flatnonzero(excess > np.log1p(test.jump)):
             frames = np.flatnonzero(run == r)
-            ends = _nearest_alone(frames, alone, test.reach)
-            anchors = {_anchor((top[a + f], bottom[a + f]), (top[a + g], bottom[a + g]), test.tolerance)
-                       for f, g in ends}
+            ends = [(a + f, a + g) for f, g in _nearest_alone(frames, alone, test.reach)]
+            anchors = {_anchor(boxes[f], boxes[g], test.tolerance) for f, g in ends}
             if not ends or len(anchors) != 1 or None in anchors:
                 continue
             keep_feet = anchors.pop() == "bottom"
-            if not any(_joined_by(segs[a + f], segs[a + g], keep_feet) for f, g in ends):
+            if not any(_joined_by(boxes[f], boxes[g], segs[g].candidates, keep_feet) for f, g in ends):
                 continue  # no one else there to have joined: the walker was short (torn, hidden) instead
             for f in frames:
                 height = np.exp(walker[f]) * (1 + test.margin)
                 if height >= np.exp(log_h[f]):
                     continue
-                cut = _cut(segs[a + f], height, keep_feet)
+                cut = _cut(segs[a + f], boxes[a + f], height, keep_feet)
                 if cut is not None:
                     out[a + f], n_cut = cut, n_cut + 1
     return out, n_cut
 
 
-def _cut(s: Segmentation, height: float, keep_feet: bool) -> Segmentation | None:
-    """``s`` keeping the ``height`` rows at its bottom (``keep_feet``) or top, cropped again with the
-    margin it had."""
-    ys, xs = np.nonzero(s.mask)
-    pad = int(min(ys.min(), xs.min()))
+def _cut(s: Segmentation, box: Box4, height: float, keep_feet: bool) -> Segmentation | None:
+    """``s`` (its pixels' box ``box``) keeping the ``height`` rows at its bottom (``keep_feet``) or
+    top, cropped again with the margin it had."""
+    top, left = box[1] - s.box.y, box[0] - s.box.x  # in the crop
+    pad = min(top, left)
     mask = s.mask.copy()
     keep = int(round(height))
     if keep_feet:
-        mask[: ys.max() + 1 - keep] = 0
+        mask[: top + box[3] - keep] = 0
     else:
-        mask[ys.min() + keep:] = 0
+        mask[top + keep:] = 0
     ys, xs = np.nonzero(mask)
     if not ys.size:
         return None
@@ -240,62 +243,60 @@ class LiveUnmerge:
 
     def __init__(self, test: MergeTest = MergeTest(), near: int = 10) -> None:
         self.test, self.cut = test, 0
-        self._alone: list[tuple[Segmentation, float, float]] = []  # (seg, log height, aspect), last ``near``
+        self._alone: list[tuple[Segmentation, Box4]] = []  # the last ``near`` frames alone, their pixels' boxes
         self._near = near
         self._joined: tuple[bool, float, float] | None = None  # keep feet, walker's log height, its slope
-        self._kept: tuple[float, float] | None = None  # last output's extent
+        self._kept: Box4 | None = None  # the last output's pixels' box
         self._missed = 0
 
     @classmethod
     def of(cls, settings: SegmentSettings) -> LiveUnmerge | None:
         """The cut a segmenter with ``settings`` runs live (``unmerge_jump``), None when it is off."""
-        return cls(MergeTest(jump=settings.unmerge_jump)) if settings.unmerge_jump else None
+        test = MergeTest.of(settings)
+        return None if test is None else cls(test)
 
     def see(self, seg: Segmentation) -> Segmentation:
-        top, bottom = _extent(seg)
-        if not np.isfinite(top) or bottom <= top:
+        box = _box(seg)
+        if box is None:
             self._missed += 1
             if self._missed > self.test.reach:
                 self._alone, self._joined, self._kept = [], None, None
             return seg
         self._missed = 0
-        log_h = float(np.log(bottom - top))
-        if self._joined is not None:
-            out = self._continue(seg, (top, bottom), log_h)
-        else:
-            out = self._start(seg, (top, bottom), log_h)
+        out = self._continue(seg, box) if self._joined is not None else self._start(seg, box)
         if out is seg:  # the walker alone: the frames since the last jump tell their height
             self._joined = None
-            if self._alone and abs(log_h - self._alone[-1][1]) > np.log1p(self.test.jump):
+            if self._alone and abs(np.log(box[3] / self._alone[-1][1][3])) > np.log1p(self.test.jump):
                 self._alone = []
-            self._alone = [*self._alone[1 - self._near:], (seg, log_h, (bottom - top) / _tight(seg)[2])]
-        self._kept = _extent(out)
+            self._alone = [*self._alone[1 - self._near:], (seg, box)]
+        self._kept = box if out is seg else _box(out)
         return out
 
-    def _start(self, seg: Segmentation, extent: tuple[float, float], log_h: float) -> Segmentation:
+    def _start(self, seg: Segmentation, box: Box4) -> Segmentation:
         """A join starting at this frame, cut; else ``seg``."""
         t = self.test
         if len(self._alone) < t.reference or self._kept is None:
             return seg
-        last, last_h, _ = self._alone[-1]
-        if log_h - last_h <= np.log1p(t.jump) or np.median([a for *_, a in self._alone]) < t.upright:
+        last, last_box = self._alone[-1]
+        if np.log(box[3] / last_box[3]) <= np.log1p(t.jump) \
+                or np.median([b[3] / b[2] for _, b in self._alone]) < t.upright:
             return seg
-        anchor = _anchor(extent, self._kept, t.tolerance)
-        if anchor is None or not _joined_by(seg, last, anchor == "bottom"):
+        anchor = _anchor(box, self._kept, t.tolerance)
+        if anchor is None or not _joined_by(box, last_box, last.candidates, anchor == "bottom"):
             return seg
-        hs = np.array([h for _, h, _ in self._alone])
+        hs = np.log([b[3] for _, b in self._alone])
         slope = float(np.clip(np.polyfit(np.arange(hs.size), hs, 1)[0], -TREND, TREND)) if hs.size >= 3 else 0.0
-        self._joined = (anchor == "bottom", last_h, slope)
-        return self._continue(seg, extent, log_h)
+        self._joined = (anchor == "bottom", float(hs[-1]), slope)
+        return self._continue(seg, box)
 
-    def _continue(self, seg: Segmentation, extent: tuple[float, float], log_h: float) -> Segmentation:
+    def _continue(self, seg: Segmentation, box: Box4) -> Segmentation:
         """This frame cut back to the walker while the join lasts; ``seg`` once it has ended."""
         keep_feet, walker, slope = self._joined
         walker += slope
-        moved = _anchor(extent, self._kept, self.test.tolerance) != ("bottom" if keep_feet else "top")
-        if moved or log_h - walker <= np.log1p(self.test.jump):
+        moved = _anchor(box, self._kept, self.test.tolerance) != ("bottom" if keep_feet else "top")
+        if moved or np.log(box[3]) - walker <= np.log1p(self.test.jump):
             return seg  # parted, or the kept end moved: the walker alone (or someone else) again
-        out = _cut(seg, np.exp(walker) * (1 + self.test.margin), keep_feet)
+        out = _cut(seg, box, np.exp(walker) * (1 + self.test.margin), keep_feet)
         if out is None:
             return seg
         self._joined = (keep_feet, walker, slope)

@@ -115,8 +115,9 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
         boxes, chosen = guide(segs, settings)  # chosen again where the plate shows the walker whole
         if boxes is not None:
             segs, note = segment(frames(), settings, fps=fps, guide=boxes, plate=plate), chosen
-    if settings.unmerge_jump:
-        segs, cut = unmerge(segs, MergeTest(jump=settings.unmerge_jump))
+    test = MergeTest.of(settings)
+    if test is not None:
+        segs, cut = unmerge(segs, test)
         if cut:
             joined = (f"{cut} frames where someone behind or in front joined the walker's silhouette were cut "
                       "back to the walker's height")
