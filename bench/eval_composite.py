@@ -63,6 +63,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,9 +75,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_estimate import az_err, ph_err  # noqa: E402
 from eval_mnbp import MOCAP, body  # noqa: E402
 from eval_real_video import VIDEO, load_video  # noqa: E402
+from capture.live import LiveSegmenter  # noqa: E402
 from capture.refine import plate_for, segment_clip  # noqa: E402
 from capture.scene import iou  # noqa: E402
-from capture.segment import SegmentSettings  # noqa: E402
+from capture.segment import Segmenter, SegmentSettings, sample_indices  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
 from estimator.damage import shadow  # noqa: E402
 from estimator.joints import JOINT_INDEX  # noqa: E402
@@ -387,6 +389,24 @@ def segmentation_iou(segs: list, seq: Sequence, cam: str) -> list[float]:
     return out
 
 
+def live_segments(frames: np.ndarray, plate: np.ndarray | None) -> list:
+    """The frames segmented as a live agent segments a recording (:class:`capture.live.LiveSegmenter`:
+    no look ahead; the background bootstrapped from frames sampled over the start, or ``plate``)."""
+    settings = SegmentSettings()
+    segmenter = Segmenter(settings, plate=plate)
+    segmenter.bootstrap([frames[i] for i in sample_indices(len(frames), FPS, settings)])
+    live, out = LiveSegmenter(segmenter), []
+    for k, image in enumerate(frames):
+        out.append(live.apply(image, k))
+        live.learn()
+    return out
+
+
+def iou_line(what: str, ious: list[float]) -> str:
+    return (f"{what}: IoU median {np.median(ious):.3f}, mean {np.mean(ious):.3f}, p10 {np.percentile(ious, 10):.3f}, "
+            f"below 0.5 in {100 * np.mean(np.array(ious) < 0.5):.1f} % of {len(ious)} frames")
+
+
 def cell(values: list[float]) -> str:
     """``median / p90`` of the finite values, and how many are missing."""
     v = np.asarray(values, float)
@@ -395,6 +415,26 @@ def cell(values: list[float]) -> str:
         return "-"
     missing = f" ({v.size - ok.size} of {v.size} missing)" if ok.size < v.size else ""
     return f"{np.median(ok):.3g} / {np.percentile(ok, 90):.3g}{missing}"
+
+
+def composite_walks(work: Path, *, sequences: int, seed: int, frames: int = 45, walker_scale: float = 1.0,
+                    plates: bool = False, optics: Optics = Optics()) -> Iterator[tuple[int, Sequence, Outfit]]:
+    """The walks of one ``seed`` (module docstring), each written as ``work/walk<i>/videos`` (the
+    composites) and ``work/walk<i>/exact`` (the exact silhouettes, a sequence folder): yields the
+    walk's number, its sequence (the truth) and its outfit as each is written."""
+    video = load_video(VIDEO)
+    plate = empty_scene(video) if plates else None
+    motions = [read_motion(MOCAP / "16_15.bvh"), read_motion(MOCAP / "07_05.amc")]
+    rng = np.random.default_rng(seed)
+    for i in range(sequences):
+        n, shape, distance = int(rng.integers(2, 5)), body(rng), float(rng.uniform(5.0, 12.0))
+        spec = SynthSpec(n_cameras=n, n_frames=frames, fps=FPS, seed=1000 * seed + i, shape=shape,
+                         distance=distance, elevations=elevations(rng, n, shape.height, distance), image_size=SIZE)
+        seq, masks, instants = render_walk(spec, motions[i % 2], optics, walker_scale)
+        outfit = write_videos(work / f"walk{i}" / "videos", seq, video, np.random.default_rng([seed, i]),
+                              cast_shadow=i % 2 == 1, plate=plate, masks=masks, instants=instants, optics=optics)
+        write_sequence(work / f"walk{i}" / "exact", seq)
+        yield i, seq, outfit
 
 
 def main() -> None:
@@ -417,54 +457,60 @@ def main() -> None:
                              f"{Optics.shutter}; 0: one instant per frame, as before session 46)")
     parser.add_argument("--defocus", type=float, default=Optics.defocus_px,
                         help=f"the lens's blur, Gaussian sigma in pixels (default {Optics.defocus_px})")
+    parser.add_argument("--segment-only", action="store_true",
+                        help="only the segmenter's silhouettes (the file's path and the live agent's) against the "
+                             "exact ones: no `posecal estimate` runs")
     parser.add_argument("--noise", type=float, default=Optics.noise,
                         help=f"the sensor's noise, sigma in grey levels (default {Optics.noise})")
     args = parser.parse_args()
     optics = Optics(args.shutter, args.defocus, args.noise)
-    video = load_video(VIDEO)
-    plate = empty_scene(video) if args.plates else None
-    motions = [read_motion(MOCAP / "16_15.bvh"), read_motion(MOCAP / "07_05.amc")]
-    rng = np.random.default_rng(args.seed)
     runs = [("videos, no flags", "videos", ()), ("videos, --feedback off", "videos", ("--feedback", "off")),
             ("videos, --sync off", "videos", ("--sync", "off")), ("exact silhouettes", "exact", ())]
     rows: dict[str, dict[str, list[float]]] = {name: {} for name, _, _ in runs}
-    ious, failures, shadows = [], [], 0
+    ious, live_ious, failures, shadows, n_cams = [], [], [], 0, 0
     montage: list[tuple[np.ndarray, np.ndarray]] = []  # the first walk's middle frame and silhouette, per camera
     work = args.keep or Path(tempfile.mkdtemp(prefix="posecal-composite-"))
-    for i in tqdm(range(args.sequences), desc="walks", file=sys.stderr):
-        n, shape, distance = int(rng.integers(2, 5)), body(rng), float(rng.uniform(5.0, 12.0))
-        spec = SynthSpec(n_cameras=n, n_frames=args.frames, fps=FPS, seed=1000 * args.seed + i, shape=shape,
-                         distance=distance, elevations=elevations(rng, n, shape.height, distance), image_size=SIZE)
-        seq, masks, instants = render_walk(spec, motions[i % 2], optics, args.walker_scale)
-        walk_rng = np.random.default_rng([args.seed, i])
-        videos, exact = work / f"walk{i}" / "videos", work / f"walk{i}" / "exact"
-        outfit = write_videos(videos, seq, video, walk_rng, cast_shadow=i % 2 == 1, plate=plate, masks=masks,
-                              instants=instants, optics=optics)
+    walks = composite_walks(work, sequences=args.sequences, seed=args.seed, frames=args.frames,
+                            walker_scale=args.walker_scale, plates=args.plates, optics=optics)
+    for i, seq, outfit in tqdm(walks, total=args.sequences, desc="walks", file=sys.stderr):
+        videos = work / f"walk{i}" / "videos"
         shadows += outfit.shadow_gain < 1.0
-        write_sequence(exact, seq)
-        for name, kind, flags in runs:
+        n_cams += len(seq.cameras)
+        for name, kind, flags in [] if args.segment_only else runs:
             result = estimate(work / f"walk{i}" / kind, work / f"walk{i}" / f"{kind}{'-'.join(flags)}.json", *flags)
             if "error" in result:
                 failures.append(f"walk {i} ({name}): {result['error']}")
             for k, v in score(result, seq).items():
                 rows[name].setdefault(k, []).extend(v)
         for cam in seq.cameras:
-            frames = load_video(videos / f"{cam}.avi")
-            segs, _ = segment_clip(lambda: list(frames), SegmentSettings(), fps=FPS,
-                                   plate=plate_for(videos / f"{cam}.avi"))
+            frames, plate_image = load_video(videos / f"{cam}.avi"), plate_for(videos / f"{cam}.avi")
+            segs, _ = segment_clip(lambda: list(frames), SegmentSettings(), fps=FPS, plate=plate_image)
             ious.extend(segmentation_iou(segs, seq, cam))
+            live_ious.extend(segmentation_iou(live_segments(frames, plate_image), seq, cam))
             if i == 0:
                 mid = len(frames) // 2
                 montage.append((frames[mid], segs[mid].full_mask() if segs[mid] is not None
                                 else np.zeros(frames.shape[1:3], np.uint8)))
-    cams = len(rows["exact silhouettes"].get("azimuth", []))
-    print(f"\n{args.sequences} walks ({cams} cameras, {args.frames} frames at 15 Hz, CMU motion, random bodies; "
-          f"{shadows} with a ground shadow) composited over vtest.avi through a camera's optics (shutter "
+    print(f"\n{args.sequences} walks ({n_cams} cameras, {args.frames} frames at 15 Hz, CMU motion, random "
+          f"bodies; {shadows} with a ground shadow) composited over vtest.avi through a camera's optics (shutter "
           f"{optics.shutter:g} of the frame interval, lens blur {optics.defocus_px:g} px, noise {optics.noise:g} grey "
           f"levels); `posecal estimate FOLDER`, no flags\n")
-    print(f"segmenter against the exact silhouettes: IoU median {np.median(ious):.3f}, "
-          f"p10 {np.percentile(ious, 10):.3f}, "
-          f"below 0.5 in {100 * np.mean(np.array(ious) < 0.5):.1f} % of {len(ious)} frames\n")
+    print(iou_line("segmenter against the exact silhouettes (the file's path, `segment_clip`)", ious))
+    print(iou_line("... live, as an agent segments (`capture.live.LiveSegmenter`)", live_ious) + "\n")
+    if not args.segment_only:
+        report(rows, failures)
+        if args.plot:
+            plot(args.plot, rows)
+    if args.montage and montage:
+        write_montage(args.montage, montage)
+    if not args.keep:
+        import shutil
+
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def report(rows: dict[str, dict[str, list[float]]], failures: list[str]) -> None:
+    """The table of errors per input (median / p90), and the walks that failed."""
     measures = [("azimuth error (deg)", "azimuth"), ("elevation error (deg)", "elevation"),
                 ("phase error (cycles)", "phase"), ("rig rotation error per camera (deg)", "rig"),
                 ("the same, rotations from the viewpoints (deg)", "rig_viewpoints"),
@@ -478,14 +524,6 @@ def main() -> None:
     print("| phase within 1/20 of a cycle | " + " | ".join(f"{100 * w:.1f} %" for w in within) + " |\n")
     if failures:
         print("failed:\n" + "\n".join(f"  {f}" for f in failures))
-    if args.plot:
-        plot(args.plot, rows)
-    if args.montage and montage:
-        write_montage(args.montage, montage)
-    if not args.keep:
-        import shutil
-
-        shutil.rmtree(work, ignore_errors=True)
 
 
 def plot(path: Path, rows: dict[str, dict[str, list[float]]]) -> None:

@@ -35,8 +35,7 @@ import zenoh
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from .choose import LiveChoice
-from .merges import LiveUnmerge
+from .live import LiveSegmenter
 from .receiver import ValidatingSubscriber
 from .scene import iou
 from .segment import PriorStats, Segmentation, Segmenter, SegmentSettings, box_iou, sample_indices
@@ -375,9 +374,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
         if not source.live:
             frames = paced(frames, settings.fps or source.fps or 30.0)
         last_index, seq = None, 0
-        choice = LiveChoice(segmenter.settings) if segmenter.settings.walker_choice == "centred" else None
-        onto = None  # the box the next frame's track moves to (a look back chose another person)
-        unmerge = LiveUnmerge.of(segmenter.settings)
+        live = LiveSegmenter(segmenter)
         started = last_log = time.monotonic()
         cpu_started = time.process_time()
         sent_at_log = 0
@@ -393,10 +390,8 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 continue
             if stats.priors:  # the feedback loop runs: was this frame's prior in time?
                 clock.check(frame, stats)
-            seg = segmenter.apply(frame.image, frame.index, onto)
-            if unmerge is not None:
-                seg = unmerge.see(seg)
-                stats.joined_cut = unmerge.cut
+            seg = live.apply(frame.image, frame.index)
+            stats.joined_cut = live.cut
             stats.segmented_index = frame.index
             stats.observe(seg)
             msg = SilhouetteMessage(
@@ -420,14 +415,12 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
             else:
                 stats.unheard += 1
             stats.latency_ms.append((time.time_ns() - frame.timestamp_ns) / 1e6)
-            segmenter.learn()  # the deferred background update, off the latency path
-            onto = None if choice is None else choice.see(seg)  # a look back, also off it
-            if onto is not None:
+            if live.learn():  # the deferred background update and a look back, off the latency path
                 stats.walker_moves += 1
-                log.info("%s/%s frame %d: %s", settings.rig, settings.camera, frame.index, choice.note)
-            if choice is not None and choice.held and plate is None and not stats.walker_held:
+                log.info("%s/%s frame %d: %s", settings.rig, settings.camera, frame.index, live.note)
+            if live.held and plate is None and not stats.walker_held:
                 stats.walker_held = True
-                log.warning("%s/%s frame %d: %s", settings.rig, settings.camera, frame.index, choice.held)
+                log.warning("%s/%s frame %d: %s", settings.rig, settings.camera, frame.index, live.held)
             if view is not None and (stats.segmented - 1) % settings.rerun_every == 0:
                 view = view if _show(view, settings.camera, frame, seg, segmenter) else None
             if settings.score_truth and frame.mask is not None and frame.mask.any():

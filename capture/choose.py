@@ -22,9 +22,11 @@ the walker's path runs through the middle of every image:
 
 Live, the agent cannot look ahead, but it can look back: :class:`LiveChoice`
 runs the same choice over the last ``LIVE_WINDOW`` frames (at least twice
-``LIVE_EVERY``) every ``LIVE_EVERY`` and, when the track follows someone other than the path
-through the middle (by the same test), moves the track onto the path's
-newest box for the frames to come.
+``LIVE_EVERY``) every ``LIVE_EVERY`` and, when the track has followed someone
+other than the path through the middle since it last was on it (at least
+``LIVE_OFF`` frames, nearer the centre by ``MARGIN`` over those frames, and not
+less than ``LIVE_SHORTER`` of the followed person's height), moves the track
+onto the path's newest box for the frames to come.
 
 The choice is off with ``SegmentSettings.walker_choice = "first"`` (the
 person the track starts on).
@@ -43,8 +45,8 @@ import numpy as np
 
 from .segment import Segmentation, SegmentSettings, box_iou
 
-__all__ = ["AGREE", "GAP", "LIVE_EVERY", "LIVE_WINDOW", "MARGIN", "NOBODY", "RESIZE", "LiveChoice", "choose", "guide",
-           "overlap", "path_cost", "walker_boxes"]
+__all__ = ["AGREE", "GAP", "LIVE_EVERY", "LIVE_OFF", "LIVE_SHORTER", "LIVE_WINDOW", "MARGIN", "NOBODY", "RESIZE",
+           "LiveChoice", "choose", "guide", "overlap", "path_cost", "walker_boxes"]
 
 Box = tuple[int, int, int, int]
 
@@ -65,8 +67,14 @@ MARGIN = 0.12
 followed from its first frames (as the tallest) and left for no one who is merely a little more central."""
 LIVE_WINDOW = 45
 """Frames a live agent looks back over to choose the walker (:class:`LiveChoice`): 3 s at 15 fps."""
-LIVE_EVERY = 15
-"""Frames between a live agent's choices."""
+LIVE_EVERY = 5
+"""Frames between a live agent's choices (the first after twice as many)."""
+LIVE_OFF = 3
+"""Frames the track must have been off the chosen path before a live agent moves it."""
+LIVE_SHORTER = 0.5
+"""A live agent does not move the track onto a path whose boxes are less than this share of the followed
+person's height (medians over the frames judged): over 10 frames, a passer-by a third of a large walker's
+height who crossed nearer the image centre was a cheaper path (composite walks at full size)."""
 _SAME = 0.5  # boxes overlapping by this fraction of the smaller are the same person (or one merged into a group)
 
 
@@ -144,30 +152,49 @@ def walker_boxes(segs: list[Segmentation | None]) -> list[Box | None]:
     return [None if s is None or s.box.empty else (s.box.x, s.box.y, s.box.w, s.box.h) for s in segs]
 
 
+def _followed(segs: list[Segmentation | None], size: tuple[int, int]
+              ) -> tuple[list[Box | None], list[Box | None], list[bool]]:
+    """The chosen walker's path through ``segs`` (:func:`choose`), the first pass's walker as a path
+    through the same candidates (the candidate its box came from), and per frame whether the two agree."""
+    walker = choose([() if s is None else s.candidates for s in segs], size)
+    followed = walker_boxes(segs)
+    first = [None if f is None else max(s.candidates, key=lambda b: box_iou(f, b), default=None)
+             for f, s in zip(followed, segs)]
+    first = [b if b is not None and box_iou(f, b) >= 0.3 else None for f, b in zip(followed, first)]
+    agree = [w is not None and f is not None and box_iou(f, w) >= 0.3 for f, w in zip(followed, walker)]
+    return walker, first, agree
+
+
+def _gain(segs: list[Segmentation | None], walker: list[Box | None], first: list[Box | None],
+          size: tuple[int, int]) -> float:
+    """How much nearer the image centre the chosen path is than the first pass's walker, per frame with
+    someone in view (:func:`path_cost`)."""
+    seen = [t for t, s in enumerate(segs) if s is not None and s.candidates]
+    if not seen:
+        return 0.0
+    return path_cost([first[t] for t in seen], size) - path_cost([walker[t] for t in seen], size)
+
+
 def guide(segs: list[Segmentation | None], settings: SegmentSettings) -> tuple[list[Box | None] | None, str | None]:
     """The chosen walker's box per frame, and a note saying so, when a first pass ``segs`` followed
     someone else (module docstring, step 3); ``(None, None)`` when the first pass stands."""
     size = next((s.image_size for s in segs if s is not None), None)
     if settings.walker_choice == "first" or size is None:
         return None, None
-    walker = choose([() if s is None else s.candidates for s in segs], size)
+    walker, first, agree = _followed(segs, size)
     on = [t for t, b in enumerate(walker) if b is not None]
     if not on:
         return None, None
-    followed = walker_boxes(segs)
-    agree = float(np.mean([followed[t] is not None and box_iou(followed[t], walker[t]) >= 0.3 for t in on]))
-    # The first pass's walker as a path through the candidates: the candidate its box came from.
-    first = [None if f is None else max(s.candidates, key=lambda b: box_iou(f, b), default=None)
-             for f, s in zip(followed, segs)]
-    first = [b if b is not None and box_iou(f, b) >= 0.3 else None for f, b in zip(followed, first)]
-    seen = [t for t, s in enumerate(segs) if s is not None and s.candidates]  # someone in view
-    gain = path_cost([first[t] for t in seen], size) - path_cost([walker[t] for t in seen], size)
-    if agree >= AGREE or gain < MARGIN:
+    agreed = float(np.mean([agree[t] for t in on]))
+    if agreed >= AGREE or _gain(segs, walker, first, size) < MARGIN:
         return None, None
+    return walker, _note(segs, agreed, "segmented again on it")
+
+
+def _note(segs: list[Segmentation | None], agreed: float, then: str) -> str:
     people = max(len(s.candidates) for s in segs if s is not None)
-    note = (f"up to {people} people in view; the walker is the one whose path stays nearest the image centre, "
-            f"not the one the track started on (followed on {agree:.0%} of its frames): segmented again on it")
-    return walker, note
+    return (f"up to {people} people in view; the walker is the one whose path stays nearest the image centre, "
+            f"not the one the track started on (followed on {agreed:.0%} of its frames): {then}")
 
 
 class LiveChoice:
@@ -190,19 +217,35 @@ class LiveChoice:
     def see(self, seg: Segmentation | None) -> Box | None:
         self._recent.append(seg)
         self._since += 1
-        if self._since < self.every or len(self._recent) < 2 * self.every:  # a path of a few seconds at least
+        if self._since < self.every or len(self._recent) < 2 * self.every:
             return None
         self._since = 0
-        self.held = held_walker(list(self._recent))
-        path, note = guide(list(self._recent), self.settings)
-        if path is None or path[-1] is None:  # the track stands, or the walker is not in the newest frame
+        recent = list(self._recent)
+        self.held = held_walker(recent)
+        size = next((s.image_size for s in recent if s is not None), None)
+        if self.settings.walker_choice == "first" or size is None:
             return None
-        now = walker_boxes([seg])[0]
-        if now is not None and box_iou(now, path[-1]) >= 0.3:  # already on it (moved on it since)
+        walker, first, agree = _followed(recent, size)
+        gone = next((t for t in range(len(recent) - 1, -1, -1) if walker[t] is not None), -1) + 1
+        if len(recent) - gone >= 2 * self.every:  # the path ended a while ago (they left): choose among the rest
+            recent = recent[gone:]
+            walker, first, agree = _followed(recent, size)
+        if walker[-1] is None or agree[-1]:  # the walker not in the newest frame, or the track on them
+            return None
+        # Judged on the frames since the track left the path, or since the path began (someone who
+        # came into view): a track that followed the walker for most of the look back and then
+        # someone else moves as soon.
+        began = next(t for t, b in enumerate(walker) if b is not None)
+        left = max(began, next((t + 1 for t in range(len(recent) - 1, -1, -1) if agree[t]), 0))
+        if len(recent) - left < LIVE_OFF or _gain(recent[left:], walker[left:], first[left:], size) < MARGIN:
+            return None
+        followed = [b[3] for b in first[left:] if b is not None]
+        if followed and np.median([b[3] for b in walker[left:] if b is not None]) < LIVE_SHORTER * np.median(followed):
             return None
         self.switches += 1
-        self.note = note.replace("segmented again on it", "the track moved to it")
-        return path[-1]
+        on = [t for t, b in enumerate(walker) if b is not None]
+        self.note = _note(recent, float(np.mean([agree[t] for t in on])), "the track moved to it")
+        return walker[-1]
 
 
 HELD_TRAVEL = 0.5  # the walker's box centre crosses less than this many of its heights (p10-p90): held in place

@@ -238,7 +238,7 @@ class LiveUnmerge:
     starts before the walker was seen alone cannot be told, and is left.
 
     ``see`` takes the segmenter's output (:meth:`capture.segment.Segmenter.apply`) and returns it,
-    or it cut; ``cut`` counts the frames cut.
+    or it cut; ``cut`` counts the frames cut; ``reset`` when the track moves to another person.
     """
 
     def __init__(self, test: MergeTest = MergeTest(), near: int = 10) -> None:
@@ -255,12 +255,17 @@ class LiveUnmerge:
         test = MergeTest.of(settings)
         return None if test is None else cls(test)
 
+    def reset(self) -> None:
+        """Forget the walker's frames: the track moved to another person (:class:`capture.choose.LiveChoice`),
+        whose height says nothing of a join."""
+        self._alone, self._joined, self._kept = [], None, None
+
     def see(self, seg: Segmentation) -> Segmentation:
         box = _box(seg)
         if box is None:
             self._missed += 1
             if self._missed > self.test.reach:
-                self._alone, self._joined, self._kept = [], None, None
+                self.reset()
             return seg
         self._missed = 0
         out = self._continue(seg, box) if self._joined is not None else self._start(seg, box)

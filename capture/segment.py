@@ -194,7 +194,7 @@ class SegmentSettings(BaseModel):
                                                        "whose path stays nearest the image centre (the "
                                                        "cameras are aimed at the walk; capture/choose.py) "
                                                        "when clearly nearer than the one the track "
-                                                       "started on; live, over the last 45 frames, every 15 "
+                                                       "started on; live, over the last 45 frames, every 5 "
                                                        "(capture.choose.LiveChoice); 'first' = the person "
                                                        "the track starts on")
     colour_split: bool = Field(True, description="cut off the tracked walker's blob the regions "

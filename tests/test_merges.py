@@ -148,3 +148,22 @@ def test_live_a_walker_who_grows_back_from_torn_is_not_cut():
     segs = _torn_legs()
     live = LiveUnmerge()
     assert [live.see(s) for s in segs] == segs and live.cut == 0
+
+
+def test_live_after_the_track_moves_to_another_person_their_height_is_no_join():
+    """A live agent's track moves from one person to another (capture.choose.LiveChoice) who is
+    taller, with their feet on the same row and beside the first in the frame before: without
+    ``reset`` that is a join of the first and cut to their height; after it, the second is whole."""
+    first = [(200, 110, 24, 90)] * 6
+    second = (100, 75, 30, 125)  # feet at row 200 too
+    segs = [_seg([b], candidates=(b, second)) for b in first] + [_seg([second], candidates=(first[-1], second))] * 3
+
+    def fed(reset: bool) -> list[Segmentation]:
+        live = LiveUnmerge()
+        out = [live.see(s) for s in segs[:len(first)]]
+        if reset:
+            live.reset()
+        return out + [live.see(s) for s in segs[len(first):]]
+
+    assert any(o is not s for o, s in zip(fed(reset=False), segs))  # the case reset is for
+    assert fed(reset=True) == segs
