@@ -46,10 +46,12 @@ class ViewpointTrack:
     the viewpoint changed (the camera moved, or the walker turned): the
     estimate restarts from them and a change is recorded, at the index of the
     first of them. A lone outlier never moves the estimate. A value resting on
-    fewer than ``settle`` windows restarts so without a change recorded: a
-    live rig's first window can be its cameras' start-up (frames of one camera
-    before the other was heard from), and the windows after it outvoting it is
-    a bad start, not a move.
+    fewer than ``settle`` windows restarts so without a change recorded, and
+    as soon as more consecutive windows agree with each other against it than
+    it rests on: a live rig's first window can be its cameras' start-up
+    (frames of one camera before the other was heard from, a track on someone
+    else before the agent's first look back), and the windows after it
+    outvoting it is a bad start, not a move.
     """
 
     def __init__(self, *, threshold_deg: float, confirm: int, memory: int = 10, settle: int = 0) -> None:
@@ -79,7 +81,8 @@ class ViewpointTrack:
             return
         self.outliers += 1
         self.pending.append((az, el, index))
-        if len(self.pending) < self.confirm:
+        outvoted = self.n < self.settle and len(self.pending) > self.n  # a young value, more windows against it
+        if len(self.pending) < self.confirm and not outvoted:
             return
         ref = self.pending[-1][:2]
         if all(_view_distance(p[:2], ref) <= self.threshold for p in self.pending):

@@ -169,6 +169,22 @@ def test_a_first_window_outvoted_by_the_next_is_no_camera_move():
     assert [c["frame_index"] for c in s["changes"]] == [1]
 
 
+def test_a_first_window_is_replaced_as_soon_as_two_agree_against_it():
+    """A 3-s walk gives a live rig 3 windows: a wrong first one (the agent's track on someone else
+    before its first look back) is replaced by the next two agreeing, not kept until a third; an
+    established value still needs ``confirm`` windows, and one window never outvotes one."""
+    t = ViewpointTrack(threshold_deg=30.0, confirm=3, settle=3)
+    t.update(132.0, 0.0, 0)
+    assert t.update(13.0, 8.0, 1)["azimuth_deg"] == 132.0  # one against one: kept
+    s = t.update(8.0, 8.0, 2)
+    assert s["changes"] == [] and abs(s["azimuth_deg"] - 10.5) < 1
+    for k in range(3, 5):
+        s = t.update(12.0, 8.0, k)
+    for k in range(5, 7):  # two windows against a value resting on five: an outlier pair, not a move
+        s = t.update(150.0, 8.0, k)
+    assert s["changes"] == [] and abs(s["azimuth_deg"] - 11.0) < 2
+
+
 # ----------------------------------------------------------------------- end to end
 
 RIG = "lab"
