@@ -182,13 +182,17 @@ def guide(segs: list[Segmentation | None], settings: SegmentSettings) -> tuple[l
     if settings.walker_choice == "first" or size is None:
         return None, None
     walker, first, agree = _followed(segs, size)
-    on = [t for t, b in enumerate(walker) if b is not None]
-    if not on:
+    if all(b is None for b in walker):
         return None, None
-    agreed = float(np.mean([agree[t] for t in on]))
+    agreed = _agreed(walker, agree)
     if agreed >= AGREE or _gain(segs, walker, first, size) < MARGIN:
         return None, None
     return walker, _note(segs, agreed, "segmented again on it")
+
+
+def _agreed(walker: list[Box | None], agree: list[bool]) -> float:
+    """The share of the chosen path's frames on which the first pass followed it (:func:`_followed`)."""
+    return float(np.mean([a for a, b in zip(agree, walker) if b is not None]))
 
 
 def _note(segs: list[Segmentation | None], agreed: float, then: str) -> str:
@@ -243,8 +247,7 @@ class LiveChoice:
         if followed and np.median([b[3] for b in walker[left:] if b is not None]) < LIVE_SHORTER * np.median(followed):
             return None
         self.switches += 1
-        on = [t for t, b in enumerate(walker) if b is not None]
-        self.note = _note(recent, float(np.mean([agree[t] for t in on])), "the track moved to it")
+        self.note = _note(recent, _agreed(walker, agree), "the track moved to it")
         return walker[-1]
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from .segment import Segmentation, SegmentSettings, box_iou
@@ -52,11 +53,8 @@ def _box(s: Segmentation | None) -> Box4 | None:
     """The full-frame box (x, y, w, h) of the mask's pixels (None without any)."""
     if s is None or s.box.empty:
         return None
-    ys, xs = np.nonzero(s.mask)
-    if not ys.size:
-        return None
-    return (s.box.x + int(xs.min()), s.box.y + int(ys.min()), int(xs.max() - xs.min() + 1),
-            int(ys.max() - ys.min() + 1))
+    x, y, w, h = cv2.boundingRect(s.mask)
+    return None if w == 0 else (s.box.x + x, s.box.y + y, w, h)
 
 
 def _levels(log_h: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:
