@@ -75,10 +75,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_estimate import az_err, ph_err  # noqa: E402
 from eval_mnbp import MOCAP, body  # noqa: E402
 from eval_real_video import VIDEO, load_video  # noqa: E402
-from capture.live import LiveSegmenter  # noqa: E402
+from capture.live import segment_recording  # noqa: E402
 from capture.refine import plate_for, segment_clip  # noqa: E402
 from capture.scene import iou  # noqa: E402
-from capture.segment import Segmenter, SegmentSettings, sample_indices  # noqa: E402
+from capture.segment import SegmentSettings  # noqa: E402
 from estimator._selfcal_core import geodesic_deg  # noqa: E402
 from estimator.damage import shadow  # noqa: E402
 from estimator.joints import JOINT_INDEX  # noqa: E402
@@ -390,16 +390,9 @@ def segmentation_iou(segs: list, seq: Sequence, cam: str) -> list[float]:
 
 
 def live_segments(frames: np.ndarray, plate: np.ndarray | None) -> list:
-    """The frames segmented as a live agent segments a recording (:class:`capture.live.LiveSegmenter`:
+    """The frames segmented as a live agent segments a recording (:func:`capture.live.segment_recording`:
     no look ahead; the background bootstrapped from frames sampled over the start, or ``plate``)."""
-    settings = SegmentSettings()
-    segmenter = Segmenter(settings, plate=plate)
-    segmenter.bootstrap([frames[i] for i in sample_indices(len(frames), FPS, settings)])
-    live, out = LiveSegmenter(segmenter), []
-    for k, image in enumerate(frames):
-        out.append(live.apply(image, k))
-        live.learn()
-    return out
+    return segment_recording(frames, SegmentSettings(), FPS, plate)
 
 
 def iou_line(what: str, ious: list[float]) -> str:
@@ -496,7 +489,7 @@ def main() -> None:
           f"{optics.shutter:g} of the frame interval, lens blur {optics.defocus_px:g} px, noise {optics.noise:g} grey "
           f"levels); `posecal estimate FOLDER`, no flags\n")
     print(iou_line("segmenter against the exact silhouettes (the file's path, `segment_clip`)", ious))
-    print(iou_line("... live, as an agent segments (`capture.live.LiveSegmenter`)", live_ious) + "\n")
+    print(iou_line("... live, as an agent segments (`capture.live.segment_recording`)", live_ious) + "\n")
     if not args.segment_only:
         report(rows, failures)
         if args.plot:

@@ -31,9 +31,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from capture.merges import LiveUnmerge
+from capture.live import segment_recording
 from capture.scene import iou
-from capture.segment import Segmenter, SegmentSettings, sample_indices
+from capture.segment import SegmentSettings
 
 VIDEO = Path("/work/shared/data/video/vtest.avi")
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "vtest"
@@ -80,19 +80,12 @@ def crop(a: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
 
 
 def segment(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:
-    """Segment a clip as the agent segments a file: (the tracked walker's ``Segmentation`` per frame,
-    None where there is none; ms per frame)."""
-    seg, unmerge = Segmenter(settings), LiveUnmerge.of(settings)
-    if settings.background == "bootstrap":
-        seg.bootstrap([frames[i] for i in sample_indices(len(frames), FPS, settings)])
-    out, t = [], time.perf_counter()
-    for k, image in enumerate(frames):
-        s = seg.apply(image, k)
-        if unmerge is not None:
-            s = unmerge.see(s)
-        seg.learn()
-        out.append(None if s is None or s.box.empty else s)
-    return out, (time.perf_counter() - t) * 1e3 / len(frames)
+    """Segment a clip as the agent segments a file (:func:`capture.live.segment_recording`: the
+    background bootstrapped, the look back, the join test): (the tracked walker's ``Segmentation``
+    per frame, None where there is none; ms per frame, the bootstrap included)."""
+    t = time.perf_counter()
+    found = segment_recording(frames, settings, FPS)
+    return [None if s is None or s.box.empty else s for s in found], (time.perf_counter() - t) * 1e3 / len(frames)
 
 
 def run(frames: np.ndarray, settings: SegmentSettings) -> tuple[list, float]:

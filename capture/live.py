@@ -12,19 +12,23 @@ a live camera only has the frames before. Per frame:
    look back, which may move the track onto another person for the next frame;
    the join test then forgets the old person's height.
 
-``bench/eval_composite.py --segment-only`` measures this path against the file's
-on the composite walks (docs/ROBUSTNESS.md, "The live track moves back sooner").
+:func:`segment_recording` runs it over a recording held in memory, as an agent runs it over a
+file; ``bench/eval_composite.py --segment-only`` measures it against the file's path on the
+composite walks (docs/ROBUSTNESS.md, "The live track moves back sooner"), and
+``bench/eval_real_video.py`` on real footage.
 """
 
 from __future__ import annotations
+
+from typing import Sequence
 
 import numpy as np
 
 from .choose import LiveChoice
 from .merges import LiveUnmerge
-from .segment import Segmentation, Segmenter
+from .segment import Segmentation, Segmenter, SegmentSettings, sample_indices
 
-__all__ = ["LiveSegmenter"]
+__all__ = ["LiveSegmenter", "segment_recording"]
 
 
 class LiveSegmenter:
@@ -71,3 +75,20 @@ class LiveSegmenter:
     def held(self) -> str | None:
         """The last look back's note that the walker stayed in place (:func:`capture.choose.held_walker`)."""
         return None if self.choice is None else self.choice.held
+
+
+def segment_recording(frames: Sequence[np.ndarray], settings: SegmentSettings, fps: float | None = None,
+                      plate: np.ndarray | None = None) -> list[Segmentation | None]:
+    """Each BGR frame's silhouette (None where there is none) as an agent segments a recording:
+    with ``settings.background = "bootstrap"`` the background from frames sampled over its first
+    ``bootstrap_seconds`` (``plate``, an image of the empty scene, instead when given), then
+    :class:`LiveSegmenter` over every frame from 0; with ``"warmup"`` the segmenter learns from the
+    first frames as it goes."""
+    segmenter = Segmenter(settings, plate=plate)
+    if settings.background == "bootstrap":
+        segmenter.bootstrap([frames[i] for i in sample_indices(len(frames), fps, settings)])
+    live, out = LiveSegmenter(segmenter), []
+    for k, image in enumerate(frames):
+        out.append(live.apply(image, k))
+        live.learn()
+    return out
