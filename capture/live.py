@@ -67,6 +67,11 @@ class LiveSegmenter:
         return 0 if self.unmerge is None else self.unmerge.cut
 
     @property
+    def track_id(self) -> int:
+        """The person the track is on: 0 from the start, one more at each move (the wire's ``track_id``)."""
+        return 0 if self.choice is None else self.choice.switches
+
+    @property
     def note(self) -> str | None:
         """Why the track last moved."""
         return None if self.choice is None else self.choice.note

@@ -291,6 +291,11 @@ class SilhouetteMessage:
     joint order (:data:`estimator.joints.JOINT_NAMES`), NaN where missed (JSON:
     ``null`` per joint): the service's live rig calibrates from them instead of
     measuring postures on the silhouettes (docs/SERVICE.md, "The live rig").
+    ``track_id`` numbers the person the agent's track is on: 0 from its start,
+    one more each time its look back moves the track onto another person
+    (:class:`capture.choose.LiveChoice`): the frames of an earlier track
+    followed someone else, and the service leaves them out of a window that
+    holds frames of the later one (docs/SERVICE.md, "Live windows").
     """
 
     KIND: ClassVar[int] = 1
@@ -309,6 +314,7 @@ class SilhouetteMessage:
     n_candidates: int | None = None
     quality: Quality | None = None
     keypoints: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    track_id: int | None = None
 
     def __post_init__(self) -> None:
         _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
@@ -324,6 +330,8 @@ class SilhouetteMessage:
         if self.quality is not None and self.quality.area_median > self.image_size[0] * self.image_size[1]:
             raise WireError(f"quality.area_median {self.quality.area_median} exceeds the image "
                             f"{self.image_size}")
+        if self.track_id is not None and (type(self.track_id) is not int or self.track_id < 0):
+            raise WireError(f"track_id must be an integer >= 0, got {self.track_id!r}")
         if self.capture_ns <= 0 or self.epoch_ns <= 0:
             raise WireError("capture_ns and epoch_ns must be positive nanoseconds")
         if self.seq < 0:
@@ -494,6 +502,7 @@ def decode(payload: bytes | bytearray | memoryview, *,
                                  publish_ns=_int(header, "publish_ns"),
                                  n_candidates=_optional(header, "n_candidates", _int),
                                  quality=_optional(header, "quality", _quality),
-                                 keypoints=_optional(header, "keypoints", _keypoints))
+                                 keypoints=_optional(header, "keypoints", _keypoints),
+                                 track_id=_optional(header, "track_id", _int))
     return FeedbackMessage(**common, issued_ns=_int(header, "issued_ns"),
                            epoch_ns=_optional(header, "epoch_ns", _int) or 0)

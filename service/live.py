@@ -367,9 +367,26 @@ def _cameras(frames: Iterable[FrameSet]) -> list[str]:
     return sorted(set().union(*(fs.parts for fs in frames)))
 
 
+def _on_another_person(frames: list[FrameSet], cam: str) -> list[int]:
+    """The indices of ``frames`` whose ``cam`` message is of an earlier track than the camera's newest
+    in them (``track_id``, same agent run): its agent's look back has since moved the track onto
+    another person, the one it now takes for the walker, so those frames followed someone else."""
+    parts = [fs.parts.get(cam) for fs in frames]
+    newest = next((m for m in reversed(parts) if m is not None and m.track_id is not None), None)
+    if newest is None:
+        return []
+    return [fs.index for fs, m in zip(frames, parts) if m is not None and m.track_id is not None
+            and m.epoch_ns == newest.epoch_ns and m.track_id < newest.track_id]
+
+
 def _camera_tracks(frames: list[FrameSet], cams: list[str]) -> dict[str, CameraTrack]:
-    """Each of ``cams``' track over ``frames`` (tight crops, full-frame boxes; None where it is missing)."""
-    return {cam: track_from_segmentations([fs.parts.get(cam) for fs in frames]) for cam in cams}
+    """Each of ``cams``' track over ``frames`` (tight crops, full-frame boxes; None where it is missing
+    and where it followed another person than at its newest frame, :func:`_on_another_person`)."""
+    out = {}
+    for cam in cams:
+        other = set(_on_another_person(frames, cam))
+        out[cam] = track_from_segmentations([None if fs.index in other else fs.parts.get(cam) for fs in frames])
+    return out
 
 
 def window_keypoints(frames: list[FrameSet]) -> dict[str, np.ndarray] | None:
@@ -842,7 +859,9 @@ class LiveService:
                        "frames": len(w.frames), "cameras": sorted(tracks),
                        # the window's frames that lack a camera's message (no frame of it lost unseen)
                        "missing": {cam: gaps for cam in sorted(tracks)
-                                   if (gaps := [fs.index for fs in w.frames if cam not in fs.parts])}},
+                                   if (gaps := [fs.index for fs in w.frames if cam not in fs.parts])},
+                       "other_person": {cam: other for cam in sorted(tracks)
+                                        if (other := _on_another_person(w.frames, cam))}},
             "smoothed": smoothed,
             "latency_ms": {"estimate": round(seconds * 1e3, 2), "last_frame_to_result": round(latency * 1e3, 2)},
             "published_ns": done_ns,

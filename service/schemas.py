@@ -346,6 +346,9 @@ class LiveWindow(_Open):
     missing: dict[str, list[int]] = Field(default_factory=dict, description=(
         "per camera of the window, the frame indices of the window without its message "
         "(cameras that are in every frame are left out)"))
+    other_person: dict[str, list[int]] = Field(default_factory=dict, description=(
+        "per camera, the frame indices left out of the estimate because its agent's track followed "
+        "someone else there: its look back has since moved the track onto the walker (track_id)"))
 
 
 class LivePerson(BaseModel):

@@ -19,7 +19,7 @@ from capture.agent import main as agent_main
 from capture.segment import SegmentSettings
 from capture.sources import FrameSource
 from capture.synthetic import SyntheticSource
-from capture.wire import Box, FeedbackMessage, SilhouetteMessage, decode, estimate_key, feedback_key
+from capture.wire import Box, FeedbackMessage, SilhouetteMessage, decode, encode, estimate_key, feedback_key
 from capture.zconfig import build_config
 from conftest_service import ServerThread, make_settings, wait_for
 from estimator.windows import ViewpointTrack
@@ -183,6 +183,23 @@ def test_a_first_window_is_replaced_as_soon_as_two_agree_against_it():
     for k in range(5, 7):  # two windows against a value resting on five: an outlier pair, not a move
         s = t.update(150.0, 8.0, k)
     assert s["changes"] == [] and abs(s["azimuth_deg"] - 11.0) < 2
+
+
+def test_frames_of_an_earlier_track_of_the_same_agent_run_are_on_another_person():
+    from service.live import FrameSet, _on_another_person
+
+    def fs(index, **tracks):
+        f = FrameSet(index, 1, 0.0)
+        for cam, (epoch, track) in tracks.items():
+            f.parts[cam] = dataclasses.replace(_msg(cam, index), epoch_ns=epoch, track_id=track)
+        return f
+
+    frames = [fs(0, a=(1, 0), b=(1, None)), fs(1, a=(1, 0), b=(1, None)), fs(2, a=(1, 1), b=(1, None)),
+              fs(3, b=(1, None)), fs(4, a=(1, 1), b=(1, None))]
+    assert _on_another_person(frames, "a") == [0, 1]
+    assert _on_another_person(frames, "b") == []  # an agent that does not send track_id: nothing left out
+    restarted = [fs(0, a=(1, 3)), fs(1, a=(2, 0)), fs(2, a=(2, 1))]  # the agent restarted: its old run is not judged
+    assert _on_another_person(restarted, "a") == [1]
 
 
 # ----------------------------------------------------------------------- end to end
@@ -400,6 +417,38 @@ def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, r
         assert not any(several in n for n in e["cameras"]["c1"]["notes"])
     az, _ = TRUTH["c0"]  # the bystander did not take the walker's place
     assert abs((est[-1]["smoothed"]["c0"]["azimuth_deg"] - az + 180) % 360 - 180) < 45
+
+
+def _sent(cam: str, index: int, mask: np.ndarray, track_id: int) -> SilhouetteMessage:
+    """An agent's message for ``mask`` (a full-frame boolean silhouette) on its track ``track_id``."""
+    x, y, w, h = cv2.boundingRect(mask.astype(np.uint8))
+    return SilhouetteMessage(rig=RIG, camera=cam, frame_index=index, capture_ns=1_000_000_000 + index * 66_666_667,
+                             box=Box(x, y, w, h), image_size=mask.shape[::-1], epoch_ns=1, seq=index,
+                             mask=np.where(mask[y:y + h, x:x + w], 255, 0).astype(np.uint8), sync="index",
+                             track_id=track_id)
+
+
+def test_frames_before_an_agents_move_onto_the_walker_are_left_out(tmp_path, rendered):
+    """c0's agent followed someone else for the window's first 10 frames (here: a walker seen from c1's side,
+    180 deg round) and its look back then moved the track onto the walker (track_id 0 -> 1): the window
+    estimates c0 from the walker's 10 frames only, and says which it left out."""
+    settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
+                             feedback=False, max_wait_ms=400.0, live_rig=False)
+    walk = {cam: [f.mask for f in frames[EMPTY:EMPTY + 20]] for cam, frames in rendered.items()}
+    with ServerThread(settings) as srv, zenoh.open(build_config(connect=[settings.zenoh_listen[0]])) as session:
+        for k in range(20):
+            moved = k >= 10
+            session.put(f"posecal/{RIG}/c0/silhouette",
+                        encode(_sent("c0", k, walk["c0" if moved else "c1"][k], int(moved))))
+            session.put(f"posecal/{RIG}/c1/silhouette", encode(_sent("c1", k, walk["c1"][k], 0)))
+            time.sleep(0.02)
+        wait_for(lambda: srv.rig(RIG).get("windows", {}).get("estimated", 0) >= 1, timeout=30,
+                 what="the window estimated")
+        est = srv.client.get(f"/v1/rigs/{RIG}/estimates", params={"since": 0}).json()["estimates"][0]
+    assert est["window"]["other_person"] == {"c0": list(range(10))}
+    for cam, (az, _) in TRUTH.items():
+        assert abs((est["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 30, (cam, est["cameras"][cam])
+    LiveEstimate.model_validate(est)
 
 
 def test_the_live_rig_is_calibrated_from_the_keypoints_the_agents_send(tmp_path, rendered):

@@ -130,6 +130,12 @@ def test_candidates_and_quality_round_trip():
     assert unsteady.n_candidates == 0 and unsteady.quality.stability is None
 
 
+def test_track_id_round_trips_and_is_left_out_when_none():
+    assert decode(encode(_silhouette(track_id=2))).track_id == 2
+    header, _ = _header_and_png()
+    assert "track_id" not in header and decode(encode(_silhouette())).track_id is None
+
+
 def test_a_message_without_them_leaves_them_out_and_old_headers_decode():
     header, png = _header_and_png()
     assert "n_candidates" not in header and "quality" not in header  # None is not sent
@@ -145,6 +151,9 @@ def test_a_message_without_them_leaves_them_out_and_old_headers_decode():
     ({"n_candidates": "2"}, "'n_candidates' must be an integer"),
     ({"n_candidates": True}, "'n_candidates' must be an integer"),
     ({"n_candidates": None}, "'n_candidates' must be an integer"),  # absent is fine, null is not
+    ({"track_id": -1}, "track_id must be an integer >= 0"),
+    ({"track_id": 1.0}, "'track_id' must be an integer"),
+    ({"track_id": None}, "'track_id' must be an integer"),
     ({"quality": [0.5, 10, 1]}, "'quality' must be an object"),
     ({"quality": {"area_median": 10}}, r"quality.walker_fraction must be a number in \[0, 1\], got None"),
     ({"quality": {"walker_fraction": 1.5, "area_median": 10}}, r"walker_fraction must be a number in \[0, 1\]"),
