@@ -557,8 +557,10 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
     pixels of a detector's joints in the estimate's cameras and frames (NaN
     where missed; :meth:`RigConfig.for_keypoints`), calibrate it in their place:
     a frame counts for a camera where it sees 4 joints or more (:func:`keypoint_frames`). Cameras with
-    postures on fewer than ``min_frames`` frames are left out (rotation
-    ``None`` in the result). Never raises for the data: every fallback is the
+    postures on fewer than ``min_frames`` frames are left out of the
+    self-calibration: their rotation is their viewpoint's (the viewpoints' rig
+    relative to the reference), with no scale nor pinhole camera, and ``None``
+    without a viewpoint. Never raises for the data: every fallback is the
     viewpoints' rig, or the scaled-orthographic one, with a note.
     """
     names = tuple(estimate.cameras)
@@ -699,9 +701,17 @@ def calibrate_rig(estimate: WalkEstimate, config: RigConfig = RigConfig(), *,
         rig.notes.append(TWO_VIEWS)
     rig.notes += [named_note(n, [names[c] for c in use]) for n in input_warnings(
         tracks[use][:, frames], final, cal.joints3d if pinhole is None else pinhole.joints3d)]
-    left_out = [n for c, n in enumerate(names) if c not in use]
+    few = [c for c in range(len(names)) if c not in use]
+    viewed = [c for c in few if np.all(np.isfinite(from_views[c]))]
+    if viewed:  # the viewpoints' rotation to the reference, as the viewpoints' rig would give it
+        rig.rotations = np.array(rig.rotations, float)
+        rig.rotations[viewed] = from_views[viewed] @ from_views[use[0]].T
+        rig.notes.append(f"rotation from its viewpoint only, not self-calibrated (postures on fewer than "
+                         f"{config.min_frames} frames): {', '.join(names[c] for c in viewed)}")
+    left_out = [names[c] for c in few if c not in viewed]
     if left_out:
-        rig.notes.append(f"not in the rig (postures on fewer than {config.min_frames} frames): {', '.join(left_out)}")
+        rig.notes.append(f"not in the rig (postures on fewer than {config.min_frames} frames and no viewpoint): "
+                         f"{', '.join(left_out)}")
     if weight is not None:
         rig.notes.append(("pinhole adjustment started from the " if pinhole is not None else "")
                          + "rotations fused with the viewpoints' rig by their errors (self-calibration's weight: "
@@ -1037,11 +1047,23 @@ class RigAccumulator:
         """The frame index of each frame kept, in the order :meth:`calibrate` sees them."""
         return np.concatenate(self._indices) if self._indices else np.zeros(0, int)
 
-    def calibrate(self) -> Rig:
-        """The rig over the frames kept (the viewpoints' rig, with a note, while they are too few)."""
+    def calibrate(self, viewpoints: dict[str, tuple[float, float]] | None = None) -> Rig:
+        """The rig over the frames kept (the viewpoints' rig, with a note, while they are too few).
+
+        ``viewpoints`` (camera -> azimuth, elevation in degrees) replace the kept windows' own
+        (:func:`~estimator.pipeline.concat_estimates`: their medoid, which of two windows that
+        disagree is the first): the live service gives its smoothed ones, over every window
+        since the last camera move (:class:`~estimator.windows.ViewpointTrack`), of which the
+        kept windows are a few.
+        """
         if not self._parts:
             raise ValueError("no window added yet")
         joined = concat_estimates(self._parts)
+        if viewpoints:
+            joined = replace(joined, cameras={
+                n: c if n not in viewpoints else replace(c, viewpoint=replace(
+                    c.viewpoint, azimuth_deg=float(viewpoints[n][0]), elevation_deg=float(viewpoints[n][1])))
+                for n, c in joined.cameras.items()})
         if not self.from_keypoints:
             return calibrate_rig(joined, replace(self.config, consecutive=False))
         kp = np.stack([np.concatenate([k.get(c, np.full((len(p.phase), N_JOINTS, 2), np.nan))

@@ -949,9 +949,12 @@ class LiveService:
                                                 frames_per_window=s.live_rig_frames)
             calibrate = (acc.windows + 1) % s.live_rig_every == 0 or rig.calibration is None
             generation = rig.rig_generation
+            # the viewpoints over every window so far, not only the few the rig process measured
+            views = {cam: (v["azimuth_deg"], v["elevation_deg"]) for cam, t in rig.tracks.items()
+                     if (v := t.state())["azimuth_deg"] is not None}
         t0 = time.perf_counter()
         done = self._result(self.rig_pool.submit(update_rig, acc, est, w.indices, calibrate,
-                                                 window_keypoints(w.frames)), 120)
+                                                 window_keypoints(w.frames), views), 120)
         if done is None:
             return
         acc, cal, cameras = done

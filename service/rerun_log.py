@@ -195,7 +195,8 @@ class RerunLog:
             return
         r0 = world_to_camera_rotation(az, el)  # person frame -> reference camera
         for k, cam in enumerate(rig["cameras"]):
-            if not np.all(np.isfinite(rig["rotations"][k])):  # left out of the rig: no stale frustum
+            if not (np.all(np.isfinite(rig["rotations"][k])) and np.isfinite(rig["focal_px"][k])):
+                # left out of the pinhole rig (no viewpoint, or its rotation from the viewpoint only): no stale frustum
                 self.stream.log(f"{p}/world/rig/{cam}", rr.Clear(recursive=True))
                 continue
             r = rig["rotations"][k] @ r0

@@ -631,16 +631,19 @@ def predict_feedback(est: WalkEstimate, tracks: dict[str, CameraTrack], indices:
 
 
 def update_rig(acc: RigAccumulator, est: WalkEstimate, indices: list[int], calibrate: bool,
-               keypoints: dict[str, np.ndarray] | None = None) -> tuple[RigAccumulator, dict | None, dict | None]:
+               keypoints: dict[str, np.ndarray] | None = None,
+               viewpoints: dict[str, tuple[float, float]] | None = None
+               ) -> tuple[RigAccumulator, dict | None, dict | None]:
     """Add a live window's postures (or the agents' ``keypoints``, :meth:`RigAccumulator.add`) to a
     rig's accumulator and, if asked, calibrate it (in a worker): ``(accumulator, calibration or None,
     pinhole cameras for Rerun or None)``, the latter two with the newest frame's posture of the
     person (``person``); the accumulator travels to the worker and back, so that the service process
-    holds the state and the worker none. ``indices``: the window's frame indices."""
+    holds the state and the worker none. ``indices``: the window's frame indices; ``viewpoints``: the
+    rig's smoothed viewpoints (:meth:`RigAccumulator.calibrate`)."""
     acc.add(est, indices[0], keypoints, indices=np.asarray(indices))
     if not calibrate:
         return acc, None, None
-    rig = acc.calibrate()
+    rig = acc.calibrate(viewpoints)
     newest = acc.newest_posture(rig)
     person = None if newest is None else {"frame_index": newest[0], "joints3d": np.round(newest[1], 4).tolist()}
     arrays = rig_arrays(rig)

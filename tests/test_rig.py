@@ -348,6 +348,15 @@ def test_a_camera_without_postures_is_left_out_of_the_rig(walk):
     gone = calibrate_rig(replace(measured, cameras={"c0": measured.cameras["c0"], "c2": blind}))
     assert gone.source == "viewpoints"
     json.dumps(gone.to_dict(), allow_nan=False)
+    # Postures too few but a viewpoint: the camera's rotation is its viewpoint's, said so, with no scale.
+    unposed = replace(measured.cameras["c2"], joints2d=np.full_like(measured.cameras["c2"].joints2d, np.nan))
+    some = calibrate_rig(replace(measured, cameras={**measured.cameras, "c2": unposed}))
+    assert some.source == "self-calibration" and any("from its viewpoint only" in n and "c2" in n for n in some.notes)
+    views = viewpoint_rotations(measured)
+    assert np.allclose(some.rotations[2], views[2] @ views[0].T)
+    d = some.to_dict()
+    json.dumps(d, allow_nan=False)
+    assert d["cameras"]["c2"]["scale"] is None and d["cameras"]["c2"]["rotvec"] is not None
 
 
 def test_an_implausible_pinhole_result_is_refused(walk):
@@ -507,6 +516,28 @@ def test_a_rig_accumulated_over_windows(walk):
     assert short.n_frames == 0 and short.windows == 0
     with pytest.raises(ValueError, match="no window"):
         short.calibrate()
+
+
+def test_the_live_rig_takes_the_services_smoothed_viewpoints(walk):
+    """The kept windows' viewpoint is their medoid, which of two is the first: a first window on the wrong side of
+    the ahead/behind fold decides the rig. The viewpoints the service smoothed over every window replace it."""
+    from estimator.pipeline import take_frames
+    from estimator.rig import RigAccumulator
+
+    seq, est, _ = walk
+    first = take_frames(est, np.arange(0, 8))
+    c1 = first.cameras["c1"].viewpoint
+    folded = replace(first, cameras={**first.cameras, "c1": replace(first.cameras["c1"], viewpoint=replace(
+        c1, azimuth_deg=180.0 - c1.azimuth_deg))})
+    acc = RigAccumulator(RigConfig(min_frames=8), frames_per_window=2)
+    acc.add(folded, 0)
+    acc.add(take_frames(est, np.arange(8, 16)), 8)
+    truth = {c: (seq.truth["cameras"][c]["azimuth_deg"], seq.truth["cameras"][c]["elevation_deg"]) for c in seq.cameras}
+    kept, given = acc.calibrate(), acc.calibrate(truth)
+    assert kept.source == given.source == "viewpoints"  # 4 frames: too few to self-calibrate
+    kept_err = [geodesic_deg(a, b) for a, b in zip(kept.rotations[1:], _true_rig(seq)[1:])]
+    given_err = [geodesic_deg(a, b) for a, b in zip(given.rotations[1:], _true_rig(seq)[1:])]
+    assert kept_err[0] > 20.0 and max(given_err) < 0.5, (kept_err, given_err)
 
 
 def test_a_rig_far_from_the_viewpoints_is_taken_as_wrong(walk):

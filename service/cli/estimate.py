@@ -301,7 +301,8 @@ def _print_rig(rig: dict, truth: dict) -> None:
             print(f"    {name}: not in the rig")
             continue
         r = np.array(cam["rotation"])
-        line = f"    {name}: {geodesic_deg(r, np.eye(3)):6.1f} deg, scale {cam['scale']:.3f}"
+        line = f"    {name}: {geodesic_deg(r, np.eye(3)):6.1f} deg, " + (
+            "from its viewpoint only" if cam["scale"] is None else f"scale {cam['scale']:.3f}")
         if "focal_px" in cam:
             line += f", focal {cam['focal_px']:.0f} px, {np.linalg.norm(cam['centre_m']):.1f} m from {ref}"
         if name in truth and ref in truth:
