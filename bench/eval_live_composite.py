@@ -20,7 +20,9 @@ silhouettes over Zenoh while the service estimates windows (20 frames every
   window): each camera's rotation to the reference camera against the
   truth's, and the rig from the last window's smoothed viewpoints;
 - the windows estimated, and on how many walks the live rig was
-  self-calibrated (the others: the viewpoints' rig, its notes say why).
+  self-calibrated (the others: the viewpoints' rig, its notes say why);
+- how many windows x cameras left frames out because the agent's track
+  was on another person there until a look back moved it (``window.other_person``).
 
 The agents' silhouettes on the same walks are measured against the exact
 ones by ``eval_composite.py --segment-only`` (the live agent's path in
@@ -159,7 +161,8 @@ def main() -> None:
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="posecal-live-composite-"))
     rows: dict[str, list[float]] = {}
-    counts = {"windows": 0, "walks without a window": 0, "calibrated": 0, "self-calibrated": 0}
+    counts = {"windows": 0, "walks without a window": 0, "calibrated": 0, "self-calibrated": 0, "other person": 0,
+              "frames on another person": 0}
     dump = []
     if args.reuse and not args.keep:
         parser.error("--reuse reads the walks from --keep DIR")
@@ -176,6 +179,9 @@ def main() -> None:
             counts["walks without a window"] += not windows
             counts["calibrated"] += bool(cal)
             counts["self-calibrated"] += cal.get("source") == "self-calibration"
+            others = [f for w in windows for f in (w["window"].get("other_person") or {}).values()]
+            counts["other person"] += len(others)
+            counts["frames on another person"] += sum(map(len, others))
             errors = score_live(windows, cal, seq)
             for k, v in errors.items():
                 rows.setdefault(k, []).extend(v)
@@ -185,7 +191,9 @@ def main() -> None:
     print(f"\n{args.sequences} walks ({n_cams} cameras, 45 frames at 15 Hz, walker scale {args.walker_scale:g}, "
           f"{'plates' if args.plates else 'no plates'}), seed {args.seed}: agents -> Zenoh -> `posecal serve`, "
           f"{counts['windows']} windows ({counts['walks without a window']} walks without one); live rig "
-          f"calibrated on {counts['calibrated']} walks, self-calibrated on {counts['self-calibrated']}\n")
+          f"calibrated on {counts['calibrated']} walks, self-calibrated on {counts['self-calibrated']}; "
+          f"{counts['other person']} windows x cameras left {counts['frames on another person']} frames out, the "
+          "agent's track on another person there (`window.other_person`)\n")
     labels = [("azimuth error per window and camera (deg)", "azimuth"),
               ("elevation error per window and camera (deg)", "elevation"),
               ("smoothed azimuth error (deg)", "smoothed_azimuth"),
