@@ -1,5 +1,8 @@
 import faulthandler
+import fcntl
+import functools
 import os
+import tempfile
 
 import pytest
 
@@ -19,6 +22,30 @@ def pytest_configure(config):
         os.makedirs(CRASH_DIR, exist_ok=True)
         config._crash_log = open(os.path.join(CRASH_DIR, f"{_WORKER}.log"), "w")  # open while the worker lives
         faulthandler.enable(file=config._crash_log, all_threads=True)
+        _render_one_at_a_time()
+
+
+RENDER_LOCK = os.path.join(tempfile.gettempdir(), "posecal-tests-render.lock")
+
+
+def _render_one_at_a_time() -> None:
+    """Make the test workers' pyrender calls take turns (an exclusive file lock around each renderer's
+    creation and each render): software OpenGL aborted in glReadPixels when two workers rendered at once
+    (tests/test_sync.py's fixture, once in CI), and pytest-xdist then hung waiting for the dead worker's
+    tests. Renders in the service processes that a test starts are not covered."""
+    from estimator.render import Renderer
+
+    def locked(method):
+        @functools.wraps(method)
+        def call(*args, **kwargs):
+            with open(RENDER_LOCK, "a") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+                return method(*args, **kwargs)
+        return call
+
+    Renderer.__init__ = locked(Renderer.__init__)
+    Renderer.render = locked(Renderer.render)
+    Renderer.close = locked(Renderer.close)
 
 
 def pytest_runtest_logreport(report):
