@@ -422,10 +422,8 @@ def test_service_shows_each_cameras_quality_and_notes_several_people(tmp_path, r
 def _sent(cam: str, index: int, mask: np.ndarray, track_id: int) -> SilhouetteMessage:
     """An agent's message for ``mask`` (a full-frame boolean silhouette) on its track ``track_id``."""
     x, y, w, h = cv2.boundingRect(mask.astype(np.uint8))
-    return SilhouetteMessage(rig=RIG, camera=cam, frame_index=index, capture_ns=1_000_000_000 + index * 66_666_667,
-                             box=Box(x, y, w, h), image_size=mask.shape[::-1], epoch_ns=1, seq=index,
-                             mask=np.where(mask[y:y + h, x:x + w], 255, 0).astype(np.uint8), sync="index",
-                             track_id=track_id)
+    return dataclasses.replace(_msg(cam, index), rig=RIG, box=Box(x, y, w, h), image_size=mask.shape[::-1],
+                               mask=np.where(mask[y:y + h, x:x + w], 255, 0).astype(np.uint8), track_id=track_id)
 
 
 def test_frames_before_an_agents_move_onto_the_walker_are_left_out(tmp_path, rendered):
