@@ -22,7 +22,9 @@ silhouettes over Zenoh while the service estimates windows (20 frames every
 - the windows estimated, and on how many walks the live rig was
   self-calibrated (the others: the viewpoints' rig, its notes say why);
 - how many windows x cameras left frames out because the agent's track
-  was on another person there until a look back moved it (``window.other_person``).
+  was on another person there until a look back moved it (``window.other_person``),
+  and how many windows were estimated again because the move came after
+  their first estimate (``window.revision``).
 
 The agents' silhouettes on the same walks are measured against the exact
 ones by ``eval_composite.py --segment-only`` (the live agent's path in
@@ -162,7 +164,7 @@ def main() -> None:
     work = args.keep or Path(tempfile.mkdtemp(prefix="posecal-live-composite-"))
     rows: dict[str, list[float]] = {}
     counts = {"windows": 0, "walks without a window": 0, "calibrated": 0, "self-calibrated": 0, "other person": 0,
-              "frames on another person": 0}
+              "frames on another person": 0, "revised": 0}
     dump = []
     if args.reuse and not args.keep:
         parser.error("--reuse reads the walks from --keep DIR")
@@ -182,6 +184,7 @@ def main() -> None:
             others = [f for w in windows for f in (w["window"].get("other_person") or {}).values()]
             counts["other person"] += len(others)
             counts["frames on another person"] += sum(map(len, others))
+            counts["revised"] += sum(w["window"].get("revision", 0) > 0 for w in windows)
             errors = score_live(windows, cal, seq)
             for k, v in errors.items():
                 rows.setdefault(k, []).extend(v)
@@ -193,7 +196,8 @@ def main() -> None:
           f"{counts['windows']} windows ({counts['walks without a window']} walks without one); live rig "
           f"calibrated on {counts['calibrated']} walks, self-calibrated on {counts['self-calibrated']}; "
           f"{counts['other person']} windows x cameras left {counts['frames on another person']} frames out, the "
-          "agent's track on another person there (`window.other_person`)\n")
+          "agent's track on another person there (`window.other_person`); "
+          f"{counts['revised']} windows estimated again after a later move said so (`window.revision`)\n")
     labels = [("azimuth error per window and camera (deg)", "azimuth"),
               ("elevation error per window and camera (deg)", "elevation"),
               ("smoothed azimuth error (deg)", "smoothed_azimuth"),

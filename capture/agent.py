@@ -403,7 +403,7 @@ def main(conf: zenoh.Config, settings: AgentSettings, *, source: FrameSource | N
                 quality=stats.quality() if seq % settings.quality_every == 0 else None,
                 keypoints=None if keypoints is None else keypoints_for_frame(keypoints.get(frame.index),
                                                                              seg.image_size),
-                track_id=live.track_id)
+                track_id=live.track_id, track_from=live.track_from)
             seq += 1
             try:
                 publisher.put(encode(msg, png_compression=settings.png_compression))

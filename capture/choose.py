@@ -206,25 +206,31 @@ class LiveChoice:
     to :meth:`see`; it returns the box to guide the next frame onto
     (:meth:`capture.segment.Segmenter.apply`) when the track should move to another person,
     else None. ``switches`` counts the moves, ``note`` says the last; ``held`` is
-    :func:`held_walker` of the frames of the last look back."""
+    :func:`held_walker` of the frames of the last look back; ``since`` is, after a move, the first
+    frame (``index`` given to :meth:`see`) of those it judged the track on someone else in (since it
+    left the walker's path, or since the path began): from there to the move it was not the walker's."""
 
     def __init__(self, settings: SegmentSettings, *, window: int = LIVE_WINDOW, every: int = LIVE_EVERY) -> None:
         if window < 2 or every < 1:
             raise ValueError(f"window must be >= 2 and every >= 1, got {window} and {every}")
         self.settings, self.every = settings, every
         self._recent: collections.deque[Segmentation | None] = collections.deque(maxlen=window)
+        self._indices: collections.deque[int] = collections.deque(maxlen=window)
         self._since = 0
         self.switches = 0
+        self.since: int | None = None
         self.note: str | None = None
         self.held: str | None = None  # held_walker() of the last look back
 
-    def see(self, seg: Segmentation | None) -> Box | None:
+    def see(self, seg: Segmentation | None, index: int | None = None) -> Box | None:
+        """Take the frame ``index`` (default: one after the last); the box to move the track onto, or None."""
+        self._indices.append(index if index is not None else (self._indices[-1] + 1 if self._indices else 0))
         self._recent.append(seg)
         self._since += 1
         if self._since < self.every or len(self._recent) < 2 * self.every:
             return None
         self._since = 0
-        recent = list(self._recent)
+        recent, indices = list(self._recent), list(self._indices)
         self.held = held_walker(recent)
         size = next((s.image_size for s in recent if s is not None), None)
         if self.settings.walker_choice == "first" or size is None:
@@ -232,7 +238,7 @@ class LiveChoice:
         walker, first, agree = _followed(recent, size)
         gone = next((t for t in range(len(recent) - 1, -1, -1) if walker[t] is not None), -1) + 1
         if len(recent) - gone >= 2 * self.every:  # the path ended a while ago (they left): choose among the rest
-            recent = recent[gone:]
+            recent, indices = recent[gone:], indices[gone:]
             walker, first, agree = _followed(recent, size)
         if walker[-1] is None or agree[-1]:  # the walker not in the newest frame, or the track on them
             return None
@@ -247,6 +253,7 @@ class LiveChoice:
         if followed and np.median([b[3] for b in walker[left:] if b is not None]) < LIVE_SHORTER * np.median(followed):
             return None
         self.switches += 1
+        self.since = indices[left]  # what was judged: before the path began, the walker was not in view
         self.note = _note(recent, _agreed(walker, agree), "the track moved to it")
         return walker[-1]
 

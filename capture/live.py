@@ -43,10 +43,12 @@ class LiveSegmenter:
         self.unmerge = LiveUnmerge.of(settings)
         self._onto: tuple[int, int, int, int] | None = None
         self._last: Segmentation | None = None
+        self._index = -1
 
     def apply(self, image: np.ndarray, index: int) -> Segmentation | None:
         """This frame's silhouette (None while the segmenter warms up)."""
         seg = self.segmenter.apply(image, index, self._onto)
+        self._index = index
         if seg is not None and self.unmerge is not None:
             seg = self.unmerge.see(seg)
         self._last = seg
@@ -56,7 +58,7 @@ class LiveSegmenter:
         """The background update and the look back over the frames so far; True when the track
         moves to another person from the next frame on (:attr:`note` says why)."""
         self.segmenter.learn()
-        self._onto = None if self.choice is None or self._last is None else self.choice.see(self._last)
+        self._onto = None if self.choice is None or self._last is None else self.choice.see(self._last, self._index)
         if self._onto is not None and self.unmerge is not None:
             self.unmerge.reset()
         return self._onto is not None
@@ -70,6 +72,12 @@ class LiveSegmenter:
     def track_id(self) -> int:
         """The person the track is on: 0 from the start, one more at each move (the wire's ``track_id``)."""
         return 0 if self.choice is None else self.choice.switches
+
+    @property
+    def track_from(self) -> int | None:
+        """After a move, the first frame the track followed someone else before it (the wire's
+        ``track_from``: the service leaves out, and revises, the windows that held those frames)."""
+        return None if self.choice is None else self.choice.since
 
     @property
     def note(self) -> str | None:

@@ -296,6 +296,11 @@ class SilhouetteMessage:
     (:class:`capture.choose.LiveChoice`): the frames of an earlier track
     followed someone else, and the service leaves them out of a window that
     holds frames of the later one (docs/SERVICE.md, "Live windows").
+    ``track_from``, with a ``track_id`` of 1 or more, is the first frame the
+    earlier track followed someone else before that move (the look back's
+    :attr:`~capture.choose.LiveChoice.since`): the service leaves the earlier
+    tracks' frames from there on out of every window, and estimates again
+    the windows it published with them.
     """
 
     KIND: ClassVar[int] = 1
@@ -315,6 +320,7 @@ class SilhouetteMessage:
     quality: Quality | None = None
     keypoints: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     track_id: int | None = None
+    track_from: int | None = None
 
     def __post_init__(self) -> None:
         _crop_fields(self.rig, self.camera, self.frame_index, self.box, self.image_size, self.mask)
@@ -332,6 +338,11 @@ class SilhouetteMessage:
                             f"{self.image_size}")
         if self.track_id is not None and (type(self.track_id) is not int or self.track_id < 0):
             raise WireError(f"track_id must be an integer >= 0, got {self.track_id!r}")
+        if self.track_from is not None and (
+                type(self.track_from) is not int or not 0 <= self.track_from <= self.frame_index
+                or not self.track_id):
+            raise WireError(f"track_from must be a frame index from 0 to frame_index ({self.frame_index}) "
+                            f"with a track_id of 1 or more, got {self.track_from!r} (track_id {self.track_id!r})")
         if self.capture_ns <= 0 or self.epoch_ns <= 0:
             raise WireError("capture_ns and epoch_ns must be positive nanoseconds")
         if self.seq < 0:
@@ -503,6 +514,7 @@ def decode(payload: bytes | bytearray | memoryview, *,
                                  n_candidates=_optional(header, "n_candidates", _int),
                                  quality=_optional(header, "quality", _quality),
                                  keypoints=_optional(header, "keypoints", _keypoints),
-                                 track_id=_optional(header, "track_id", _int))
+                                 track_id=_optional(header, "track_id", _int),
+                                 track_from=_optional(header, "track_from", _int))
     return FeedbackMessage(**common, issued_ns=_int(header, "issued_ns"),
                            epoch_ns=_optional(header, "epoch_ns", _int) or 0)

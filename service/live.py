@@ -242,6 +242,8 @@ class Window:
     seq: int
     frames: list[FrameSet]
     closed_ns: int  # arrival of the last message of the last frame set
+    revision: int = 0  # estimated again since its first estimate (frames found to be another person's)
+    other: dict[str, list[int]] = field(default_factory=dict)  # what its estimate left out (_on_another_person)
 
     @property
     def indices(self) -> list[int]:
@@ -314,6 +316,20 @@ class CameraState:
     index_offset: int = 0  # added to this run's frame indices: non-zero once a restart was realigned
     last_capture_ns: int = 0
     period_ns: float | None = None  # capture time per frame index (moving average), to realign others
+    # The agent's look back's moves: (run, track_id) -> the rig's frame index from which the earlier
+    # tracks followed someone else (track_from; None: not said), oldest first, the last _MOVES kept.
+    moves: dict[tuple[int, int], int | None] = field(default_factory=dict)
+
+    def moved(self, msg: SilhouetteMessage, offset: int) -> bool:
+        """Keep the move ``msg`` is the first message of (``offset``: its run's index offset); True
+        when it is new and says from which frame (``track_from``)."""
+        key = (msg.epoch_ns, msg.track_id)
+        if not msg.track_id or key in self.moves:
+            return False
+        self.moves[key] = None if msg.track_from is None else msg.track_from + offset
+        while len(self.moves) > _MOVES:
+            del self.moves[next(iter(self.moves))]
+        return msg.track_from is not None
 
     def observe(self, msg: SilhouetteMessage, receive_ns: int) -> None:
         """Count one message of the camera's current run (``msg.frame_index`` the rig's)."""
@@ -345,12 +361,19 @@ class CameraState:
 
 
 _ONE_WALKER = "the papers assume one walker per rig: the tracked one is kept"
+_MOVES = 32  # look-back moves kept per camera
+_REVISABLE = 6  # estimated windows kept to be estimated again (a look back spans 45 frames: 4-5 windows)
 
 
 def insert_by_seq(recent: collections.deque, result: dict[str, Any]) -> None:
     """Keep a rig's results in window order: with several live workers a window may finish
-    after the next one. A result older than every kept one of a full history is dropped."""
+    after the next one. A result older than every kept one of a full history is dropped; a
+    revision replaces its window's result."""
     seq = result["window"]["seq"]
+    for i, r in enumerate(recent):
+        if r["window"]["seq"] == seq:
+            recent[i] = result
+            return
     i = len(recent)
     while i and recent[i - 1]["window"]["seq"] > seq:
         i -= 1
@@ -367,25 +390,35 @@ def _cameras(frames: Iterable[FrameSet]) -> list[str]:
     return sorted(set().union(*(fs.parts for fs in frames)))
 
 
-def _on_another_person(frames: list[FrameSet], cam: str) -> list[int]:
-    """The indices of ``frames`` whose ``cam`` message is of an earlier track than the camera's newest
-    in them (``track_id``, same agent run): its agent's look back has since moved the track onto
-    another person, the one it now takes for the walker, so those frames followed someone else."""
+def _on_another_person(frames: list[FrameSet], cam: str, moves: dict[tuple[int, int], int | None]) -> list[int]:
+    """The indices of ``frames`` whose ``cam`` message followed someone else: its agent's look back
+    has since moved the track (``moves``, :attr:`CameraState.moves`) onto the person it takes for the
+    walker, and said that the earlier track was off them from ``track_from`` on. A move that did
+    not say (an agent before ``track_from``) covers the earlier tracks' frames of the windows that
+    hold frames of the later one."""
     parts = [fs.parts.get(cam) for fs in frames]
-    newest = next((m for m in reversed(parts) if m is not None and m.track_id is not None), None)
-    if newest is None:
-        return []
+    newest: dict[int, int] = {}  # run -> its newest track in these frames
+    for m in parts:
+        if m is not None and m.track_id is not None:
+            newest[m.epoch_ns] = max(newest.get(m.epoch_ns, 0), m.track_id)
     return [fs.index for fs, m in zip(frames, parts) if m is not None and m.track_id is not None
-            and m.epoch_ns == newest.epoch_ns and m.track_id < newest.track_id]
+            and any(run == m.epoch_ns and track > m.track_id
+                    and (track <= newest[run] if start is None else fs.index >= start)
+                    for (run, track), start in moves.items())]
 
 
-def _camera_tracks(frames: list[FrameSet], cams: list[str]) -> dict[str, CameraTrack]:
+def _others(frames: list[FrameSet], cams: list[str], moves: dict[str, dict]) -> dict[str, list[int]]:
+    """Per camera of ``cams`` with any, :func:`_on_another_person` of ``frames`` with its ``moves``."""
+    return {cam: other for cam in cams if (other := _on_another_person(frames, cam, moves.get(cam, {})))}
+
+
+def _camera_tracks(frames: list[FrameSet], cams: list[str], other: dict[str, list[int]]) -> dict[str, CameraTrack]:
     """Each of ``cams``' track over ``frames`` (tight crops, full-frame boxes; None where it is missing
-    and where it followed another person than at its newest frame, :func:`_on_another_person`)."""
+    and at the frames ``other`` lists for it, :func:`_others`)."""
     out = {}
     for cam in cams:
-        other = set(_on_another_person(frames, cam))
-        out[cam] = track_from_segmentations([None if fs.index in other else fs.parts.get(cam) for fs in frames])
+        left_out = set(other.get(cam, ()))
+        out[cam] = track_from_segmentations([None if fs.index in left_out else fs.parts.get(cam) for fs in frames])
     return out
 
 
@@ -442,6 +475,23 @@ class RigState:
     realigned: int = 0  # restarted index-synchronised cameras re-based onto the rig's indices
     pending_ahead: dict[str, tuple[int, int]] = field(default_factory=dict)  # camera -> (index, run)
     before: WindowBefore | None = None  # the newest window estimated, for a look at the next (warm_every)
+    done: collections.deque = field(default_factory=lambda: collections.deque(maxlen=_REVISABLE))  # Windows
+    revised: int = 0  # windows estimated again (frames found to be another person's after their estimate)
+    updates: int = 0  # results kept so far, first estimates and revisions (window.update)
+
+    def moves(self) -> dict[str, dict[tuple[int, int], int | None]]:
+        """A copy of every camera's look-back moves (:attr:`CameraState.moves`)."""
+        return {name: dict(c.moves) for name, c in self.cameras.items()}
+
+    def revisions(self, cam: str) -> list[Window]:
+        """The estimated windows whose frames of ``cam`` another person's are now known to be more of
+        than their estimate left out (a move of its agent's look back said so since), to be
+        estimated again."""
+        moves = self.cameras[cam].moves
+        out = [w for w in self.done if _on_another_person(w.frames, cam, moves) != w.other.get(cam, [])]
+        for w in out:
+            self.done.remove(w)
+        return [dataclasses.replace(w, revision=w.revision + 1) for w in out]
 
     def silent_for(self, now: float) -> float:
         """Seconds since any camera of the rig was heard from."""
@@ -672,10 +722,11 @@ class LiveService:
                 cam = rig.cameras[msg.camera] = CameraState()
             rig.heard[msg.camera] = now
             cam.observe(msg, item.receive_ns)
+            moved = cam.moved(msg, msg.frame_index - item.message.frame_index)
             before = (rig.assembler.late, rig.assembler.duplicate, rig.assembler.missing)
             closed = rig.assembler.add(msg, item.receive_ns, now)
             self._count_drops(rig, before)
-            windows = self._windows(rig, closed)
+            windows = self._windows(rig, closed) + (rig.revisions(msg.camera) if moved else [])
         self.metrics.frames_in.labels(msg.rig, msg.camera).inc()
         for w in windows:
             self._enqueue(w)
@@ -714,12 +765,13 @@ class LiveService:
                 busy = self._queue.qsize() or self._estimating or self._warming >= len(self.pool)
                 if not busy and rig is not None and rig.window_seq == seq:  # else a window holds them now
                     self._warming += 1
+                    moves = rig.moves()
             if busy or rig is None or rig.window_seq != seq:
                 self.metrics.frames_warmed.labels("skipped").inc(len(frames))
                 continue
             try:
-                future = warm_window(self.pool, name, _camera_tracks(frames, cams), [fs.index for fs in frames],
-                                     before)
+                tracks = _camera_tracks(frames, cams, _others(frames, cams, moves))
+                future = warm_window(self.pool, name, tracks, [fs.index for fs in frames], before)
             except Exception:  # noqa: BLE001 - a look is never worth the tick thread: its window will do it
                 log.exception("early look at %s frames %d-%d failed", name, frames[0].index, frames[-1].index)
                 self._warmed(None)
@@ -795,7 +847,8 @@ class LiveService:
                 with self._lock:
                     self._estimating -= 1
 
-    def _tracks(self, w: Window) -> tuple[dict[str, CameraTrack], dict[str, tuple[int, int]]] | None:
+    def _tracks(self, w: Window, other: dict[str, list[int]]
+                ) -> tuple[dict[str, CameraTrack], dict[str, tuple[int, int]]] | None:
         present = 0
         for fs in w.frames:
             present += any(not m.box.empty for m in fs.parts.values())
@@ -803,12 +856,16 @@ class LiveService:
             return None
         cams = _cameras(w.frames)
         sizes = {cam: next(fs.parts[cam].image_size for fs in reversed(w.frames) if cam in fs.parts) for cam in cams}
-        return _camera_tracks(w.frames, cams), sizes
+        return _camera_tracks(w.frames, cams, other), sizes
 
     def _process(self, w: Window) -> None:
-        if not self.has_rig(w.rig):  # forgotten or handed over while it waited
-            return
-        built = self._tracks(w)
+        with self._lock:
+            rig = self._rigs.get(w.rig)
+            if rig is None:  # forgotten or handed over while it waited
+                return
+            moves = rig.moves()
+        other = _others(w.frames, _cameras(w.frames), moves)
+        built = self._tracks(w, other)
         if built is None:
             self._count(w.rig, "skipped")
             return
@@ -828,6 +885,7 @@ class LiveService:
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
             self._count(w.rig, "skipped")
             return
+        revised = w.revision > 0
         with self._lock:
             rig = self._rigs.get(w.rig)
             if rig is None:  # forgotten while its window was estimated
@@ -839,9 +897,17 @@ class LiveService:
                     track = rig.tracks[cam] = ViewpointTrack(
                         threshold_deg=self.settings.change_threshold_deg,
                         confirm=self.settings.change_windows, settle=self.settings.change_windows)
-                smoothed[cam] = track.update(c["azimuth_deg"], c["elevation_deg"], w.indices[-1])
-            if rig.before is None or w.seq > rig.before.seq:  # windows may finish out of order
+                # A revision leaves the smoothing as it is (its first estimate went in: docs/SERVICE.md).
+                smoothed[cam] = track.state() if revised else track.update(c["azimuth_deg"], c["elevation_deg"],
+                                                                           w.indices[-1])
+            if not revised and (rig.before is None or w.seq > rig.before.seq):  # windows may finish out of order
                 rig.before = WindowBefore.of(w.seq, w.indices, est)
+            # A move of an agent's look back heard while this was estimated may have more frames to leave out.
+            w = dataclasses.replace(w, other=other)
+            again = [] if _others(w.frames, _cameras(w.frames), rig.moves()) == other else [
+                dataclasses.replace(w, revision=w.revision + 1)]
+            if not again:
+                rig.done.append(w)
             publisher = rig.publisher
             if publisher is None:
                 publisher = rig.publisher = self.session.declare_publisher(estimate_key(w.rig))
@@ -860,23 +926,32 @@ class LiveService:
                        # the window's frames that lack a camera's message (no frame of it lost unseen)
                        "missing": {cam: gaps for cam in sorted(tracks)
                                    if (gaps := [fs.index for fs in w.frames if cam not in fs.parts])},
-                       "other_person": {cam: other for cam in sorted(tracks)
-                                        if (other := _on_another_person(w.frames, cam))}},
+                       "other_person": {cam: other[cam] for cam in sorted(tracks) if cam in other},
+                       "revision": w.revision},
             "smoothed": smoothed,
             "latency_ms": {"estimate": round(seconds * 1e3, 2), "last_frame_to_result": round(latency * 1e3, 2)},
             "published_ns": done_ns,
         })
         if person is not None:  # the live rig's newest posture of the person, with how far it lags
             result["person"] = person
+        with self._lock:  # stamped and kept at once: a client polling by update misses none
+            rig.updates += 1
+            result["window"]["update"] = rig.updates
+            insert_by_seq(rig.recent, result)
+            if revised:
+                rig.revised += 1
+            else:
+                rig.estimated += 1
+                rig.last_logged_index = max(rig.last_logged_index, w.indices[-1])
         # The attachment names the replica that estimated it (the result itself stays as documented).
         publisher.put(json.dumps(result, separators=(",", ":")), attachment=self.settings.replica_id)
-        self.metrics.window_latency.observe(latency)
         self.metrics.window_estimate.observe(seconds)
-        self.metrics.windows.labels(w.rig, "estimated").inc()
-        with self._lock:
-            insert_by_seq(rig.recent, result)
-            rig.estimated += 1
-            rig.last_logged_index = max(rig.last_logged_index, w.indices[-1])
+        self.metrics.windows.labels(w.rig, "revised" if revised else "estimated").inc()
+        for revision in again:
+            self._enqueue(revision)
+        if revised:  # its first estimate drew, made priors and fed the live rig
+            return
+        self.metrics.window_latency.observe(latency)
         if self.rerun is not None and bundle is not None:
             try:
                 self._rerun_queue.put_nowait((w.rig, bundle, w.indices[-1], smoothed))
@@ -1062,7 +1137,7 @@ class LiveService:
                 "cameras": {c: s.to_dict(age_s=ages[c][0], stale=ages[c][1], in_windows=c in current)
                             for c, s in sorted(rig.cameras.items())},
                 "windows": {"seq": rig.window_seq, "estimated": rig.estimated, "skipped": rig.skipped,
-                            "failed": rig.failed, "dropped": rig.dropped},
+                            "failed": rig.failed, "dropped": rig.dropped, "revised": rig.revised},
                 "feedback": {"enabled": self.feedback_pool is not None, "priors_sent": rig.priors_sent},
                 "frames": {"late": a.late, "duplicate": a.duplicate, "missing": a.missing,
                            "restarts": rig.restarts, "realigned": rig.realigned, "gaps": rig.buffer.resets,
@@ -1077,12 +1152,18 @@ class LiveService:
             rig = self._rigs.get(name)
             return None if rig is None or not rig.recent else rig.recent[-1]
 
-    def since(self, name: str, seq: int, limit: int) -> list[dict] | None:
+    def since(self, name: str, seq: int, limit: int, *, updated_since: int | None = None) -> list[dict] | None:
+        """The kept results with window ``seq`` greater than ``seq``, in window order; with
+        ``updated_since``, those kept (first estimates and revisions) after that ``update``, in
+        the order they were kept."""
         with self._lock:
             rig = self._rigs.get(name)
             if rig is None:
                 return None
-            return [r for r in rig.recent if r["window"]["seq"] > seq][:limit]
+            if updated_since is None:
+                return [r for r in rig.recent if r["window"]["seq"] > seq][:limit]
+            return sorted((r for r in rig.recent if r["window"]["update"] > updated_since),
+                          key=lambda r: r["window"]["update"])[:limit]
 
     def calibration(self, name: str) -> dict | None:
         """The live rig's latest calibration with how many windows it lags the estimates; None

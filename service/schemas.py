@@ -86,6 +86,7 @@ class WindowCounts(BaseModel):
     skipped: int = Field(description="too few silhouettes (walker absent) or nothing to match")
     failed: int
     dropped: int = Field(description="dropped because estimation fell behind")
+    revised: int = Field(0, description="estimated again after a move of an agent's look back (window.revision)")
 
 
 class FrameCounts(BaseModel):
@@ -348,7 +349,15 @@ class LiveWindow(_Open):
         "(cameras that are in every frame are left out)"))
     other_person: dict[str, list[int]] = Field(default_factory=dict, description=(
         "per camera, the frame indices left out of the estimate because its agent's track followed "
-        "someone else there: its look back has since moved the track onto the walker (track_id)"))
+        "someone else there: its look back has since moved the track onto the walker (track_id, "
+        "track_from)"))
+    update: int = Field(0, description=(
+        "the rig's count of results kept when this one was (first estimates and revisions): "
+        "GET .../estimates?updated_since=N returns those after N"))
+    revision: int = Field(0, description=(
+        "0 for a window's first estimate; 1 or more when it was estimated again because a later move of "
+        "an agent's look back said more of its frames were another person's (published again, and it "
+        "replaces the first in the history)"))
 
 
 class LivePerson(BaseModel):
@@ -408,7 +417,10 @@ class EstimatesOut(BaseModel):
     rig: str
     since: int
     estimates: list[LiveEstimate]
-    next_since: int
+    next_since: int = Field(description="the highest window seq returned (or since): poll again with since=this")
+    next_updated_since: int = Field(description=(
+        "the highest window.update returned (or updated_since, else 0): poll again with updated_since=this "
+        "to get revisions too"))
 
 
 class ErrorOut(BaseModel):

@@ -160,9 +160,10 @@ def test_live_a_track_that_leaves_the_walker_moves_back_within_a_few_frames():
     frames = [(_box(600, 100 + t, 40, 150), _box(300 + t, 180, 40, 120)) for t in range(50)]
     segs = [_followed(frames[t:t + 1], 1 if t < 30 else 0)[0] for t in range(50)]
     choice = LiveChoice(SegmentSettings())
-    moved = next(t for t in range(50) if choice.see(segs[t]) is not None)
+    moved = next(t for t in range(50) if choice.see(segs[t], 100 + t) is not None)
     assert 30 + LIVE_OFF - 1 <= moved <= 30 + LIVE_OFF + LIVE_EVERY
     assert choice.switches == 1 and "the track moved to it" in choice.note
+    assert choice.since == 130  # the first frame off the walker, in the indices it was given (the wire's track_from)
     assert guide(segs[moved + 1 - 35:moved + 1], SegmentSettings()) == (None, None)
 
 
@@ -194,13 +195,14 @@ def test_live_the_track_is_not_moved_onto_someone_far_shorter_in_the_middle():
     assert moves(200) >= 1
 
 
-def _live_moves(frames: list[tuple], followed: list[int]) -> list[int]:
-    """The frames at which a live look back moves a track that kept candidate ``followed[t]`` of frame t."""
+def _live_moves(frames: list[tuple], followed: list[int]) -> tuple[list[int], int | None]:
+    """The frames at which a live look back moves a track that kept candidate ``followed[t]`` of frame t,
+    and the first frame off the walker its last move said (``LiveChoice.since``)."""
     from capture.choose import LiveChoice
 
     choice = LiveChoice(SegmentSettings())
     segs = [_followed(frames[t:t + 1], followed[t])[0] for t in range(len(frames))]
-    return [t for t, s in enumerate(segs) if choice.see(s) is not None]
+    return [t for t, s in enumerate(segs) if choice.see(s) is not None], choice.since
 
 
 def test_live_a_walker_who_comes_into_view_is_moved_to_soon():
@@ -211,8 +213,9 @@ def test_live_a_walker_who_comes_into_view_is_moved_to_soon():
 
     edge = [_box(600, 100 + t, 40, 150) for t in range(45)]
     frames = [(edge[t],) if t < 20 else (edge[t], _box(300 + t, 180, 40, 130)) for t in range(45)]
-    moved = _live_moves(frames, [0] * 45)
+    moved, since = _live_moves(frames, [0] * 45)
     assert moved and 20 + LIVE_OFF - 1 <= moved[0] <= 20 + LIVE_OFF + LIVE_EVERY
+    assert since == 20  # judged from the walker's first frame (before it, they were not in view)
 
 
 def test_live_after_the_walker_left_the_next_one_in_the_middle_is_moved_to():
@@ -224,5 +227,6 @@ def test_live_after_the_walker_left_the_next_one_in_the_middle_is_moved_to():
     edge = [_box(600, 100 + t, 40, 150) for t in range(50)]
     frames = [(edge[t], _box(300 + t, 180, 40, 130)) if t < 20 or t >= 30 else (edge[t],) for t in range(50)]
     followed = [1 if t < 20 else 0 for t in range(50)]
-    moved = _live_moves(frames, followed)
+    moved, since = _live_moves(frames, followed)
     assert moved and 30 <= moved[0] <= 30 + 3 * LIVE_EVERY
+    assert since == 30  # the person at the edge from the second walker's first frame (the first left at 20)

@@ -185,21 +185,45 @@ def test_a_first_window_is_replaced_as_soon_as_two_agree_against_it():
     assert s["changes"] == [] and abs(s["azimuth_deg"] - 11.0) < 2
 
 
+def _frame_set(index: int, **tracks):
+    """A frame set whose cameras' messages are on (agent run, track_id[, track_from])."""
+    from service.live import FrameSet
+
+    f = FrameSet(index, 1, 0.0)
+    for cam, (epoch, track, *since) in tracks.items():
+        f.parts[cam] = dataclasses.replace(_msg(cam, index), epoch_ns=epoch, track_id=track,
+                                           track_from=since[0] if since else None)
+    return f
+
+
+def _moves(frames, cam):
+    """The camera's look-back moves as the service keeps them from these messages, in order."""
+    from service.live import CameraState
+
+    state = CameraState()
+    for f in frames:
+        if cam in f.parts:
+            state.moved(f.parts[cam], 0)
+    return state.moves
+
+
 def test_frames_of_an_earlier_track_of_the_same_agent_run_are_on_another_person():
-    from service.live import FrameSet, _on_another_person
+    from service.live import _on_another_person
 
-    def fs(index, **tracks):
-        f = FrameSet(index, 1, 0.0)
-        for cam, (epoch, track) in tracks.items():
-            f.parts[cam] = dataclasses.replace(_msg(cam, index), epoch_ns=epoch, track_id=track)
-        return f
-
+    fs = _frame_set
     frames = [fs(0, a=(1, 0), b=(1, None)), fs(1, a=(1, 0), b=(1, None)), fs(2, a=(1, 1), b=(1, None)),
               fs(3, b=(1, None)), fs(4, a=(1, 1), b=(1, None))]
-    assert _on_another_person(frames, "a") == [0, 1]
-    assert _on_another_person(frames, "b") == []  # an agent that does not send track_id: nothing left out
+    # an agent that does not say from which frame (no track_from): the earlier track's frames of the window
+    assert _on_another_person(frames, "a", _moves(frames, "a")) == [0, 1]
+    assert _on_another_person(frames, "b", _moves(frames, "b")) == []  # no track_id: nothing left out
     restarted = [fs(0, a=(1, 3)), fs(1, a=(2, 0)), fs(2, a=(2, 1))]  # the agent restarted: its old run is not judged
-    assert _on_another_person(restarted, "a") == [1]
+    assert _on_another_person(restarted, "a", _moves(restarted, "a")) == [1]
+    # track_from: the earlier track was on the walker until frame 1, then on someone else
+    said = [fs(0, a=(1, 0)), fs(1, a=(1, 0)), fs(2, a=(1, 0)), fs(3, a=(1, 1, 1)), fs(4, a=(1, 1, 1))]
+    moves = _moves(said, "a")
+    assert moves == {(1, 1): 1} and _on_another_person(said, "a", moves) == [1, 2]
+    # ... and a window that closed before the move holds only the earlier track: known once the move is
+    assert _on_another_person(said[:3], "a", {}) == [] and _on_another_person(said[:3], "a", moves) == [1, 2]
 
 
 # ----------------------------------------------------------------------- end to end
@@ -447,6 +471,60 @@ def test_frames_before_an_agents_move_onto_the_walker_are_left_out(tmp_path, ren
     for cam, (az, _) in TRUTH.items():
         assert abs((est["cameras"][cam]["azimuth_deg"] - az + 180) % 360 - 180) < 30, (cam, est["cameras"][cam])
     LiveEstimate.model_validate(est)
+
+
+def test_a_window_published_before_a_late_move_is_estimated_again(tmp_path, rendered):
+    """c0's agent followed the walker for 10 frames, then someone else (a walker seen from c1's side, 180 deg
+    round), and its look back moved the track back onto the walker only at frame 25, saying the old track was
+    off them from frame 10 (track_from): the first window (frames 0-19), estimated before the move, is
+    estimated again without c0's frames 10-19, published again (window.revision 1) and replaces the first
+    estimate in the history; the later windows leave out the frames 10-24 as they are estimated."""
+    settings = make_settings(tmp_path, live=True, job_workers=0, window_length=20, window_hop=10,
+                             feedback=False, max_wait_ms=400.0, live_rig=False)
+    walk = {cam: [f.mask for f in frames[EMPTY:EMPTY + 40]] for cam, frames in rendered.items()}
+    heard = []
+    with ServerThread(settings) as srv, zenoh.open(build_config(connect=[settings.zenoh_listen[0]])) as session:
+        sub = session.declare_subscriber(f"posecal/{RIG}/estimate", lambda s: heard.append(json.loads(bytes(
+            s.payload.to_bytes()))))
+
+        def send(k):
+            moved, away = k >= 25, 10 <= k < 25
+            c0 = dataclasses.replace(_sent("c0", k, walk["c1" if away else "c0"][k], int(moved)),
+                                     track_from=10 if moved else None)
+            session.put(f"posecal/{RIG}/c0/silhouette", encode(c0))
+            session.put(f"posecal/{RIG}/c1/silhouette", encode(_sent("c1", k, walk["c1"][k], 0)))
+            time.sleep(0.02)
+
+        for k in range(25):
+            send(k)
+        first = wait_for(lambda: srv.client.get(f"/v1/rigs/{RIG}/estimates", params={"since": 0}).json()[
+            "estimates"], timeout=30, what="the first window estimated")[0]
+        for k in range(25, 40):
+            send(k)
+        wait_for(lambda: srv.rig(RIG).get("windows", {}).get("revised", 0) >= 1
+                 and srv.rig(RIG)["windows"]["estimated"] >= 3, timeout=30, what="the first window revised")
+        est = srv.client.get(f"/v1/rigs/{RIG}/estimates", params={"since": 0}).json()["estimates"]
+        polled = srv.client.get(f"/v1/rigs/{RIG}/estimates",
+                                params={"updated_since": first["window"]["update"]}).json()
+        sub.undeclare()
+    assert first["window"]["seq"] == 1 and first["window"]["revision"] == 0 and first["window"]["other_person"] == {}
+    assert [e["window"]["seq"] for e in est] == [1, 2, 3]  # replaced in place, in window order
+    # polled by update: everything kept after the first estimate, the revision too, in the order kept
+    assert sorted((e["window"]["seq"], e["window"]["revision"]) for e in polled["estimates"]) == [(1, 1), (2, 0), (3, 0)]
+    updates = [e["window"]["update"] for e in polled["estimates"]]
+    assert updates == sorted(updates) and polled["next_updated_since"] == updates[-1] == 4
+    revised = est[0]
+    assert revised["window"]["revision"] == 1 and revised["window"]["other_person"] == {"c0": list(range(10, 20))}
+    assert est[1]["window"]["other_person"] == {"c0": list(range(10, 25))}
+    assert est[2]["window"]["other_person"] == {"c0": list(range(20, 25))}
+    assert [h["window"]["revision"] for h in heard if h["window"]["seq"] == 1] == [0, 1]  # published again
+    def off(e, cam):
+        return abs((e["cameras"][cam]["azimuth_deg"] - TRUTH[cam][0] + 180) % 360 - 180)
+
+    assert off(first, "c0") > 45  # the first estimate matched c0 on both people (91 deg off when written)
+    for cam in TRUTH:
+        assert off(revised, cam) < 30, (cam, revised["cameras"])
+    LiveEstimate.model_validate(revised)
 
 
 def test_the_live_rig_is_calibrated_from_the_keypoints_the_agents_send(tmp_path, rendered):

@@ -132,8 +132,11 @@ def test_candidates_and_quality_round_trip():
 
 def test_track_id_round_trips_and_is_left_out_when_none():
     assert decode(encode(_silhouette(track_id=2))).track_id == 2
+    moved = decode(encode(_silhouette(track_id=1, track_from=30)))
+    assert (moved.track_id, moved.track_from) == (1, 30)
     header, _ = _header_and_png()
-    assert "track_id" not in header and decode(encode(_silhouette())).track_id is None
+    assert "track_id" not in header and "track_from" not in header
+    assert decode(encode(_silhouette())).track_id is None
 
 
 def test_a_message_without_them_leaves_them_out_and_old_headers_decode():
@@ -154,6 +157,11 @@ def test_a_message_without_them_leaves_them_out_and_old_headers_decode():
     ({"track_id": -1}, "track_id must be an integer >= 0"),
     ({"track_id": 1.0}, "'track_id' must be an integer"),
     ({"track_id": None}, "'track_id' must be an integer"),
+    ({"track_id": 1, "track_from": 43}, r"track_from must be a frame index from 0 to frame_index \(42\)"),
+    ({"track_id": 1, "track_from": -1}, "track_from must be a frame index"),
+    ({"track_id": 0, "track_from": 10}, "with a track_id of 1 or more"),
+    ({"track_from": 10}, "with a track_id of 1 or more"),
+    ({"track_id": 1, "track_from": 1.5}, "'track_from' must be an integer"),
     ({"quality": [0.5, 10, 1]}, "'quality' must be an object"),
     ({"quality": {"area_median": 10}}, r"quality.walker_fraction must be a number in \[0, 1\], got None"),
     ({"quality": {"walker_fraction": 1.5, "area_median": 10}}, r"walker_fraction must be a number in \[0, 1\]"),

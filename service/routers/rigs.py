@@ -65,12 +65,18 @@ def latest_estimate(rig: str, live: LiveDep) -> dict[str, Any]:
     404, 422, examples={404: "unknown rig 'lab': no silhouettes received for it"})})
 def estimates_since(rig: str, live: LiveDep,
                     since: int = Query(0, ge=0, description="return windows with seq > since"),
-                    limit: int = Query(100, ge=1, le=1000)) -> dict[str, Any]:
-    """Recent results with window ``seq`` greater than ``since``, oldest first."""
+                    limit: int = Query(100, ge=1, le=1000),
+                    updated_since: int | None = Query(None, ge=0, description=(
+                        "instead of since: return the results kept after this window.update, first "
+                        "estimates and revisions alike, in that order"))) -> dict[str, Any]:
+    """Recent results with window ``seq`` greater than ``since``, oldest first; or, with
+    ``updated_since``, every result kept since (a window estimated again after a later move of an
+    agent's look back comes again, with ``window.revision`` one more)."""
     _rig_or_404(live, rig)
-    items = live.since(rig, since, limit) or []
+    items = live.since(rig, since, limit, updated_since=updated_since) or []
     return {"rig": rig, "since": since, "estimates": items,
-            "next_since": items[-1]["window"]["seq"] if items else since}
+            "next_since": max([since, *(e["window"]["seq"] for e in items)]),
+            "next_updated_since": max([updated_since or 0, *(e["window"]["update"] for e in items)])}
 
 
 @router.get("/{rig}/calibration", response_model=LiveCalibration, responses={
