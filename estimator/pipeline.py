@@ -113,6 +113,12 @@ class EstimateConfig:
         implies (:func:`estimator.viewpoint.with_path_elevation`): the shape
         tells the elevation mostly by the legs, which a wall or the frame's
         edge may hide.
+    out_of_step : float
+        A camera whose phase observations are this far (cycles, median) from
+        the phase decoded from two or more cameras gets a note that its
+        viewpoint in the window is doubtful (:func:`phase_offset`; on the live
+        composite walks such windows were 32 deg off in the median, the others
+        5.5: docs/ROBUSTNESS.md, "A camera out of step"). It changes no estimate.
     """
 
     method: str = "exemplars"
@@ -133,6 +139,7 @@ class EstimateConfig:
     settle_min_cos: float = 0.5
     fall_min_elevation_deg: float = FALL_MIN_ELEVATION_DEG
     path_elevation: bool = True
+    out_of_step: float = 0.2
 
     def __post_init__(self) -> None:
         if self.method not in ("exemplars", "paper"):
@@ -300,6 +307,18 @@ class CameraEstimate:
     cleanup: CleanupReport | None = None
     model_joints2d: np.ndarray | None = None  # the model's placement, when joints2d was measured
     posture_score: np.ndarray | None = None  # (T,) how well each measured posture explains its silhouette
+    phase_offset: float | None = None  # out of step with the decoded phase (:func:`phase_offset`)
+
+
+def phase_offset(observations: np.ndarray, phase: np.ndarray) -> float | None:
+    """How far a camera walks out of step with the phase decoded from every camera: the median
+    distance (cycles, 0-0.5) between its per-frame phase observations (NaN where none) and the
+    decoded ``phase``; None with fewer than 3 observations. A camera whose viewpoint or silhouettes
+    are wrong matches examples at other phases than the rest (``EstimateConfig.out_of_step``)."""
+    seen = np.isfinite(observations)
+    if seen.sum() < 3:
+        return None
+    return round(float(np.median(np.abs((observations[seen] - phase[seen] + 0.5) % 1.0 - 0.5))), 4)
 
 
 @dataclass
@@ -330,6 +349,7 @@ class WalkEstimate:
                 "growth_contested": c.cue.conflict,
                 "travel_heights_per_frame": round(c.cue.travel, 5),
             }
+            d["phase_offset"] = c.phase_offset
             d["notes"] = c.notes
             cams[name] = d
         frames = []
@@ -1235,6 +1255,7 @@ def decode_walk(
             phase_posterior = np.roll(phase_posterior, n_phases // 2, axis=1)
 
     phase = states / n_phases
+    _out_of_step(cams, phase, config.out_of_step)
     skeleton = forward_kinematics(gait.angles(phase), config.body)
     person = skeleton - skeleton[:, :N_JOINTS].mean(axis=1, keepdims=True)
     tracks = {name: o.track for name, o in observations.items()}
@@ -1256,6 +1277,20 @@ def decode_walk(
         phase_posterior=phase_posterior,
         log_emission=log_emission,
     )
+
+
+def _out_of_step(cams: dict[str, CameraEstimate], phase: np.ndarray, limit: float) -> None:
+    """Each camera's :func:`phase_offset` from the decoded ``phase``, and a note on those over ``limit``
+    where two or more cameras observed the phase (alone, a camera is the phase)."""
+    for c in cams.values():
+        c.phase_offset = phase_offset(c.observations, phase)
+    if sum(c.phase_offset is not None for c in cams.values()) < 2:
+        return
+    for c in cams.values():
+        if c.phase_offset is not None and c.phase_offset > limit:
+            c.notes.append(f"out of step with the other cameras (its silhouettes match the walk {c.phase_offset:.2f} "
+                           "cycles from the phase they agree on, in the median): its viewpoint in this window is "
+                           "doubtful")
 
 
 def _phase_evidence(index: ExemplarIndex, bits: np.ndarray, vp: Viewpoint, obs: np.ndarray, present: np.ndarray,

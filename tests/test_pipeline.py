@@ -344,3 +344,24 @@ def test_derived_results_are_computed_once_per_silhouette_and_tag(small_model):
     assert calls == [[0, 1, 2], [2]]  # the unheld third silhouette again, the held two not
     assert cache.derived(keys, ["a", "b", "a"], compute) == [0, 10, 20] and calls[-1] == [1, 2]
     assert derived(None, None, 2, "a", compute) == [0, 10] and calls[-1] == [0, 1]  # no cache: all
+
+
+def test_a_camera_out_of_step_with_the_others_has_a_large_phase_offset(small_model):
+    """Three cameras of one walk, the third's frames half a gait cycle later (7 frames at 0.072 cycles per
+    frame): the phase decoded from all three follows the two that agree, and the third's observations
+    sit about half a cycle from it (``phase_offset``, in the result as each camera's ``phase_offset``)."""
+    from estimator.pipeline import phase_offset
+
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=40, seed=4, elevations=(0.0, 15.0, 5.0), image_size=(320, 240)))
+    tracks = tracks_from_sequence(seq)
+    cut = {c: CameraTrack(t.silhouettes[k:k + 24], t.boxes[k:k + 24], t.full_frame, t.image_size)
+           for (c, t), k in zip(tracks.items(), (0, 0, 7))}
+    result = estimate_walk(cut, small_model).to_result()
+    offsets = {c: result["cameras"][c]["phase_offset"] for c in cut}
+    assert offsets["c0"] < 0.1 and offsets["c1"] < 0.1 and offsets["c2"] > 0.3, offsets
+    doubtful = {c: any("out of step" in n for n in result["cameras"][c]["notes"]) for c in cut}
+    assert doubtful == {"c0": False, "c1": False, "c2": True}
+    alone = estimate_walk({"c2": cut["c2"]}, small_model).to_result()["cameras"]["c2"]  # alone it is the phase
+    assert alone["phase_offset"] < 0.1 and not any("out of step" in n for n in alone["notes"])
+    assert phase_offset(np.array([0.1, np.nan, 0.95]), np.zeros(3)) is None  # fewer than 3 observations
+    assert phase_offset(np.array([0.1, 0.6, 0.95, 0.5]), np.array([0.0, 0.5, 0.0, 0.5])) == 0.075
