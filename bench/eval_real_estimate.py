@@ -28,7 +28,19 @@ camera) from the front (azimuth near 0) and one who goes up it from behind
    angle depends on it, the sides do not), also with the ahead/behind fold
    set aside (the nearer of the azimuth and its mirror ``180 - azimuth``).
 
+``--live`` runs the product's live path instead of step 2's windows:
+``posecal serve`` on loopback and one ``posecal capture`` agent on the video
+(which it plays at its 10 fps, about 80 s), the windows the service cuts (20
+frames every 10 from the agent's first frame) read back over REST. A window
+is scored as above when its frames lie in one pass of the same segmentation
+(the agent's per-frame path is the one step 1 runs); the frames the service
+left out as another person's (``window.other_person``) are left out of its
+travel too. Also reported: the windows that span a change of person, the
+windows estimated again (``window.revision``) and the cameras called out of
+step (none here: one camera).
+
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_real_estimate.py [--plot docs/img/real_video_viewpoints.png]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_real_estimate.py --live
 """
 
 from __future__ import annotations
@@ -40,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from eval_real_video import load_video  # noqa: E402
+from eval_real_video import VIDEO, load_video  # noqa: E402
 from eval_real_video import segment as segment_clip  # noqa: E402
 
 from capture.segment import SegmentSettings  # noqa: E402
@@ -91,6 +103,73 @@ def heading_azimuth(du: float, dv: float, elevation_deg: float) -> float:
     return float(np.degrees(np.arctan2(-du, dv / np.sin(np.radians(elevation_deg)))) % 360.0)
 
 
+def offline_rows(video: np.ndarray, crops: list, boxes: np.ndarray, runs: list[tuple[int, int]],
+                 min_speed: float) -> list[tuple]:
+    """Step 2: ``(first frame, height, du, dv, azimuth, elevation)`` of each moving window of each pass,
+    estimated on its own."""
+    from service.cli.model import get_default_model
+
+    model = get_default_model(progress=True)
+    rows = []
+    for a, b in runs:
+        for w0 in range(a, b - WINDOW + 1, HOP):
+            box = boxes[w0:w0 + WINDOW]
+            du, dv, h = travel(box)
+            if np.hypot(du, dv) < min_speed:
+                continue
+            track = CameraTrack(crops[w0:w0 + WINDOW], box, full_frame=True, image_size=video.shape[2:0:-1])
+            try:
+                vp = estimate_walk({"c": track}, model).cameras["c"].viewpoint
+            except ValueError:  # nothing estimable in the window
+                continue
+            rows.append((w0, h, du, dv, vp.azimuth_deg, vp.elevation_deg))
+    return rows
+
+
+def live_rows(boxes: np.ndarray, runs: list[tuple[int, int]], min_speed: float) -> list[tuple]:
+    """``--live``: the rows of :func:`offline_rows` from the windows ``posecal serve`` estimated on the
+    frames one ``posecal capture`` agent sent it from the video (module docstring)."""
+    import shutil
+    import tempfile
+
+    from _service_proc import ServiceProcess
+    from eval_live_composite import collect, run_walk
+
+    work = Path(tempfile.mkdtemp(prefix="posecal-real-live-"))
+    (work / "videos").mkdir()
+    shutil.copy(VIDEO, work / "videos" / "c0.avi")
+    try:
+        with ServiceProcess(work / "service") as svc:
+            agent = run_walk(svc, "vtest", work / "videos", ["c0"], timeout=600.0)
+            windows, _ = collect(svc, "vtest")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    pass_of = np.full(len(boxes), -1)
+    for k, (a, b) in enumerate(runs):
+        pass_of[a:b] = k
+    rows, counts = [], {"windows": len(windows), "across people": 0, "revised": 0, "out of step": 0}
+    for w in windows:
+        first, last = w["window"]["first_index"], w["window"]["last_index"]
+        cam = w["cameras"].get("c0") or {}
+        counts["revised"] += w["window"].get("revision", 0) > 0
+        counts["out of step"] += any("out of step" in n for n in cam.get("notes", []))
+        left_out = set((w["window"].get("other_person") or {}).get("c0", []))
+        frames = [i for i in range(first, last + 1) if i not in left_out and i < len(boxes)
+                  and np.isfinite(boxes[i, 0])]
+        passes_in = set(pass_of[frames]) if frames else {-1}
+        if len(passes_in) > 1 or -1 in passes_in:
+            counts["across people"] += len(passes_in) > 1
+            continue
+        du, dv, h = travel(boxes[frames])
+        if np.hypot(du, dv) < min_speed or cam.get("azimuth_deg") is None:
+            continue
+        rows.append((first, h, du, dv, cam["azimuth_deg"], cam["elevation_deg"]))
+    print(f"live: one agent -> Zenoh -> `posecal serve`: {counts['windows']} windows; {counts['across people']} "
+          f"span a change of the tracked person (not scored); {counts['revised']} estimated again; "
+          f"{counts['out of step']} called out of step\n  {agent}")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--min-speed", type=float, default=0.02, help="walker heights per frame (default 0.02)")
@@ -101,26 +180,14 @@ def main() -> None:
                          "30: a camera at a first-floor window, people 15-40 m away, is 7-20 deg above them)")
     ap.add_argument("--plot", help="write a PNG: estimated azimuth against the travel's (at the second "
                                    "--elevation)")
+    ap.add_argument("--live", action="store_true", help="the windows of `posecal serve` fed by a `posecal "
+                                                        "capture` agent playing the video (module docstring)")
     args = ap.parse_args()
-    from service.cli.model import get_default_model
-
-    model = get_default_model(progress=True)
     video = load_video()
     crops, boxes = segment(video)
     runs = passes(boxes)
-    rows = []
-    for a, b in runs:
-        for w0 in range(a, b - WINDOW + 1, HOP):
-            box = boxes[w0:w0 + WINDOW]
-            du, dv, h = travel(box)
-            if np.hypot(du, dv) < args.min_speed:
-                continue
-            track = CameraTrack(crops[w0:w0 + WINDOW], box, full_frame=True, image_size=video.shape[2:0:-1])
-            try:
-                vp = estimate_walk({"c": track}, model).cameras["c"].viewpoint
-            except ValueError:  # nothing estimable in the window
-                continue
-            rows.append((w0, h, du, dv, vp.azimuth_deg, vp.elevation_deg))
+    rows = live_rows(boxes, runs, args.min_speed) if args.live else offline_rows(video, crops, boxes, runs,
+                                                                                  args.min_speed)
     r = np.array(rows, float)
     print(f"vtest.avi: {len(runs)} passes of one tracked walker, {len(r)} moving windows of {WINDOW} frames "
           f"(walkers {r[:, 1].min():.0f}-{r[:, 1].max():.0f} px tall, median {np.median(r[:, 1]):.0f}; "

@@ -21,7 +21,7 @@ from capture.receiver import REJECT_CODES
 __all__ = ["DROP_REASONS", "Metrics", "WINDOW_OUTCOMES"]
 
 DROP_REASONS = ("late", "duplicate", "index_ahead")  # posecal_frames_dropped_total{reason}
-WINDOW_OUTCOMES = ("estimated", "skipped", "failed", "dropped")
+WINDOW_OUTCOMES = ("estimated", "skipped", "failed", "dropped", "revised")
 
 _LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0, 5.0)
 _JOB_BUCKETS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 30.0, 60.0, 300.0)
@@ -61,7 +61,7 @@ class Metrics:
         self.frames_missing = Counter("posecal_frames_missing", "camera frames absent when a "
                                       "synchronized frame set was closed", ["rig"], registry=r)
         self.windows = Counter("posecal_windows", "sliding windows by outcome "
-                               "(estimated, skipped, failed, dropped)", ["rig", "outcome"], registry=r)
+                               "(estimated, skipped, failed, dropped, revised)", ["rig", "outcome"], registry=r)
         self.window_latency = Histogram("posecal_window_latency_seconds", "arrival of a window's "
                                         "last frame to its published estimate",
                                         buckets=_LATENCY_BUCKETS, registry=r)
