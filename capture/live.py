@@ -12,6 +12,12 @@ a live camera only has the frames before. Per frame:
    look back, which may move the track onto another person for the next frame;
    the join test then forgets the old person's height.
 
+Every silhouette carries the person the track is on (:attr:`LiveSegmenter.track_id`,
+the wire's ``track_id``): one more at each move of the look back and each time the
+segmenter, having lost its track, starts one on someone who does not continue it
+(:func:`same_person`: one walker left the view and another came in), so that the
+service does not estimate a window on two people.
+
 :func:`segment_recording` runs it over a recording held in memory, as an agent runs it over a
 file; ``bench/eval_composite.py --segment-only`` measures it against the file's path on the
 composite walks (docs/ROBUSTNESS.md, "The live track moves back sooner"), and
@@ -28,7 +34,23 @@ from .choose import LiveChoice
 from .merges import LiveUnmerge
 from .segment import Segmentation, Segmenter, SegmentSettings, sample_indices
 
-__all__ = ["LiveSegmenter", "segment_recording"]
+__all__ = ["LiveSegmenter", "same_person", "segment_recording"]
+
+Box4 = tuple[int, int, int, int]
+
+SAME_GAP = 15
+"""Frames a track may be lost for and still be picked up again as the same person (:func:`same_person`)."""
+
+
+def same_person(last: Box4, box: Box4, gap: int) -> bool:
+    """Whether a track started on ``box`` (x, y, w, h) ``gap`` frames after the last track's ``last`` box
+    goes on with the same person: within :data:`SAME_GAP` frames, its centre within 0.35 of the taller's
+    height of the last one's and its height within 25 % (``bench/eval_real_estimate.py`` cuts a
+    recording into passes of one person by the same test)."""
+    if gap > SAME_GAP:
+        return False
+    step = np.hypot(box[0] + box[2] / 2 - last[0] - last[2] / 2, box[1] + box[3] / 2 - last[1] - last[3] / 2)
+    return bool(step <= 0.35 * max(last[3], box[3]) and abs(np.log(box[3] / last[3])) <= np.log1p(0.25))
 
 
 class LiveSegmenter:
@@ -44,11 +66,21 @@ class LiveSegmenter:
         self._onto: tuple[int, int, int, int] | None = None
         self._last: Segmentation | None = None
         self._index = -1
+        self._seen: tuple[Box4, int] | None = None  # the last walker's box and frame
+        self._others = 0  # tracks started on someone who did not continue the last one
+        self._from: int | None = None  # the current track's track_from
 
     def apply(self, image: np.ndarray, index: int) -> Segmentation | None:
         """This frame's silhouette (None while the segmenter warms up)."""
+        started = self.segmenter.tracks_started
         seg = self.segmenter.apply(image, index, self._onto)
         self._index = index
+        if seg is not None and not seg.box.empty:
+            box = (seg.box.x, seg.box.y, seg.box.w, seg.box.h)
+            if self.segmenter.tracks_started > started and self._onto is None and self._seen is not None \
+                    and not same_person(self._seen[0], box, index - self._seen[1]):
+                self._others, self._from = self._others + 1, None  # someone else: from their first frame
+            self._seen = (box, index)
         if seg is not None and self.unmerge is not None:
             seg = self.unmerge.see(seg)
         self._last = seg
@@ -59,8 +91,10 @@ class LiveSegmenter:
         moves to another person from the next frame on (:attr:`note` says why)."""
         self.segmenter.learn()
         self._onto = None if self.choice is None or self._last is None else self.choice.see(self._last, self._index)
-        if self._onto is not None and self.unmerge is not None:
-            self.unmerge.reset()
+        if self._onto is not None:
+            self._from = self.choice.since
+            if self.unmerge is not None:
+                self.unmerge.reset()
         return self._onto is not None
 
     @property
@@ -70,14 +104,17 @@ class LiveSegmenter:
 
     @property
     def track_id(self) -> int:
-        """The person the track is on: 0 from the start, one more at each move (the wire's ``track_id``)."""
-        return 0 if self.choice is None else self.choice.switches
+        """The person the track is on (the wire's ``track_id``): 0 from the start, one more at each move of
+        the look back and each track started on someone else (module docstring)."""
+        return self._others + (0 if self.choice is None else self.choice.switches)
 
     @property
     def track_from(self) -> int | None:
-        """After a move, the first frame the track followed someone else before it (the wire's
-        ``track_from``: the service leaves out, and revises, the windows that held those frames)."""
-        return None if self.choice is None else self.choice.since
+        """After a move of the look back, the first frame the track followed someone else before it (the
+        wire's ``track_from``: the service leaves out, and revises, the windows that held those frames);
+        None on the first track and on a track started on someone else (the frames before were another
+        walker's: the service leaves them out of the windows that hold frames of this one)."""
+        return self._from
 
     @property
     def note(self) -> str | None:

@@ -496,6 +496,7 @@ class Segmenter:
         self._residuals: list[np.ndarray] = []
         self._track: tuple[int, int, int, int] | None = None  # last tracked walker box
         self._track_missed = 0
+        self.tracks_started = 0  # tracks begun: on the first person, each lost track's next, each guided move
         # The tracked walker's blob (box height, area) over its last track_frames (at least 3) detections.
         self._walker: deque[tuple[float, float]] = deque(maxlen=max(3, settings.track_frames))
         self._colours = ColourSplit(ratio=settings.colour_ratio, window=settings.colour_window,
@@ -1090,6 +1091,7 @@ class Segmenter:
             self._walker.clear()
             self._colours.reset()
             groups[best] = [best]  # no walker's height to join pieces to
+            self.tracks_started += 1
         parts = groups[best]
         x, y, w, h = (int(v) for v in bounding_box(stats[parts, :4]))  # in the labelled region
         self._track, self._track_missed = _shifted((x, y, w, h), rx, ry), 0

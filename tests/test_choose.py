@@ -230,3 +230,46 @@ def test_live_after_the_walker_left_the_next_one_in_the_middle_is_moved_to():
     moved, since = _live_moves(frames, followed)
     assert moved and 30 <= moved[0] <= 30 + 3 * LIVE_EVERY
     assert since == 30  # the person at the edge from the second walker's first frame (the first left at 20)
+
+
+def _people_in_turn(gap: int) -> list[np.ndarray]:
+    """A textured scene, empty for 60 frames; a person (a dark upright block, 24 x 80 px) crosses it to the
+    right edge and leaves; ``gap`` frames later another comes in from the left edge."""
+    from capture.scene import textured_background
+
+    rng = np.random.default_rng(0)
+    background = textured_background(320, 240, rng)
+    frames = []
+    for t in range(60 + 60 + gap + 30):
+        image = background + rng.normal(0, 3, background.shape)
+        k = t - 60
+        x = 150 + 4 * k if 0 <= k < 60 else 4 * (k - 60 - gap) if k >= 60 + gap else None
+        if x is not None and x < 320:
+            image[100:180, max(0, x):min(320, x + 24)] = (40, 50, 120)
+        frames.append(np.clip(image, 0, 255).astype(np.uint8))
+    return frames
+
+
+def test_a_track_started_on_someone_who_does_not_continue_the_last_is_another_person():
+    """One walker leaves the view at the right and another comes in at the left 20 frames later: the
+    segmenter starts a new track on the second, which does not continue the first (:func:`same_person`),
+    so the silhouettes from then on are of another person (``track_id`` one more, no ``track_from``: the
+    service leaves the first one's frames out of a window that holds the second's)."""
+    from capture.live import SAME_GAP, LiveSegmenter, same_person
+    from capture.segment import Segmenter
+
+    live = LiveSegmenter(Segmenter(SegmentSettings(background="warmup", warmup_frames=50)))
+    ids = []
+    for k, image in enumerate(_people_in_turn(gap=20)):
+        seg = live.apply(image, k)
+        live.learn()
+        ids.append((live.track_id, live.track_from, seg is not None and not seg.box.empty))
+    first = next(k for k, (_, _, seen) in enumerate(ids) if seen)
+    second = next(k for k in range(first + 60, len(ids)) if ids[k][2])  # the second walker's first frame
+    assert {i[:2] for i in ids[first:second]} == {(0, None)}
+    assert {i[:2] for i in ids[second:]} == {(1, None)}
+    # the same person picked up again: near, about as tall, soon
+    assert same_person((100, 50, 20, 80), (104, 52, 21, 78), gap=3)
+    assert not same_person((100, 50, 20, 80), (160, 52, 21, 78), gap=3)  # elsewhere
+    assert not same_person((100, 50, 20, 80), (100, 70, 20, 60), gap=3)  # a quarter shorter
+    assert not same_person((100, 50, 20, 80), (104, 52, 21, 78), gap=SAME_GAP + 1)  # long gone
