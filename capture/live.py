@@ -45,12 +45,12 @@ SAME_GAP = 15
 def same_person(last: Box4, box: Box4, gap: int) -> bool:
     """Whether a track started on ``box`` (x, y, w, h) ``gap`` frames after the last track's ``last`` box
     goes on with the same person: within :data:`SAME_GAP` frames, its centre within 0.35 of the taller's
-    height of the last one's and its height within 25 % (``bench/eval_real_estimate.py`` cuts a
+    height of the last one's and its log height within 0.25 (``bench/eval_real_estimate.py`` cuts a
     recording into passes of one person by the same test)."""
     if gap > SAME_GAP:
         return False
     step = np.hypot(box[0] + box[2] / 2 - last[0] - last[2] / 2, box[1] + box[3] / 2 - last[1] - last[3] / 2)
-    return bool(step <= 0.35 * max(last[3], box[3]) and abs(np.log(box[3] / last[3])) <= np.log1p(0.25))
+    return bool(step <= 0.35 * max(last[3], box[3]) and abs(np.log(box[3] / last[3])) <= 0.25)
 
 
 class LiveSegmenter:

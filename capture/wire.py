@@ -293,9 +293,10 @@ class SilhouetteMessage:
     measuring postures on the silhouettes (docs/SERVICE.md, "The live rig").
     ``track_id`` numbers the person the agent's track is on: 0 from its start,
     one more each time its look back moves the track onto another person
-    (:class:`capture.choose.LiveChoice`): the frames of an earlier track
-    followed someone else, and the service leaves them out of a window that
-    holds frames of the later one (docs/SERVICE.md, "Live windows").
+    (:class:`capture.choose.LiveChoice`) and each time its track, lost, starts
+    again on someone else (:func:`capture.live.same_person`): the frames of an
+    earlier track followed someone else, and the service leaves them out of a
+    window that holds frames of the later one (docs/SERVICE.md, "Live windows").
     ``track_from``, with a ``track_id`` of 1 or more, is the first frame the
     earlier track followed someone else before that move (the look back's
     :attr:`~capture.choose.LiveChoice.since`): the service leaves the earlier
