@@ -93,6 +93,7 @@ class LiveSegmenter:
         self._onto = None if self.choice is None or self._last is None else self.choice.see(self._last, self._index)
         if self._onto is not None:
             self._from = self.choice.since
+            self._seen = (self._onto, self._index)  # the person moved onto, whoever the segmenter starts on next
             if self.unmerge is not None:
                 self.unmerge.reset()
         return self._onto is not None

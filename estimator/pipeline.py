@@ -489,8 +489,11 @@ def concat_estimates(estimates: list[WalkEstimate]) -> WalkEstimate:
             tracks[name] = CameraTrack(sils, np.concatenate(boxes), ref.full_frame, ref.image_size, np.concatenate(cuts),
                                        np.concatenate(hidden))
     posts = [e.phase_posterior for e in estimates]
+    phase = np.concatenate([e.phase for e in estimates])
+    for c in cams.values():  # over the joined stretches (the notes stay the last stretch's)
+        c.phase_offset = phase_offset(c.observations, phase) if c.phase_offset is not None else None
     return WalkEstimate(
-        phase=np.concatenate([e.phase for e in estimates]), states=np.concatenate([e.states for e in estimates]),
+        phase=phase, states=np.concatenate([e.states for e in estimates]),
         joints3d=np.concatenate([e.joints3d for e in estimates]), cameras=cams,
         log_prob=float(sum(e.log_prob for e in estimates)), half_cycle_margin=estimates[-1].half_cycle_margin,
         notes=list(estimates[-1].notes), tracks=tracks,
@@ -1255,7 +1258,8 @@ def decode_walk(
             phase_posterior = np.roll(phase_posterior, n_phases // 2, axis=1)
 
     phase = states / n_phases
-    _out_of_step(cams, phase, config.out_of_step)
+    if exemplars:  # the paper's cluster means leave the half cycle to _resolve_half_cycle: offsets of 0.5 there
+        _out_of_step(cams, phase, config.out_of_step)
     skeleton = forward_kinematics(gait.angles(phase), config.body)
     person = skeleton - skeleton[:, :N_JOINTS].mean(axis=1, keepdims=True)
     tracks = {name: o.track for name, o in observations.items()}

@@ -320,13 +320,13 @@ class CameraState:
     # tracks followed someone else (track_from; None: not said), oldest first, the last _MOVES kept.
     moves: dict[tuple[int, int], int | None] = field(default_factory=dict)
 
-    def moved(self, msg: SilhouetteMessage, offset: int) -> bool:
-        """Keep the move ``msg`` is the first message of (``offset``: its run's index offset); True
-        when it is new and says from which frame (``track_from``)."""
+    def moved(self, msg: SilhouetteMessage) -> bool:
+        """Keep the move ``msg`` (its indices the rig's) is the first message of; True when it is new
+        and says from which frame (``track_from``)."""
         key = (msg.epoch_ns, msg.track_id)
         if not msg.track_id or key in self.moves:
             return False
-        self.moves[key] = None if msg.track_from is None else msg.track_from + offset
+        self.moves[key] = msg.track_from
         while len(self.moves) > _MOVES:
             del self.moves[next(iter(self.moves))]
         return msg.track_from is not None
@@ -372,7 +372,8 @@ def insert_by_seq(recent: collections.deque, result: dict[str, Any]) -> None:
     seq = result["window"]["seq"]
     for i, r in enumerate(recent):
         if r["window"]["seq"] == seq:
-            recent[i] = result
+            if result["window"].get("revision", 0) >= r["window"].get("revision", 0):
+                recent[i] = result
             return
     i = len(recent)
     while i and recent[i - 1]["window"]["seq"] > seq:
@@ -391,11 +392,11 @@ def _cameras(frames: Iterable[FrameSet]) -> list[str]:
 
 
 def _on_another_person(frames: list[FrameSet], cam: str, moves: dict[tuple[int, int], int | None]) -> list[int]:
-    """The indices of ``frames`` whose ``cam`` message followed someone else: its agent's look back
-    has since moved the track (``moves``, :attr:`CameraState.moves`) onto the person it takes for the
-    walker, and said that the earlier track was off them from ``track_from`` on. A move that did
-    not say (an agent before ``track_from``) covers the earlier tracks' frames of the windows that
-    hold frames of the later one."""
+    """The indices of ``frames`` whose ``cam`` message followed someone else than the camera's walker:
+    its agent has since moved the track (``moves``, :attr:`CameraState.moves`), so an earlier track's
+    frames from the move's ``track_from`` on (the camera's own frame index), in any window, and all of
+    an earlier track's frames in a window that holds frames of the later one (one person per window:
+    before ``track_from`` the old track may have been on another walker)."""
     parts = [fs.parts.get(cam) for fs in frames]
     newest: dict[int, int] = {}  # run -> its newest track in these frames
     for m in parts:
@@ -403,7 +404,7 @@ def _on_another_person(frames: list[FrameSet], cam: str, moves: dict[tuple[int, 
             newest[m.epoch_ns] = max(newest.get(m.epoch_ns, 0), m.track_id)
     return [fs.index for fs, m in zip(frames, parts) if m is not None and m.track_id is not None
             and any(run == m.epoch_ns and track > m.track_id
-                    and (track <= newest[run] if start is None else fs.index >= start)
+                    and (track <= newest[run] or (start is not None and m.frame_index >= start))
                     for (run, track), start in moves.items())]
 
 
@@ -701,8 +702,9 @@ class LiveService:
                 offset = rig.realign(msg, now, self.settings.camera_timeout_s) if msg.sync == "index" else None
                 if offset is not None and msg.frame_index + offset < 0:  # a clock far behind the rig's
                     offset = None
-            if offset:
-                msg = dataclasses.replace(msg, frame_index=msg.frame_index + offset)
+            if offset:  # track_from with it: both are this run's frame indices
+                msg = dataclasses.replace(msg, frame_index=msg.frame_index + offset, track_from=None
+                                          if msg.track_from is None else max(0, msg.track_from + offset))
             if self._too_far_ahead(rig, msg, now):
                 self.metrics.frames_dropped.labels(rig.name, "index_ahead").inc()
                 return
@@ -722,7 +724,7 @@ class LiveService:
                 cam = rig.cameras[msg.camera] = CameraState()
             rig.heard[msg.camera] = now
             cam.observe(msg, item.receive_ns)
-            moved = cam.moved(msg, msg.frame_index - item.message.frame_index)
+            moved = cam.moved(msg)
             before = (rig.assembler.late, rig.assembler.duplicate, rig.assembler.missing)
             closed = rig.assembler.add(msg, item.receive_ns, now)
             self._count_drops(rig, before)
@@ -763,10 +765,11 @@ class LiveService:
             with self._lock:
                 rig = self._rigs.get(name)
                 busy = self._queue.qsize() or self._estimating or self._warming >= len(self.pool)
-                if not busy and rig is not None and rig.window_seq == seq:  # else a window holds them now
+                go = not busy and rig is not None and rig.window_seq == seq  # else a window holds them now
+                if go:
                     self._warming += 1
                     moves = rig.moves()
-            if busy or rig is None or rig.window_seq != seq:
+            if not go:
                 self.metrics.frames_warmed.labels("skipped").inc(len(frames))
                 continue
             try:
@@ -818,7 +821,8 @@ class LiveService:
                     old = self._queue.get_nowait()
                 except queue.Empty:
                     continue
-                self._count(old.rig, "dropped")
+                if not old.revision:  # a revision's window was counted estimated: its first estimate stands
+                    self._count(old.rig, "dropped")
 
     def _count(self, rig: str, outcome: str) -> None:
         """One window of ``rig`` ended as ``outcome`` (skipped, failed, dropped): state and metric."""
@@ -842,7 +846,8 @@ class LiveService:
                 self._process(w)
             except Exception:  # keep the consumer alive; the window counts as failed
                 log.exception("window %s/%d failed", w.rig, w.seq)
-                self._count(w.rig, "failed")
+                if not w.revision:
+                    self._count(w.rig, "failed")
             finally:
                 with self._lock:
                     self._estimating -= 1
@@ -867,7 +872,8 @@ class LiveService:
         other = _others(w.frames, _cameras(w.frames), moves)
         built = self._tracks(w, other)
         if built is None:
-            self._count(w.rig, "skipped")
+            if not w.revision:  # a revision's window was counted estimated: its first estimate stands
+                self._count(w.rig, "skipped")
             return
         tracks, sizes = built
         bundle_from = None
@@ -883,7 +889,8 @@ class LiveService:
                                                            in_flight=self.settings.live_workers)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
-            self._count(w.rig, "skipped")
+            if not w.revision:
+                self._count(w.rig, "skipped")
             return
         revised = w.revision > 0
         with self._lock:

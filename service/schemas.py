@@ -180,8 +180,9 @@ class ResultCamera(_Open):
     motion_cue: MotionCue | None
     phase_offset: float | None = Field(None, description=(
         "median distance (cycles, 0-0.5) between the camera's per-frame phase observations and the phase "
-        "decoded from every camera; null with fewer than 3 observations: a camera out of step with the "
-        "others (over 0.2 with two or more cameras, said in its notes) has a doubtful viewpoint"))
+        "decoded from every camera; null with fewer than 3 observations and on the paper's path: a camera "
+        "out of step with the others (over 0.2 with two or more cameras, said in its notes) has a doubtful "
+        "viewpoint"))
     notes: list[str]
     decoded_frames: int | None = Field(None, description="videos: frames that decoded")
     header_frames: int | None = Field(None, description="videos: frames the header counts (0: none given)")

@@ -203,7 +203,7 @@ def _moves(frames, cam):
     state = CameraState()
     for f in frames:
         if cam in f.parts:
-            state.moved(f.parts[cam], 0)
+            state.moved(f.parts[cam])
     return state.moves
 
 
@@ -221,8 +221,10 @@ def test_frames_of_an_earlier_track_of_the_same_agent_run_are_on_another_person(
     # track_from: the earlier track was on the walker until frame 1, then on someone else
     said = [fs(0, a=(1, 0)), fs(1, a=(1, 0)), fs(2, a=(1, 0)), fs(3, a=(1, 1, 1)), fs(4, a=(1, 1, 1))]
     moves = _moves(said, "a")
-    assert moves == {(1, 1): 1} and _on_another_person(said, "a", moves) == [1, 2]
-    # ... and a window that closed before the move holds only the earlier track: known once the move is
+    # a window with frames of both tracks: all of the earlier (one person per window) ...
+    assert moves == {(1, 1): 1} and _on_another_person(said, "a", moves) == [0, 1, 2]
+    # ... and a window that closed before the move holds only the earlier track: from track_from on,
+    # known once the move is
     assert _on_another_person(said[:3], "a", {}) == [] and _on_another_person(said[:3], "a", moves) == [1, 2]
 
 
