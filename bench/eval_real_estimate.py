@@ -55,6 +55,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_real_video import VIDEO, load_video  # noqa: E402
 from eval_real_video import segment as segment_clip  # noqa: E402
 
+from capture.live import same_person  # noqa: E402
 from capture.segment import SegmentSettings  # noqa: E402
 from estimator.pipeline import CameraTrack, estimate_walk  # noqa: E402
 from estimator.viewpoint import azimuth_difference_deg  # noqa: E402
@@ -75,8 +76,7 @@ def passes(boxes: np.ndarray, min_frames: int = WINDOW) -> list[tuple[int, int]]
     for t in range(len(boxes)):
         seen = bool(np.isfinite(boxes[t, 0]))
         if seen and start is not None and np.isfinite(boxes[t - 1, 0]):
-            step = np.hypot(*(boxes[t, :2] + boxes[t, 2:] / 2 - boxes[t - 1, :2] - boxes[t - 1, 2:] / 2))
-            if step > 0.35 * max(boxes[t - 1, 3], boxes[t, 3]) or abs(np.log(boxes[t, 3] / boxes[t - 1, 3])) > 0.25:
+            if not same_person(tuple(boxes[t - 1]), tuple(boxes[t]), 1):  # the agent's own test
                 out.append((start, t))
                 start = t
         elif seen and start is None:

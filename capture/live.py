@@ -46,7 +46,7 @@ def same_person(last: Box4, box: Box4, gap: int) -> bool:
     """Whether a track started on ``box`` (x, y, w, h) ``gap`` frames after the last track's ``last`` box
     goes on with the same person: within :data:`SAME_GAP` frames, its centre within 0.35 of the taller's
     height of the last one's and its log height within 0.25 (``bench/eval_real_estimate.py`` cuts a
-    recording into passes of one person by the same test)."""
+    recording into passes of one person with it)."""
     if gap > SAME_GAP:
         return False
     step = np.hypot(box[0] + box[2] / 2 - last[0] - last[2] / 2, box[1] + box[3] / 2 - last[1] - last[3] / 2)
