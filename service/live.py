@@ -821,11 +821,14 @@ class LiveService:
                     old = self._queue.get_nowait()
                 except queue.Empty:
                     continue
-                if not old.revision:  # a revision's window was counted estimated: its first estimate stands
-                    self._count(old.rig, "dropped")
+                self._count(old, "dropped")
 
-    def _count(self, rig: str, outcome: str) -> None:
-        """One window of ``rig`` ended as ``outcome`` (skipped, failed, dropped): state and metric."""
+    def _count(self, w: Window, outcome: str) -> None:
+        """Window ``w`` ended as ``outcome`` (skipped, failed, dropped): state and metric. Not for a
+        revision: its window was counted estimated, and its first estimate stands."""
+        if w.revision:
+            return
+        rig = w.rig
         with self._lock:
             state = self._rigs.get(rig)
             if state is None:  # forgotten meanwhile: its metrics are gone too
@@ -846,20 +849,18 @@ class LiveService:
                 self._process(w)
             except Exception:  # keep the consumer alive; the window counts as failed
                 log.exception("window %s/%d failed", w.rig, w.seq)
-                if not w.revision:
-                    self._count(w.rig, "failed")
+                self._count(w, "failed")
             finally:
                 with self._lock:
                     self._estimating -= 1
 
-    def _tracks(self, w: Window, other: dict[str, list[int]]
+    def _tracks(self, w: Window, cams: list[str], other: dict[str, list[int]]
                 ) -> tuple[dict[str, CameraTrack], dict[str, tuple[int, int]]] | None:
         present = 0
         for fs in w.frames:
             present += any(not m.box.empty for m in fs.parts.values())
         if present < max(1, self.settings.min_present * len(w.frames)):
             return None
-        cams = _cameras(w.frames)
         sizes = {cam: next(fs.parts[cam].image_size for fs in reversed(w.frames) if cam in fs.parts) for cam in cams}
         return _camera_tracks(w.frames, cams, other), sizes
 
@@ -869,11 +870,11 @@ class LiveService:
             if rig is None:  # forgotten or handed over while it waited
                 return
             moves = rig.moves()
-        other = _others(w.frames, _cameras(w.frames), moves)
-        built = self._tracks(w, other)
+        cams = _cameras(w.frames)
+        other = _others(w.frames, cams, moves)
+        built = self._tracks(w, cams, other)
         if built is None:
-            if not w.revision:  # a revision's window was counted estimated: its first estimate stands
-                self._count(w.rig, "skipped")
+            self._count(w, "skipped")
             return
         tracks, sizes = built
         bundle_from = None
@@ -889,8 +890,7 @@ class LiveService:
                                                            in_flight=self.settings.live_workers)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
-            if not w.revision:
-                self._count(w.rig, "skipped")
+            self._count(w, "skipped")
             return
         revised = w.revision > 0
         with self._lock:
@@ -911,7 +911,7 @@ class LiveService:
                 rig.before = WindowBefore.of(w.seq, w.indices, est)
             # A move of an agent's look back heard while this was estimated may have more frames to leave out.
             w = dataclasses.replace(w, other=other)
-            again = [] if _others(w.frames, _cameras(w.frames), rig.moves()) == other else [
+            again = [] if _others(w.frames, cams, rig.moves()) == other else [
                 dataclasses.replace(w, revision=w.revision + 1)]
             if not again:
                 rig.done.append(w)
