@@ -97,12 +97,19 @@ class EstimateConfig:
         ... comparing each input shifted by up to this many canvas pixels.
     settle_ahead_behind : bool
         Exemplar path, two cameras or more: where a camera's motion cue is
-        contested (head and height disagree) or absent, its ahead/behind is
+        contested (head and height disagree), absent, or rests on fewer than
+        ``settle_few_frames`` frames, its ahead/behind is
         the one whose phase evidence agrees best with the other cameras'
         (:func:`_settle_ahead_behind`), by at least ``settle_margin`` of the
         HMM's log-probability per frame. Only cameras whose two sides are at
         least 60 deg apart (``|cos azimuth| >= settle_min_cos``) are settled
         so: nearer the walker's side the fold costs little.
+    settle_few_frames : int
+        A camera's size change over a few frames tells ahead from behind less
+        surely than the other cameras' phase: on exact silhouettes, of cameras
+        seen on their first 4-8 frames of a 20-frame window 3-15 % were over 30
+        deg off by their cue, 0-11 % by the phase (docs/ROBUSTNESS.md, "A
+        camera on few frames").
     fall_min_elevation_deg : float
         Where a camera's growth is no evidence of ahead/behind, the feet's
         path in the image decides if its viewpoint is at least this far above
@@ -119,6 +126,15 @@ class EstimateConfig:
         viewpoint in the window is doubtful (:func:`phase_offset`; on the live
         composite walks such windows were 32 deg off in the median, the others
         5.5: docs/ROBUSTNESS.md, "A camera out of step"). It changes no estimate.
+    min_frames : int
+        Exemplar path: a camera whose walker was matched on fewer frames of the
+        window than this, while another camera's was on this many, is set aside
+        (:func:`_set_aside`): no viewpoint, phase nor joints from it in this
+        window, and a note says why. On the live composite walks 4 of the 9
+        windows x cameras on 5 frames or fewer were over 30 deg off, 1 of the
+        14 on 6-9; on silhouettes damaged by every kind at once (two draws, 69
+        cameras), a camera's first 3-5 frames of a 20-frame window 23-50 %
+        (docs/ROBUSTNESS.md, "A camera on few frames").
     """
 
     method: str = "exemplars"
@@ -137,9 +153,11 @@ class EstimateConfig:
     settle_ahead_behind: bool = True
     settle_margin: float = 0.5
     settle_min_cos: float = 0.5
+    settle_few_frames: int = 10
     fall_min_elevation_deg: float = FALL_MIN_ELEVATION_DEG
     path_elevation: bool = True
     out_of_step: float = 0.2
+    min_frames: int = 6
 
     def __post_init__(self) -> None:
         if self.method not in ("exemplars", "paper"):
@@ -977,9 +995,37 @@ def _matched(track: CameraTrack, model: AppearanceModel, cache: MatchCache | Non
     return present[m.valid], m.registered[m.valid], m.means_distance[m.valid], keys
 
 
+def _no_viewpoint() -> Viewpoint:
+    """The viewpoint of a camera that observed nothing."""
+    return Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)
+
+
+def _set_aside(o: CameraObservation, note: str) -> CameraObservation:
+    """``o`` as a camera that observed nothing in the window: no viewpoint, phase observations
+    nor joints, ``note`` added to its notes (its clean-up and motion cue kept)."""
+    c = o.estimate
+    T = len(c.labels)
+    cam = replace(c, viewpoint=_no_viewpoint(), labels=np.full(T, -1, np.int64), observations=np.full(T, np.nan),
+                  joints2d=np.full((T, N_JOINTS, 2), np.nan), notes=[*c.notes, note])
+    return CameraObservation(cam, o.track, o.distances, np.empty(0, np.int64))
+
+
+def _few_frames(observations: dict[str, CameraObservation], least: int) -> dict[str, CameraObservation]:
+    """``observations`` with the cameras matched on fewer than ``least`` frames set aside
+    (:func:`_set_aside`) when another camera was matched on ``least`` or more
+    (``EstimateConfig.min_frames``)."""
+    if not any(o.present.size >= least for o in observations.values()):
+        return observations
+    return {name: _set_aside(o, f"the walker was matched on {o.present.size} frames of this window, fewer than "
+                                f"{least} where another camera has them: too few for a viewpoint, so none")
+            if 0 < o.present.size < least else o for name, o in observations.items()}
+
+
 def _settles(config: EstimateConfig, camera: CameraEstimate) -> bool:
-    """Whether a camera's ahead/behind is open to the other cameras' phase (:func:`_settle_ahead_behind`)."""
-    return (config.settle_ahead_behind and np.isfinite(camera.viewpoint.azimuth_deg) and _contested(camera)
+    """Whether a camera's ahead/behind is open to the other cameras' phase (:func:`_settle_ahead_behind`):
+    its motion cue is contested, absent or rests on fewer than ``config.settle_few_frames`` frames."""
+    few = camera.cue is not None and camera.cue.n_frames < config.settle_few_frames
+    return (config.settle_ahead_behind and np.isfinite(camera.viewpoint.azimuth_deg) and (_contested(camera) or few)
             and abs(np.cos(np.deg2rad(camera.viewpoint.azimuth_deg))) >= config.settle_min_cos)
 
 
@@ -1025,11 +1071,9 @@ def observe_cameras(
             )
         present, registered, d, keys = _matched(track, model, cache, whole)
         if present.size == 0:
-            cam_notes.append("no silhouette in this window")
-            vp = Viewpoint(np.nan, np.nan, np.full((2, 2), np.nan), np.nan, "none", 0.0, 0)
-            cam = CameraEstimate(vp, cue, labels, np.full(T, np.nan), np.full((T, N_JOINTS, 2), np.nan), cam_notes,
-                                 reports.get(name))
-            out[name] = CameraObservation(cam, track, dist, present)
+            cam = CameraEstimate(_no_viewpoint(), cue, labels, np.full(T, np.nan), np.full((T, N_JOINTS, 2), np.nan),
+                                 cam_notes, reports.get(name))
+            out[name] = _set_aside(CameraObservation(cam, track, dist, present), "no silhouette in this window")
             continue
         dist[present] = d
         labels[present] = np.argmin(d, axis=1)
@@ -1216,6 +1260,8 @@ def decode_walk(
     exemplars = config.method == "exemplars"
     if not exemplars and model is None:
         raise ValueError("the paper's path needs the model to decode")
+    if exemplars:
+        observations = _few_frames(observations, config.min_frames)
     cams = {name: o.estimate for name, o in observations.items()}
     if all(c.viewpoint.n_samples == 0 for c in cams.values()):
         raise ValueError("no non-empty silhouette in the window")
@@ -1238,7 +1284,7 @@ def decode_walk(
         log_emission = np.zeros((T, n_phases))
         for name, o in observations.items():
             r = refined.get(name)
-            if r is None:
+            if r is None or o.present.size == 0:  # set aside here, refined where it was observed
                 continue
             c = o.estimate
             c.viewpoint, c.observations = r.viewpoint, r.observations
@@ -1333,7 +1379,7 @@ def _contested(camera: CameraEstimate) -> bool:
 
 def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: np.ndarray, log_trans: np.ndarray,
                          T: int, config: EstimateConfig) -> dict[str, bool]:
-    """Ahead/behind of the cameras whose motion cue is contested or absent, from the other cameras' phase.
+    """Ahead/behind of the cameras whose motion cue is contested, absent or short, from the other cameras' phase.
 
     Seen from azimuth ``a`` or ``180 - a`` (in front of the walker or behind),
     a silhouette looks alike at phases half a cycle apart, so a camera on the
@@ -1376,8 +1422,10 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
             c = o.estimate
             c.viewpoint, o.evidence, c.observations = o.mirror
             sides[n] = bool(np.cos(np.deg2rad(c.viewpoint.azimuth_deg)) >= 0)
-            c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was "
-                           f"{'contested' if c.cue is not None else 'absent'}; log-probability "
+            why = ("absent" if c.cue is None else "contested" if _contested(c)
+                   else f"measured on {c.cue.n_frames} frames only")
+            c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was {why}; "
+                           f"log-probability "
                            f"{best_lp - kept_lp:.1f} better over {T} frames)")
     return sides
 

@@ -365,3 +365,51 @@ def test_a_camera_out_of_step_with_the_others_has_a_large_phase_offset(small_mod
     assert alone["phase_offset"] < 0.1 and not any("out of step" in n for n in alone["notes"])
     assert phase_offset(np.array([0.1, np.nan, 0.95]), np.zeros(3)) is None  # fewer than 3 observations
     assert phase_offset(np.array([0.1, 0.6, 0.95, 0.5]), np.array([0.0, 0.5, 0.0, 0.5])) == 0.075
+
+
+def test_a_camera_on_too_few_frames_is_set_aside_while_another_has_enough(small_model):
+    """A camera whose walker shows on 5 frames of a 30-frame window, beside one that shows on all: no
+    viewpoint, phase nor joints from it, a note saying why, and the other camera estimated as if alone.
+    Alone, or with ``min_frames`` 0, the same 5 frames are estimated (the window has nothing better)."""
+    tracks = tracks_from_sequence(synthesize(SynthSpec(n_cameras=2, n_frames=30, seed=2, elevations=(0.0, 15.0),
+                                                       image_size=(320, 240))))
+    t0 = tracks["c0"]
+    thin = CameraTrack([s if k < 5 else None for k, s in enumerate(t0.silhouettes)],
+                       np.where(np.arange(30)[:, None] < 5, t0.boxes, np.nan), t0.full_frame, t0.image_size)
+    result = estimate_walk({"c0": thin, "c1": tracks["c1"]}, small_model).to_result()
+    c0 = result["cameras"]["c0"]
+    assert c0["azimuth_deg"] is None and c0["phase_offset"] is None
+    assert any("matched on 5 frames" in n and "fewer than 6" in n for n in c0["notes"]), c0["notes"]
+    assert not any("c0" in f["joints2d"] or "c0" in f["seen_by"] for f in result["frames"])
+    assert all(f["observed_phase"]["c0"] is None for f in result["frames"])
+    alone = estimate_walk({"c1": tracks["c1"]}, small_model).to_result()
+    assert abs(result["cameras"]["c1"]["azimuth_deg"] - alone["cameras"]["c1"]["azimuth_deg"]) < 0.5
+    assert [f["phase"] for f in result["frames"]] == [f["phase"] for f in alone["frames"]]
+    kept = estimate_walk({"c0": thin, "c1": tracks["c1"]}, small_model, config=EstimateConfig(min_frames=0))
+    assert np.isfinite(kept.cameras["c0"].viewpoint.azimuth_deg)
+    assert np.isfinite(estimate_walk({"c0": thin}, small_model).cameras["c0"].viewpoint.azimuth_deg)
+
+
+def test_a_camera_seen_on_few_frames_takes_the_side_the_other_cameras_phase_agrees_with(small_model):
+    """The first camera's frames half a gait cycle later than the others' (7 frames), so its motion cue
+    says one side of the ahead/behind fold and the other cameras' phase the other. On 6 frames the
+    phase decides (``settle_few_frames``, 10: a size change over a few frames is the weaker evidence),
+    and a note says why; on 24 frames, or with the rule off, the cue does."""
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=40, seed=4, azimuths=(30.0, 110.0, 250.0),
+                               elevations=(5.0, 10.0, 15.0), image_size=(320, 240)))
+    tracks = tracks_from_sequence(seq)
+    cut = {c: CameraTrack(t.silhouettes[k:k + 24], t.boxes[k:k + 24], t.full_frame, t.image_size)
+           for (c, t), k in zip(tracks.items(), (7, 0, 0))}
+    t0 = cut["c0"]
+    kept = np.arange(24) < 6
+    few = {**cut, "c0": CameraTrack([s if k else None for k, s in zip(kept, t0.silhouettes)],
+                                    np.where(kept[:, None], t0.boxes, np.nan), t0.full_frame, t0.image_size)}
+
+    def c0(tracks, **config):
+        return estimate_walk(tracks, small_model, config=EstimateConfig(**config)).cameras["c0"]
+
+    settled = c0(few)
+    assert settled.viewpoint.flip == "cameras" and az_error(settled.viewpoint.azimuth_deg, 150.0) < 25
+    assert any("measured on 6 frames only" in n for n in settled.notes), settled.notes
+    for cue in (c0(few, settle_few_frames=0), c0(cut)):
+        assert cue.viewpoint.flip == "motion" and az_error(cue.viewpoint.azimuth_deg, 30.0) < 25
