@@ -164,7 +164,7 @@ def main() -> None:
     work = args.keep or Path(tempfile.mkdtemp(prefix="posecal-live-composite-"))
     rows: dict[str, list[float]] = {}
     counts = {"windows": 0, "walks without a window": 0, "calibrated": 0, "self-calibrated": 0, "other person": 0,
-              "frames on another person": 0, "revised": 0}
+              "frames on another person": 0, "revised": 0, "set aside": 0}
     dump = []
     if args.reuse and not args.keep:
         parser.error("--reuse reads the walks from --keep DIR")
@@ -185,6 +185,8 @@ def main() -> None:
             counts["other person"] += len(others)
             counts["frames on another person"] += sum(map(len, others))
             counts["revised"] += sum(w["window"].get("revision", 0) > 0 for w in windows)
+            counts["set aside"] += sum(any("too few for a viewpoint" in n for n in c.get("notes", ()))
+                                       for w in windows for c in w["cameras"].values())
             errors = score_live(windows, cal, seq)
             for k, v in errors.items():
                 rows.setdefault(k, []).extend(v)
@@ -197,7 +199,8 @@ def main() -> None:
           f"calibrated on {counts['calibrated']} walks, self-calibrated on {counts['self-calibrated']}; "
           f"{counts['other person']} windows x cameras left {counts['frames on another person']} frames out, the "
           "agent's track on another person there (`window.other_person`); "
-          f"{counts['revised']} windows estimated again after a later move said so (`window.revision`)\n")
+          f"{counts['revised']} windows estimated again after a later move said so (`window.revision`); "
+          f"{counts['set aside']} windows x cameras set aside on too few frames (`EstimateConfig.min_frames`)\n")
     labels = [("azimuth error per window and camera (deg)", "azimuth"),
               ("elevation error per window and camera (deg)", "elevation"),
               ("smoothed azimuth error (deg)", "smoothed_azimuth"),
