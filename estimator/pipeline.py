@@ -98,7 +98,8 @@ class EstimateConfig:
     settle_ahead_behind : bool
         Exemplar path, two cameras or more: where a camera's motion cue is
         contested (head and height disagree), absent, or rests on fewer than
-        ``settle_few_frames`` frames, its ahead/behind is
+        ``settle_few_frames`` frames while another camera was matched on that
+        many or more, its ahead/behind is
         the one whose phase evidence agrees best with the other cameras'
         (:func:`_settle_ahead_behind`), by at least ``settle_margin`` of the
         HMM's log-probability per frame. Only cameras whose two sides are at
@@ -1021,11 +1022,16 @@ def _few_frames(observations: dict[str, CameraObservation], least: int) -> dict[
             if 0 < o.present.size < least else o for name, o in observations.items()}
 
 
+def _few(config: EstimateConfig, camera: CameraEstimate) -> bool:
+    """Whether a camera's motion cue rests on fewer than ``config.settle_few_frames`` frames."""
+    return camera.cue is not None and camera.cue.n_frames < config.settle_few_frames
+
+
 def _settles(config: EstimateConfig, camera: CameraEstimate) -> bool:
-    """Whether a camera's ahead/behind is open to the other cameras' phase (:func:`_settle_ahead_behind`):
-    its motion cue is contested, absent or rests on fewer than ``config.settle_few_frames`` frames."""
-    few = camera.cue is not None and camera.cue.n_frames < config.settle_few_frames
-    return (config.settle_ahead_behind and np.isfinite(camera.viewpoint.azimuth_deg) and (_contested(camera) or few)
+    """Whether a camera's ahead/behind may be open to the other cameras' phase (:func:`_settle_ahead_behind`):
+    its motion cue is contested, absent or rests on few frames (:func:`_few`)."""
+    return (config.settle_ahead_behind and np.isfinite(camera.viewpoint.azimuth_deg)
+            and (_contested(camera) or _few(config, camera))
             and abs(np.cos(np.deg2rad(camera.viewpoint.azimuth_deg))) >= config.settle_min_cos)
 
 
@@ -1395,7 +1401,13 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
     for the later re-votes.
     """
     names = [n for n, o in observations.items() if np.isfinite(o.estimate.viewpoint.azimuth_deg)]
-    contested = [n for n in names if observations[n].mirror is not None][:8]  # 2^8 decodes at most
+
+    def is_open(n: str) -> bool:  # a cue on few frames yields only to a camera that saw more
+        o = observations[n]
+        return o.mirror is not None and (_contested(o.estimate) or any(
+            observations[m].present.size >= config.settle_few_frames for m in names if m != n))
+
+    contested = [n for n in names if is_open(n)][:8]  # 2^8 decodes at most
     if len(names) < 2 or not contested:
         return {}
     other = np.zeros((T, len(log_start)))

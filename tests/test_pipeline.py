@@ -9,6 +9,7 @@ import pytest
 
 from estimator.pipeline import CameraTrack, EstimateConfig, estimate_walk, tracks_from_sequence
 from estimator.sequence import write_sequence
+from estimator.skeleton import BodyShape
 from estimator.synth import SynthSpec, synthesize
 from service.cli import main
 
@@ -223,7 +224,6 @@ def contested_shadow_walk(mocap_dir: str):
     from estimator.damage import damage_sequence
     from estimator.mocap import read_motion
     from estimator.sequence import Sequence
-    from estimator.skeleton import BodyShape
 
     shape = BodyShape(height=1.88, leg_length=1.09, arm_length=0.90, trunk_length=1.07, shoulder_width=0.95,
                       hip_width=1.02, girth=1.12)
@@ -394,14 +394,15 @@ def test_a_camera_seen_on_few_frames_takes_the_side_the_other_cameras_phase_agre
     """The first camera's frames half a gait cycle later than the others' (7 frames), so its motion cue
     says one side of the ahead/behind fold and the other cameras' phase the other. On 6 frames the
     phase decides (``settle_few_frames``, 10: a size change over a few frames is the weaker evidence),
-    and a note says why; on 24 frames, or with the rule off, the cue does."""
+    and a note says why; on 24 frames, with the rule off, or where no camera is seen on 10 frames
+    (their phase no surer than the cue: a walk of 8 frames), the cue does."""
     seq = synthesize(SynthSpec(n_cameras=3, n_frames=40, seed=4, azimuths=(30.0, 110.0, 250.0),
                                elevations=(5.0, 10.0, 15.0), image_size=(320, 240)))
     tracks = tracks_from_sequence(seq)
     cut = {c: CameraTrack(t.silhouettes[k:k + 24], t.boxes[k:k + 24], t.full_frame, t.image_size)
            for (c, t), k in zip(tracks.items(), (7, 0, 0))}
-    t0 = cut["c0"]
     kept = np.arange(24) < 6
+    t0 = cut["c0"]
     few = {**cut, "c0": CameraTrack([s if k else None for k, s in zip(kept, t0.silhouettes)],
                                     np.where(kept[:, None], t0.boxes, np.nan), t0.full_frame, t0.image_size)}
 
@@ -413,3 +414,8 @@ def test_a_camera_seen_on_few_frames_takes_the_side_the_other_cameras_phase_agre
     assert any("measured on 6 frames only" in n for n in settled.notes), settled.notes
     for cue in (c0(few, settle_few_frames=0), c0(cut)):
         assert cue.viewpoint.flip == "motion" and az_error(cue.viewpoint.azimuth_deg, 30.0) < 25
+    # Every camera on 8 frames: the others' phase is no surer than the cue (this walk's c1 was put behind).
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=8, seed=7, azimuths=(90.0, 30.0), elevations=(5.0, 10.0),
+                               shape=BodyShape(girth=0.85)))
+    c1 = estimate_walk(tracks_from_sequence(seq), small_model).cameras["c1"]
+    assert c1.viewpoint.flip == "motion" and az_error(c1.viewpoint.azimuth_deg, 30.0) < 25, c1.viewpoint
