@@ -41,6 +41,7 @@ STAGES = [
     ("clean-up: walker per frame (select_walker)", "cleanup.py", "select_walker"),
     ("clean-up: shadow search (trim_shadow)", "cleanup.py", "trim_shadow"),
     ("clean-up: plausibility (check_plausible)", "cleanup.py", "check_plausible"),
+    ("clean-up: share hidden below (hidden_fraction)", "occlusion.py", "hidden_fraction"),
     ("motion cue (head points, Theil-Sen)", "viewpoint.py", "motion_cue"),
     ("registration (Izo-Grimson section 5)", "registration.py", "register"),
     ("eq. 8 to the cluster means", "registration.py", "distance"),

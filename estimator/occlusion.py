@@ -126,7 +126,7 @@ def hidden_below(model: AppearanceModel, fraction: float, *, compared: float | N
 
 
 def hidden_fraction(model: AppearanceModel, silhouettes: Sequence[np.ndarray | None], fractions: Sequence[float],
-                    score: Callable[[AppearanceModel, list[np.ndarray]], np.ndarray], *, frames: int = 8,
+                    score: Callable[[AppearanceModel, np.ndarray, np.ndarray], np.ndarray], *, frames: int = 8,
                     compared: float = 0.4) -> tuple[float, np.ndarray]:
     """The share of the body hidden below ``silhouettes`` (one camera's window, visible parts): the
     one of ``fractions`` at which they fit the examples best.
@@ -139,18 +139,33 @@ def hidden_fraction(model: AppearanceModel, silhouettes: Sequence[np.ndarray | N
     favours the largest (the legs, the hardest part to fit, drop out), and so
     does a larger ``compared`` (real walkers are wider than the examples and
     fit better shrunk): both measured on vtest.avi's walkers cut by the
-    image's bottom edge (docs/ROBUSTNESS.md). ``score(model, silhouettes)``
-    gives each silhouette's distance to the nearest example
-    (:func:`estimator.pipeline.walker_score`). Up to ``frames`` silhouettes,
-    evenly spaced, are scored. Returns the fraction and the mean score of each.
+    image's bottom edge (docs/ROBUSTNESS.md). ``score(model, registered,
+    valid)`` gives each registered silhouette's distance to the nearest
+    example (:func:`estimator.pipeline.registered_walker_score`): the models
+    cut at each fraction share their rows, means and examples and differ only
+    in registration, so every silhouette is measured once and registered at
+    every fraction (:func:`estimator.registration.register_shares`), and all
+    are scored in one call. Up to ``frames`` silhouettes, evenly spaced, are
+    scored. Returns the fraction and the mean score of each.
     """
+    from .registration import register_shares
+
     sils = [s for s in silhouettes if s is not None]
     if not sils or not len(fractions):
         raise ValueError("hidden_fraction needs silhouettes and fractions")
     sils = [sils[i] for i in evenly_spaced(len(sils), frames)]
-    costs = np.empty(len(fractions))
-    for i, f in enumerate(fractions):
-        d = np.asarray(score(model.hidden_below(float(f), compared=compared), sils), float)
-        d = d[np.isfinite(d)]
-        costs[i] = d.mean() if d.size else np.inf
+    cut = [model.hidden_below(float(f), compared=compared) for f in fractions]
+    first = cut[0]
+    if any(m.hidden.rows != first.hidden.rows or m.means is not first.means for m in cut):
+        raise ValueError("the cut models of one search must share their rows")  # compared is one for all
+    p = first.params
+    registered, valid = register_shares(sils, [m.hidden.fraction for m in cut], top=first.hidden.top, size=p.size,
+                                        height_fraction=p.height_fraction, rotate=p.rotate)
+    registered[:, :, first.hidden.rows:] = 0.0  # as AppearanceModel.register clears them
+    d = np.asarray(score(first, registered.reshape(-1, *registered.shape[2:]), np.tile(valid, len(cut))), float)
+    d = d.reshape(len(cut), len(sils))
+    finite = np.isfinite(d)
+    n = finite.sum(axis=1)
+    costs = np.full(len(cut), np.inf)
+    costs[n > 0] = np.where(finite, d, 0.0)[n > 0].sum(axis=1) / n[n > 0]  # the mean of the scored
     return float(fractions[int(np.argmin(costs))]), costs

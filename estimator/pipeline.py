@@ -43,6 +43,7 @@ from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
 from .matchcache import Matched, MatchCache, derived, match
 from .occlusion import hidden_fraction, hidden_shares, whole_height
+from .registration import distance
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import (FALL_MIN_ELEVATION_DEG, MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint,
@@ -802,12 +803,31 @@ def walker_score(model: AppearanceModel, silhouettes: list[np.ndarray], *, top_c
     silhouette is registered and scored once (:mod:`estimator.matchcache`).
     """
     m = match(model, silhouettes, cache)
-    out = np.full(len(silhouettes), np.inf)
-    valid = np.flatnonzero(m.valid)
-    if valid.size:
-        _, dists = _member_distances(model, model.exemplars(), pack(m.registered[valid]), m.means_distance[valid],
-                                     top_clusters, cache, None if m.keys is None else [m.keys[i] for i in valid])
-        out[valid] = [d.min() for d in dists]
+    return _nearest_member(model, m.registered, m.valid, m.means_distance, top_clusters, cache, m.keys)
+
+
+def registered_walker_score(model: AppearanceModel, registered: np.ndarray, valid: np.ndarray, *,
+                            top_clusters: int = 3) -> np.ndarray:
+    """:func:`walker_score` of silhouettes already registered with ``model`` ((N, h, w), 0/1; inf
+    where not ``valid``): the share search of :func:`estimator.occlusion.hidden_fraction`
+    registers each silhouette at every share at once."""
+    d = np.full((len(registered), model.n_clusters), np.inf, np.float32)
+    if valid.any():
+        d[valid] = distance(registered[valid], model.means)
+    return _nearest_member(model, registered, valid, d, top_clusters)
+
+
+def _nearest_member(model: AppearanceModel, registered: np.ndarray, valid: np.ndarray, means_distance: np.ndarray,
+                    top_clusters: int, cache: MatchCache | None = None, keys: list[bytes] | None = None
+                    ) -> np.ndarray:
+    """Each registered input's eq. 8 distance to the nearest member of its ``top_clusters`` nearest
+    clusters; inf where not ``valid``."""
+    out = np.full(len(registered), np.inf)
+    rows = np.flatnonzero(valid)
+    if rows.size:
+        _, dists = _member_distances(model, model.exemplars(), pack(registered[rows]), means_distance[rows],
+                                     top_clusters, cache, None if keys is None else [keys[i] for i in rows])
+        out[rows] = [d.min() for d in dists]
     return out
 
 
@@ -927,7 +947,8 @@ def _hidden_below(t: CameraTrack, report: CleanupReport, model: AppearanceModel,
     ``report`` filled in (the window's share, or nothing hidden after all)."""
     edge = report.on_edge if report.fixed_edge else np.ones(len(t.silhouettes), bool)
     report.hidden, _ = hidden_fraction(model, [s if e else None for s, e in zip(t.silhouettes, edge)],
-                                       config.hidden_matched, score=walker_score, frames=config.cut_frames)
+                                       config.hidden_matched, score=registered_walker_score,
+                                       frames=config.cut_frames)
     past = report.past_edge()
     by_heights = edge_share(t.boxes, edge, whole=past) if past is not None else np.nan
     if not report.hidden or abs(by_heights - report.hidden) > config.edge_agree:

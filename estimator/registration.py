@@ -17,7 +17,7 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["DEFAULT_SIZE", "Transforms", "register", "distance", "transform_points"]
+__all__ = ["DEFAULT_SIZE", "Transforms", "register", "register_shares", "distance", "transform_points"]
 
 DEFAULT_SIZE: tuple[int, int] = (64, 48)
 """Registered canvas (height, width) in pixels; see docs/APPEARANCE.md for the measurement."""
@@ -164,6 +164,28 @@ def _check_size(size: tuple[int, int]) -> tuple[int, int]:
 def _register_one(sil, out, target, centre, rotate, binary, top=None):
     """Register one silhouette into ``out`` (float32, zeros); None if it is empty. With ``top``, the
     top of its extent goes to that canvas row (the centroid stays on the centre column)."""
+    shape = _measure_one(sil, rotate)
+    return None if shape is None else _place_one(shape, out, target, centre, binary, top)
+
+
+@dataclass
+class _Shape:
+    """What registration measures on one silhouette, whatever its target size: its 0/255 crop at
+    ``(x0, y0)``, centroid ``(cx, cy)`` in the crop, principal-axis ``angle`` and the extent along
+    it (``along_min`` to ``along_min + extent - 1``, from the centroid)."""
+
+    crop: np.ndarray
+    x0: int
+    y0: int
+    cx: float
+    cy: float
+    angle: float
+    along_min: float
+    extent: float
+
+
+def _measure_one(sil, rotate: bool) -> _Shape | None:
+    """The :class:`_Shape` of one silhouette; None if it is empty."""
     mask = np.asarray(sil)
     if mask.dtype != np.uint8:
         mask = (mask != 0).view(np.uint8)
@@ -192,10 +214,18 @@ def _register_one(sil, out, target, centre, rotate, binary, top=None):
     right = bw - 1 - fg[rows, ::-1].argmax(1)
     yr = rows - cy
     along = np.concatenate([-sn * (left - cx) + c * yr, -sn * (right - cx) + c * yr])
-    extent = float(along.max() - along.min() + 1.0)
-    s = target / extent
+    return _Shape(crop, x0, y0, cx, cy, angle, float(along.min()), float(along.max() - along.min() + 1.0))
+
+
+def _place_one(shape: _Shape, out, target, centre, binary, top=None):
+    """Scale, rotate and translate a measured silhouette into ``out`` (see :func:`_register_one`)."""
+    crop, cx, cy, angle = shape.crop, shape.cx, shape.cy, shape.angle
+    bh, bw = crop.shape
+    a = math.radians(angle)
+    c, sn = math.cos(a), math.sin(a)
+    s = target / shape.extent
     if top is not None:  # the extent's first row at canvas row ``top``
-        centre = np.array([centre[0], top - s * along.min()])
+        centre = np.array([centre[0], top - s * shape.along_min])
     # R(-angle) maps the axis to the vertical (0, 1).
     rot = np.array([[c, sn], [-sn, c]])
     # Area-averaged resize of the crop to the nearest integer size.
@@ -218,11 +248,37 @@ def _register_one(sil, out, target, centre, rotate, binary, top=None):
     else:
         np.multiply(warped, np.float32(1.0 / 255.0), out=out)
     # Total map from input pixels: canvas = s * rot @ (u - x0 - cx, v - y0 - cy) + centre.
-    u0, v0 = x0 + cx, y0 + cy
+    u0, v0 = shape.x0 + cx, shape.y0 + cy
     total = np.empty((2, 3))
     total[:, :2] = s * rot
     total[:, 2] = centre - s * rot @ np.array([u0, v0])
-    return total, s, angle, (u0, v0), extent
+    return total, s, angle, (u0, v0), shape.extent
+
+
+def register_shares(
+    silhouettes: Sequence[np.ndarray],
+    hidden: Sequence[float],
+    *,
+    top: float,
+    size: tuple[int, int] = DEFAULT_SIZE,
+    height_fraction: float = _DEFAULT_HEIGHT_FRACTION,
+    rotate: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`register` (binary, with ``top``) of the same silhouettes at each share ``hidden`` of the
+    walker's height hidden below: ``(len(hidden), T, size[0], size[1])`` float32 and the (T,) valid
+    mask. Each silhouette is measured once (:mod:`estimator.occlusion` searches the share)."""
+    h, w = _check_size(size)
+    if not all(0.0 <= f < 1.0 for f in hidden):
+        raise ValueError(f"hidden shares must be in [0, 1), got {list(hidden)}")
+    shapes = [_measure_one(s, rotate) for s in silhouettes]
+    out = np.zeros((len(hidden), len(shapes), h, w), np.float32)
+    centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    for k, f in enumerate(hidden):
+        target = height_fraction * h * (1.0 - f)
+        for i, shape in enumerate(shapes):
+            if shape is not None:
+                _place_one(shape, out[k, i], target, centre, True, top)
+    return out, np.array([shape is not None for shape in shapes], bool)
 
 
 def transform_points(transforms: Transforms, points: np.ndarray) -> np.ndarray:

@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 
 from estimator.appearance import save_model
-from estimator.cleanup import CleanupConfig, astride_edge, edge_share, fixed_edge
+from estimator.cleanup import CleanupConfig, astride_edge, edge_share, evenly_spaced, fixed_edge
 from estimator.joints import JOINT_INDEX
 from estimator.mnbp import posture_sequences
 from estimator.mnbp3d import posture_sequence3d
 from estimator.damage import _wall_row, damage_sequence
 from estimator.mnbp import measure_postures
-from estimator.pipeline import EstimateConfig, estimate_walk, tracks_from_sequence, walker_score
+from estimator.pipeline import (EstimateConfig, estimate_walk, registered_walker_score, tracks_from_sequence,
+                                walker_score)
 from estimator.rig import calibrate_rig, hidden_joints
 from estimator.occlusion import hidden_fraction, hidden_shares
 from estimator.registration import register
@@ -112,7 +113,22 @@ def test_a_walker_on_the_bottom_edge_is_matched_by_what_the_frame_shows(walk, sm
 
 def test_hidden_fraction_is_checked(small_model):
     with pytest.raises(ValueError, match="silhouettes and fractions"):
-        hidden_fraction(small_model, [None], FRACTIONS, walker_score)
+        hidden_fraction(small_model, [None], FRACTIONS, registered_walker_score)
+
+
+def test_the_share_search_scores_each_share_as_its_cut_model_does(walk, small_model):
+    """The search registers each silhouette at every share at once and scores them in one call: its
+    mean score per share is the one :func:`walker_score` gives with the model cut at that share,
+    to the bit, on whole walkers and behind a low wall (where a share above 0 fits best)."""
+    walled = damage_sequence(walk.silhouettes, "low_wall", seed=0)
+    for frames in (walk.silhouettes["c0"], walled["c0"], walled["c1"]):
+        best, costs = hidden_fraction(small_model, [None, *frames], (0.0, *FRACTIONS), registered_walker_score,
+                                      frames=6)
+        sampled = [frames[i] for i in evenly_spaced(len(frames), 6)]
+        ref = [np.mean(walker_score(small_model.hidden_below(f, compared=0.4), sampled)) for f in (0.0, *FRACTIONS)]
+        assert np.array_equal(costs, ref), (costs, ref)
+        assert best == (0.0, *FRACTIONS)[int(np.argmin(ref))]
+    assert hidden_fraction(small_model, walled["c0"], (0.0, *FRACTIONS), registered_walker_score)[0] > 0
 
 
 def test_mnbp_leaves_the_legs_behind_a_wall_where_the_body_puts_them():

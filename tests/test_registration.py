@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from estimator._stick_examples import make_examples, style_table
-from estimator.registration import distance, register, transform_points
+from estimator.registration import distance, register, register_shares, transform_points
 
 STYLES = style_table(4, rng=1)
 
@@ -169,3 +169,17 @@ def test_identical_binary_silhouettes_have_distance_zero(walkers):
     np.testing.assert_array_equal(np.diag(d), 0.0)
     off = d[~np.eye(len(d), dtype=bool)]
     assert (off > 0).all()
+
+
+def test_register_shares_is_register_at_each_share(walkers):
+    """One measurement per silhouette, placed at several hidden shares: the same canvases as
+    :func:`register` gives at each share (and an empty silhouette invalid at all of them)."""
+    sils = [*walkers.silhouettes[:5], np.zeros((40, 30), np.uint8)]
+    shares = (0.0, 0.1, 0.35)
+    out, valid = register_shares(sils, shares, top=9.5)
+    assert out.shape == (3, 6, 64, 48) and valid.tolist() == [True] * 5 + [False]
+    for k, f in enumerate(shares):
+        ref, tf = register(sils, hidden=f, top=9.5)
+        assert np.array_equal(out[k], ref) and np.array_equal(valid, tf.valid)
+    with pytest.raises(ValueError, match="hidden shares"):
+        register_shares(sils, (0.2, 1.0), top=9.5)
