@@ -15,7 +15,10 @@ are the same with or without one (``tests/test_pipeline.py``), up to the
 float32 rounding of eq. 8's matrix product, which depends on the batch it is
 computed in (a few 1e-4 pixels: it can only decide an exact tie). It is bound to
 one appearance model (given another, it starts again) and bounded: the least
-recently used silhouettes go first.
+recently used silhouettes go first. A camera whose walker is hidden below is
+matched with a model cut for it (:meth:`AppearanceModel.hidden_below`), whose
+registrations differ: :meth:`MatchCache.for_cut` keeps a smaller cache of its
+own for each of the last few cut models.
 """
 
 from __future__ import annotations
@@ -75,12 +78,15 @@ class MatchCache:
         it was compared at).
     """
 
+    max_cut_models = 4  # cut models with a cache of their own (for_cut), the least recently used dropped
+
     def __init__(self, max_entries: int = 4096) -> None:
         if max_entries < 1:
             raise ValueError(f"max_entries must be >= 1, got {max_entries}")
         self.max_entries = max_entries
         self._model: AppearanceModel | None = None
         self._entries: OrderedDict[bytes, _Entry] = OrderedDict()
+        self._cut: list[tuple[AppearanceModel, MatchCache]] = []  # (cut model, its cache), oldest first
         self.hits = self.misses = 0  # silhouettes found / not found (registration and eq. 8)
         self.derived_hits = self.derived_misses = 0  # the same for derived results (MatchCache.derived)
 
@@ -94,6 +100,21 @@ class MatchCache:
         h = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16)
         h.update(np.asarray(mask.shape, np.int64).tobytes())
         return h.digest()
+
+    def for_cut(self, model: AppearanceModel) -> MatchCache:
+        """The cache of ``model``, a model cut for a walker hidden below (the same object for each
+        share, :meth:`AppearanceModel.hidden_below`): a quarter of this one's size, one for each of
+        the last :attr:`max_cut_models` cut models asked for. Its keys and derived results are its
+        own: a camera matched with the cut model is cached there, never here."""
+        if model.hidden is None:
+            raise ValueError("for_cut takes a model cut for a walker hidden below")
+        for i, (cut, cache) in enumerate(self._cut):
+            if cut is model:
+                self._cut.append(self._cut.pop(i))
+                return cache
+        cache = MatchCache(max(1, self.max_entries // 4))
+        self._cut = [*self._cut, (model, cache)][-self.max_cut_models:]
+        return cache
 
     def _lookup(self, model: AppearanceModel, keys: Sequence[bytes]) -> list[_Entry | None]:
         if self._model is not model:  # bound to one model

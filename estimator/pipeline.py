@@ -987,6 +987,12 @@ def _camera_model(model: AppearanceModel, report: CleanupReport | None) -> Appea
     return model.hidden_below(report.hidden) if report is not None and report.hidden else model
 
 
+def _camera_cache(cache: MatchCache | None, model: AppearanceModel, whole: AppearanceModel) -> MatchCache | None:
+    """The cache a camera matched with ``model`` uses: ``cache`` for the ``whole`` model it is bound
+    to, or its cache for a cut model (:meth:`MatchCache.for_cut`)."""
+    return cache if cache is None or model is whole else cache.for_cut(model)
+
+
 def _matched(track: CameraTrack, model: AppearanceModel, cache: MatchCache | None,
              whole: AppearanceModel | None = None
              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, list[bytes] | None]:
@@ -1079,7 +1085,7 @@ def observe_cameras(
     out: dict[str, CameraObservation] = {}
     for name, track in tracks.items():
         model = _camera_model(whole, reports.get(name))
-        cache = whole_cache if model is whole else None  # a cache is bound to one model
+        cache = _camera_cache(whole_cache, model, whole)
         if exemplars is not None:
             exemplars = model.exemplars()
         T = len(track.silhouettes)
@@ -1157,11 +1163,12 @@ def refine_cameras(
         if o.registered is None or o.present.size == 0:
             continue
         c = o.estimate
-        index = _camera_model(model, c.cleanup).exemplars()  # a cut model's observation has no cache keys
-        vp, weight = _vote(_cloud_at_phases(index, by_phase, o.registered, states[o.present], config, cache, o.keys),
-                           len(o.present), c.cue, config, ahead=(sides or {}).get(name))
+        cam_model = _camera_model(model, c.cleanup)
+        index, cam_cache = cam_model.exemplars(), _camera_cache(cache, cam_model, model)
+        vp, weight = _vote(_cloud_at_phases(index, by_phase, o.registered, states[o.present], config, cam_cache,
+                                            o.keys), len(o.present), c.cue, config, ahead=(sides or {}).get(name))
         obs = np.full(len(states), np.nan)
-        ev = _phase_evidence(index, o.bits, vp, obs, o.present, config, cache, o.keys)
+        ev = _phase_evidence(index, o.bits, vp, obs, o.present, config, cam_cache, o.keys)
         out[name] = PhaseRefinement(vp, obs, ev, int(np.sum(weight < 0.5)))
     return out
 
@@ -1230,7 +1237,7 @@ def prime_cache(tracks: dict[str, CameraTrack], model: AppearanceModel, cache: M
     by_phase = _rows_by_phase(index) if states is not None else None
     looked = 0
     for name, track in tracks.items():
-        if name in reports and reports[name].hidden_by:  # matched with a cut model, without the cache
+        if name in reports and reports[name].hidden_by:  # matched with a cut model, its share searched at the close
             continue
         present, registered, d, keys = _matched(track, model, cache)
         if not present.size:

@@ -1,5 +1,7 @@
 """A walker hidden below (estimator.occlusion): a low wall in front, or the image's bottom edge."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -369,3 +371,35 @@ def test_a_walker_astride_the_end_of_a_wall_is_neither_behind_it_nor_whole():
     assert abs(edge_share(boxes, edge, whole=~edge & ~astride) - 0.3) < 1e-9  # 70 of 100 rows show
     assert edge_share(boxes, edge) < 0.25  # the astride frames counted as whole: a shorter walker
     assert not astride_edge(sils, boxes, np.zeros(15, bool)).any()
+
+
+def test_a_walker_behind_a_wall_is_matched_with_a_cache_of_the_cut_models_own(small_model):
+    """Overlapping windows of walkers behind a low wall, with a MatchCache: the estimates are those
+    without one, and the second window finds the frames it shares with the first in the cache of
+    the model cut at their share (:meth:`MatchCache.for_cut`), never in the whole model's."""
+    from estimator.matchcache import MatchCache
+    from estimator.windows import window_tracks
+
+    seq = synthesize(SynthSpec(n_cameras=2, n_frames=30, seed=5, azimuths=(60.0, 150.0), elevations=(10.0, 10.0),
+                               image_size=(320, 240)))
+    walled = tracks_from_sequence(Sequence(seq.fps, seq.cameras, seq.image_size,
+                                           damage_sequence(seq.silhouettes, "low_wall", seed=0), seq.truth))
+    cache = MatchCache()
+    for a in (0, 10):
+        tracks = window_tracks(walled, a, a + 20)
+        plain = estimate_walk(tracks, small_model)
+        shares = [plain.cameras[c].cleanup.hidden for c in seq.cameras]
+        assert all(s > 0 for s in shares), shares
+        cuts = [cache.for_cut(small_model.hidden_below(s)) for s in shares]
+        hits = [c.hits for c in cuts]
+        cached = estimate_walk(tracks, small_model, cache=cache)
+        assert json.dumps(cached.to_result(), default=str) == json.dumps(plain.to_result(), default=str)
+        if a:
+            assert all(c.hits - h >= 10 for c, h in zip(cuts, hits)), [c.hits - h for c, h in zip(cuts, hits)]
+            assert all(c.derived_hits > 0 for c in cuts)
+    # The viewpoint votes and phase evidence of the walled cameras are in the cut models' caches only
+    # (the whole model's holds the clean-up's scores of the same silhouettes).
+    assert not any(t[0] in ("phase", "cell") for e in cache._entries.values() for t in e.derived)
+    assert all(any(t[0] == "cell" for e in c._entries.values() for t in e.derived) for c in cuts)
+    with pytest.raises(ValueError, match="cut for a walker hidden below"):
+        cache.for_cut(small_model)
