@@ -34,7 +34,7 @@ import numpy as np
 from .appearance import AppearanceModel
 from .registration import distance
 
-__all__ = ["MatchCache", "Matched", "derived", "match"]
+__all__ = ["MatchCache", "Matched", "derived", "match", "means_distance"]
 
 
 @dataclass
@@ -164,12 +164,18 @@ def derived(cache: MatchCache | None, keys: Sequence[bytes] | None, n: int, tag:
     return cache.derived(keys, tag, compute)
 
 
+def means_distance(model: AppearanceModel, registered: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Eq. 8 distance of each registered silhouette to each of ``model``'s cluster means, (N, K)
+    float32; inf where not ``valid``."""
+    dist = np.full((len(registered), model.n_clusters), np.inf, np.float32)
+    if valid.any():
+        dist[valid] = distance(registered[valid], model.means)
+    return dist
+
+
 def _match_fresh(model: AppearanceModel, silhouettes: Sequence[np.ndarray]) -> Matched:
     registered, tf = model.register(list(silhouettes))
-    dist = np.full((len(registered), model.n_clusters), np.inf, np.float32)
-    if tf.valid.any():
-        dist[tf.valid] = distance(registered[tf.valid], model.means)
-    return Matched(registered, tf.valid.copy(), dist)
+    return Matched(registered, tf.valid.copy(), means_distance(model, registered, tf.valid))
 
 
 def match(model: AppearanceModel, silhouettes: Sequence[np.ndarray], cache: MatchCache | None = None) -> Matched:

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .cleanup import evenly_spaced
+from .registration import register_shares
 
 if TYPE_CHECKING:
     from .appearance import AppearanceModel
@@ -148,8 +149,6 @@ def hidden_fraction(model: AppearanceModel, silhouettes: Sequence[np.ndarray | N
     are scored in one call. Up to ``frames`` silhouettes, evenly spaced, are
     scored. Returns the fraction and the mean score of each.
     """
-    from .registration import register_shares
-
     sils = [s for s in silhouettes if s is not None]
     if not sils or not len(fractions):
         raise ValueError("hidden_fraction needs silhouettes and fractions")

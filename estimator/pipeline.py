@@ -41,9 +41,8 @@ from .exemplars import ExemplarIndex, pack
 from .gait import GaitModel, load_gait
 from .hmm import PhaseHMM, posterior, viterbi
 from .joints import JOINT_NAMES, N_JOINTS
-from .matchcache import Matched, MatchCache, derived, match
+from .matchcache import Matched, MatchCache, derived, match, means_distance
 from .occlusion import hidden_fraction, hidden_shares, whole_height
-from .registration import distance
 from .sequence import Sequence
 from .skeleton import FULL_JOINT_NAMES, BodyShape, forward_kinematics
 from .viewpoint import (FALL_MIN_ELEVATION_DEG, MotionCue, Viewpoint, azimuth_difference_deg, estimate_viewpoint,
@@ -811,10 +810,7 @@ def registered_walker_score(model: AppearanceModel, registered: np.ndarray, vali
     """:func:`walker_score` of silhouettes already registered with ``model`` ((N, h, w), 0/1; inf
     where not ``valid``): the share search of :func:`estimator.occlusion.hidden_fraction`
     registers each silhouette at every share at once."""
-    d = np.full((len(registered), model.n_clusters), np.inf, np.float32)
-    if valid.any():
-        d[valid] = distance(registered[valid], model.means)
-    return _nearest_member(model, registered, valid, d, top_clusters)
+    return _nearest_member(model, registered, valid, means_distance(model, registered, valid), top_clusters)
 
 
 def _nearest_member(model: AppearanceModel, registered: np.ndarray, valid: np.ndarray, means_distance: np.ndarray,
@@ -1105,8 +1101,8 @@ def observe_cameras(
         present, registered, d, keys = _matched(track, model, cache, whole)
         if present.size == 0:
             cam = CameraEstimate(_no_viewpoint(), cue, labels, np.full(T, np.nan), np.full((T, N_JOINTS, 2), np.nan),
-                                 cam_notes, reports.get(name))
-            out[name] = _set_aside(CameraObservation(cam, track, dist, present), "no silhouette in this window")
+                                 [*cam_notes, "no silhouette in this window"], reports.get(name))
+            out[name] = CameraObservation(cam, track, dist, present)
             continue
         dist[present] = d
         labels[present] = np.argmin(d, axis=1)
