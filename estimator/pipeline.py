@@ -105,6 +105,14 @@ class EstimateConfig:
         HMM's log-probability per frame. Only cameras whose two sides are at
         least 60 deg apart (``|cos azimuth| >= settle_min_cos``) are settled
         so: nearer the walker's side the fold costs little.
+    earlier_deg : float
+        Given the azimuths a fixed camera was found at over earlier windows
+        (``earlier``, the live service's smoothed viewpoints), a camera whose
+        mirror across the ahead/behind fold is within this of its earlier
+        azimuth, and its own viewpoint more than twice this away, takes the
+        earlier side unless the other cameras' phase prefers its own by
+        ``settle_margin`` (:func:`_settle_ahead_behind`); not when no other
+        camera is where its earlier windows put it (the walker turned).
     settle_few_frames : int
         A camera's size change over a few frames tells ahead from behind less
         surely than the other cameras' phase: on exact silhouettes, of cameras
@@ -155,6 +163,7 @@ class EstimateConfig:
     settle_margin: float = 0.5
     settle_min_cos: float = 0.5
     settle_few_frames: int = 10
+    earlier_deg: float = 30.0
     fall_min_elevation_deg: float = FALL_MIN_ELEVATION_DEG
     path_elevation: bool = True
     out_of_step: float = 0.2
@@ -1050,12 +1059,29 @@ def _few(config: EstimateConfig, camera: CameraEstimate) -> bool:
     return camera.cue is not None and camera.cue.n_frames < config.settle_few_frames
 
 
-def _settles(config: EstimateConfig, camera: CameraEstimate) -> bool:
+def _settles(config: EstimateConfig, camera: CameraEstimate, earlier: float | None = None) -> bool:
     """Whether a camera's ahead/behind may be open to the other cameras' phase (:func:`_settle_ahead_behind`):
-    its motion cue is contested, absent or rests on few frames (:func:`_few`)."""
+    its motion cue is contested, absent or rests on few frames (:func:`_few`), or the ``earlier``
+    windows put it on the other side (:func:`_against_earlier`)."""
     return (config.settle_ahead_behind and np.isfinite(camera.viewpoint.azimuth_deg)
-            and (_contested(camera) or _few(config, camera))
+            and (_contested(camera) or _few(config, camera) or _against_earlier(config, camera, earlier))
             and abs(np.cos(np.deg2rad(camera.viewpoint.azimuth_deg))) >= config.settle_min_cos)
+
+
+def _against_earlier(config: EstimateConfig, camera: CameraEstimate, earlier: float | None) -> bool:
+    """Whether a fixed camera's earlier windows found it (azimuth ``earlier``) on the other side of the
+    ahead/behind fold from this window's viewpoint: its mirror within ``config.earlier_deg`` of it,
+    its own side more than twice that away."""
+    if earlier is None or not np.isfinite(earlier):
+        return False
+    return (_az_diff(camera, earlier, mirrored=True) <= config.earlier_deg
+            and _az_diff(camera, earlier) > 2 * config.earlier_deg)
+
+
+def _az_diff(camera: CameraEstimate, azimuth: float, *, mirrored: bool = False) -> float:
+    """How far (deg) a camera's viewpoint, or its mirror across the ahead/behind fold, is from ``azimuth``."""
+    a = camera.viewpoint.azimuth_deg
+    return float(abs(azimuth_difference_deg(180.0 - a if mirrored else a, azimuth)))
 
 
 def observe_cameras(
@@ -1064,6 +1090,7 @@ def observe_cameras(
     *,
     config: EstimateConfig | None = None,
     cache: MatchCache | None = None,
+    earlier: dict[str, float] | None = None,
 ) -> dict[str, CameraObservation]:
     """Steps 1-3 for each camera on its own: clean-up, registration, match, viewpoint, phase evidence.
 
@@ -1124,7 +1151,7 @@ def observe_cameras(
         evidence = _phase_evidence(exemplars, bits, vp, obs, present, config, cache, keys)
         cam = CameraEstimate(vp, cue, labels, obs, np.full((T, N_JOINTS, 2), np.nan), cam_notes, reports.get(name))
         mirror = None
-        if _settles(config, cam):  # its other side, for the other cameras' phase to weigh
+        if _settles(config, cam, (earlier or {}).get(name)):  # its other side, for the other cameras' phase
             mirror_vp, mirror_obs = _mirrored(vp), np.full(T, np.nan)
             mirror = (mirror_vp, _phase_evidence(exemplars, bits, mirror_vp, mirror_obs, present, config, cache, keys),
                       mirror_obs)
@@ -1176,6 +1203,7 @@ def estimate_walk(
     config: EstimateConfig | None = None,
     gait: GaitModel | None = None,
     cache: MatchCache | None = None,
+    earlier: dict[str, float] | None = None,
 ) -> WalkEstimate:
     """Estimate phase per frame, 3D/2D joints and camera viewpoints for one window.
 
@@ -1202,8 +1230,8 @@ def estimate_walk(
     """
     config = config or EstimateConfig()
     estimable_frames(tracks)
-    observations = observe_cameras(tracks, model, config=config, cache=cache)
-    return decode_walk(observations, config=config, gait=gait, model=model,
+    observations = observe_cameras(tracks, model, config=config, cache=cache, earlier=earlier)
+    return decode_walk(observations, config=config, gait=gait, model=model, earlier=earlier,
                        refine=lambda states, sides: refine_cameras(observations, states, model, config=config,
                                                                    sides=sides, cache=cache))
 
@@ -1271,6 +1299,7 @@ def decode_walk(
     gait: GaitModel | None = None,
     model: AppearanceModel | None = None,
     refine: Callable[[np.ndarray, dict[str, bool]], dict[str, PhaseRefinement]] | None = None,
+    earlier: dict[str, float] | None = None,
 ) -> WalkEstimate:
     """Steps 4-6: the cameras joined: one phase path (§6), viewpoints again given it, joints.
 
@@ -1297,12 +1326,13 @@ def decode_walk(
         raise ValueError("no non-empty silhouette in the window")
     log_start, log_trans = _log_hmm(config.hmm)
     sides: dict[str, bool] = {}
+    held: set[str] = set()
     voted = {name: o for name, o in observations.items() if o.evidence is not None}  # exemplar path only
     if not exemplars:
         log_emission = config.hmm.log_emission(np.stack([c.observations for c in cams.values()], axis=1))
     else:
         if config.settle_ahead_behind:
-            sides = _settle_ahead_behind(voted, log_start, log_trans, T, config)
+            sides, held = _settle_ahead_behind(voted, log_start, log_trans, T, config, earlier or {})
         log_emission = np.zeros((T, n_phases))
         for o in voted.values():
             log_emission[o.present] -= o.evidence
@@ -1324,6 +1354,8 @@ def decode_walk(
                                "the model, or the viewpoint they point to, is an outlier of the window)")
         log_prob, states = viterbi(log_start, log_trans, log_emission)
     phase_posterior = posterior(log_start, log_trans, log_emission)
+    for name in held:  # on the side its earlier windows found: said so (the window alone found the other)
+        cams[name].viewpoint = replace(cams[name].viewpoint, flip="earlier")
 
     margin = 0.0
     if not exemplars and config.resolve_half_cycle:
@@ -1408,62 +1440,78 @@ def _contested(camera: CameraEstimate) -> bool:
 
 
 def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: np.ndarray, log_trans: np.ndarray,
-                         T: int, config: EstimateConfig) -> dict[str, bool]:
-    """Ahead/behind of the cameras whose motion cue is contested, absent or short, from the other cameras' phase.
+                         T: int, config: EstimateConfig, earlier: dict[str, float]
+                         ) -> tuple[dict[str, bool], set[str]]:
+    """Ahead/behind of the cameras whose motion cue is contested, absent or short, from the other cameras' phase,
+    and of those whose ``earlier`` windows found them on the other side.
 
     Seen from azimuth ``a`` or ``180 - a`` (in front of the walker or behind),
     a silhouette looks alike at phases half a cycle apart, so a camera on the
     wrong side of the fold sees the phase shifted by half a cycle. The cameras
     are synchronized and share one phase (§6): of the assignments of sides to
-    the contested cameras (a shadow cut at the feet makes the height and the
+    the open cameras (a shadow cut at the feet makes the height and the
     head disagree on whether the walker approaches; cropped input has no
     cue), the one whose summed phase evidence the HMM decodes most probably is
-    kept, if it beats the cues' own choice by ``config.settle_margin`` per
-    frame (each camera's other side was observed as its ``mirror``). Each
-    camera's ``evidence`` and viewpoint are updated in place;
-    returns the side (True: ahead) of every camera whose side was settled so,
-    for the later re-votes.
+    kept, if it beats the default by ``config.settle_margin`` per frame (each
+    camera's other side was observed as its ``mirror``). The default is the
+    cues' choice, and for a camera that a fixed rig's earlier windows found on
+    the other side of the fold (:func:`_against_earlier`), that side: a window
+    of 20 frames is less sure of it than the windows before (on the live
+    composite walks, about half of a window's errors over 30 deg were such
+    folds, docs/ROBUSTNESS.md, "The side the earlier windows found"). Each
+    camera's ``evidence`` and viewpoint are updated in place. Returns the
+    side (True: ahead) of every camera whose side was settled so, for the
+    later re-votes, and the cameras held on their earlier side.
     """
     names = [n for n, o in observations.items() if np.isfinite(o.estimate.viewpoint.azimuth_deg)]
+    against = {n for n in names if _against_earlier(config, observations[n].estimate, earlier.get(n))}
+    if not any(m in earlier and m not in against and _az_diff(observations[m].estimate, earlier[m]) <= config.earlier_deg
+               for m in names):
+        against = set()  # no camera where its earlier windows put it: the walker turned, or the rig moved
 
     def is_open(n: str) -> bool:  # a cue on few frames yields only to a camera that saw more
         o = observations[n]
-        return o.mirror is not None and (_contested(o.estimate) or any(
+        return o.mirror is not None and (_contested(o.estimate) or n in against or _few(config, o.estimate) and any(
             observations[m].present.size >= config.settle_few_frames for m in names if m != n))
 
     contested = [n for n in names if is_open(n)][:8]  # 2^8 decodes at most
     if len(names) < 2 or not contested:
-        return {}
+        return {}, set()
+    default = tuple(int(n in against) for n in contested)
     other = np.zeros((T, len(log_start)))
     for n in names:
         if n not in contested:
             other[observations[n].present] -= observations[n].evidence
-    best, best_lp, kept_lp = None, -np.inf, -np.inf
+    best, best_lp, default_lp = default, -np.inf, -np.inf
     for choice in np.ndindex(*(2,) * len(contested)):
         total = other.copy()
         for n, flip in zip(contested, choice):
             o = observations[n]
             total[o.present] -= o.mirror[1] if flip else o.evidence
         lp = viterbi(log_start, log_trans, total)[0]
-        if not any(choice):
-            kept_lp = lp
+        if choice == default:
+            default_lp = lp
         if lp > best_lp:
             best, best_lp = choice, lp
-    if best is None or not any(best) or best_lp - kept_lp <= config.settle_margin * T:
-        return {}
-    sides = {}
-    for n, flip in zip(contested, best):
-        if flip:
-            o = observations[n]
-            c = o.estimate
-            c.viewpoint, o.evidence, c.observations = o.mirror
-            sides[n] = bool(np.cos(np.deg2rad(c.viewpoint.azimuth_deg)) >= 0)
-            why = ("absent" if c.cue is None else "contested" if _contested(c)
-                   else f"measured on {c.cue.n_frames} frames only")
-            c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was {why}; "
-                           f"log-probability "
-                           f"{best_lp - kept_lp:.1f} better over {T} frames)")
-    return sides
+    by_phase = best != default and best_lp - default_lp > config.settle_margin * T
+    chosen = best if by_phase else default
+    sides, held = {}, set()
+    for n, flip in zip(contested, chosen):
+        if not flip:
+            continue
+        o = observations[n]
+        c = o.estimate
+        c.viewpoint, o.evidence, c.observations = o.mirror
+        sides[n] = bool(np.cos(np.deg2rad(c.viewpoint.azimuth_deg)) >= 0)
+        if not by_phase or n in against:
+            held.add(n)
+            c.notes.append(f"ahead/behind: on the side this camera's earlier windows found ({earlier[n]:.0f} deg), "
+                           "against this window's motion cue, which the other cameras' phase does not back")
+            continue
+        why = "absent" if c.cue is None else "contested" if _contested(c) else f"measured on {c.cue.n_frames} frames only"
+        c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was {why}; "
+                       f"log-probability {best_lp - default_lp:.1f} better over {T} frames)")
+    return sides, held
 
 
 def _resolve_half_cycle(

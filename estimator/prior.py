@@ -508,7 +508,7 @@ def trust_test(agreement: np.ndarray, *, spread_deg: float, flip: str, flip_marg
     median = _median(agreement if window is None else np.asarray(window, float))
     if not spread_deg <= config.max_spread_deg:
         reason = f"viewpoint spread {spread_deg:.0f} deg > {config.max_spread_deg:.0f}"
-    elif flip not in ("motion", "cameras") and not flip_margin >= config.min_flip_margin:
+    elif flip not in ("motion", "cameras", "earlier") and not flip_margin >= config.min_flip_margin:
         reason = f"ahead/behind undecided (margin {flip_margin:.2f} < {config.min_flip_margin:.2f})"
     elif not median >= config.min_window_agreement:
         reason = f"model and silhouettes disagree (median IoU {median:.2f} < {config.min_window_agreement:.2f})"

@@ -387,7 +387,9 @@ class Viewpoint:
     flip : str
         How the ahead/behind ambiguity was settled: ``"motion"`` (by the motion
         cue), ``"cameras"`` (by the phase the other cameras see, when this
-        camera's cue was contested or absent), ``"majority"`` (no motion cue:
+        camera's cue was contested or absent), ``"earlier"`` (the side a fixed
+        camera's earlier windows found, :func:`estimator.pipeline.decode_walk`;
+        this window alone found its mirror), ``"majority"`` (no motion cue:
         the larger mode) or ``"none"`` (the cloud had one clear mode, or a cue
         too weak to decide).
     flip_margin : float

@@ -30,7 +30,8 @@ from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, 
 from .rig import RigConfig, attach_rig, calibrate_rig
 from .viewpoint import azimuth_difference_deg, circular_mean_deg
 
-__all__ = ["Segment", "SegmentedWalk", "ViewpointTrack", "segment_walk", "window_starts", "window_tracks"]
+__all__ = ["Segment", "SegmentedWalk", "ViewpointTrack", "earlier_azimuths", "own_azimuth", "segment_walk", "window_starts",
+           "window_tracks"]
 
 
 def _view_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
@@ -103,6 +104,21 @@ class ViewpointTrack:
                 "elevation_deg": None if v is None else round(v[1], 3),
                 "windows": self.n, "pending_outliers": len(self.pending),
                 "outliers": self.outliers, "changes": list(self.changes)}
+
+
+def earlier_azimuths(tracks: dict[str, ViewpointTrack], least: int) -> dict[str, float] | None:
+    """Each camera's smoothed azimuth where it rests on ``least`` windows or more (0: none), the
+    ``earlier`` of :func:`estimator.pipeline.decode_walk` for the next window of a fixed rig."""
+    if least < 1:
+        return None
+    return {cam: t.value[0] for cam, t in tracks.items() if t.value is not None and t.n >= least} or None
+
+
+def own_azimuth(azimuth: float | None, flip: str | None) -> float | None:
+    """The azimuth a window found for a camera by itself: the mirror across the ahead/behind fold of
+    a viewpoint held on its earlier side (``flip`` ``"earlier"``). The smoothing is fed this, so that
+    it never feeds on its own hold and a smoothed value on the wrong side is still outvoted."""
+    return (180.0 - azimuth) % 360.0 if azimuth is not None and flip == "earlier" else azimuth
 
 
 def window_starts(n_frames: int, length: int, hop: int) -> np.ndarray:

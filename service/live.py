@@ -65,7 +65,7 @@ from capture.wire import Box, FeedbackMessage, Quality, SilhouetteMessage, encod
 from capture.refine import track_from_segmentations
 from estimator.joints import N_JOINTS
 from estimator.pipeline import CameraTrack
-from estimator.windows import ViewpointTrack
+from estimator.windows import ViewpointTrack, earlier_azimuths, own_azimuth
 
 from .metrics import Metrics
 from .replicas import Replicas
@@ -870,6 +870,7 @@ class LiveService:
             if rig is None:  # forgotten or handed over while it waited
                 return
             moves = rig.moves()
+            earlier = earlier_azimuths(rig.tracks, self.settings.fold_windows)
         cams = _cameras(w.frames)
         other = _others(w.frames, cams, moves)
         built = self._tracks(w, cams, other)
@@ -887,7 +888,8 @@ class LiveService:
         try:
             result, bundle, seconds, est = estimate_window(self.pool, w.rig, tracks, w.indices, sizes,
                                                            bundle_from=bundle_from,
-                                                           in_flight=self.settings.live_workers)
+                                                           in_flight=self.settings.live_workers,
+                                                           earlier=earlier)
         except ValueError as exc:  # nothing estimable (e.g. no silhouette matched)
             log.info("window %s/%d not estimated: %s", w.rig, w.seq, exc)
             self._count(w, "skipped")
@@ -905,8 +907,8 @@ class LiveService:
                         threshold_deg=self.settings.change_threshold_deg,
                         confirm=self.settings.change_windows, settle=self.settings.change_windows)
                 # A revision leaves the smoothing as it is (its first estimate went in: docs/SERVICE.md).
-                smoothed[cam] = track.state() if revised else track.update(c["azimuth_deg"], c["elevation_deg"],
-                                                                           w.indices[-1])
+                smoothed[cam] = track.state() if revised else track.update(
+                    own_azimuth(c["azimuth_deg"], c["flip"]), c["elevation_deg"], w.indices[-1])
             if not revised and (rig.before is None or w.seq > rig.before.seq):  # windows may finish out of order
                 rig.before = WindowBefore.of(w.seq, w.indices, est)
             # A move of an agent's look back heard while this was estimated may have more frames to leave out.

@@ -453,14 +453,15 @@ _STALE_OBSERVED = 4  # kept beyond the windows in flight
 _window_ids = itertools.count()
 
 
-def observe_part(key: str, tracks: dict[str, CameraTrack], *, clouds: bool = False, in_flight: int = 2
+def observe_part(key: str, tracks: dict[str, CameraTrack], *, clouds: bool = False, in_flight: int = 2,
+                 earlier: dict[str, float] | None = None
                  ) -> tuple[dict[str, CameraObservation], dict[str, np.ndarray] | None]:
     """A live window's first stage for some of its cameras, in a worker: their light
     observations (:func:`~estimator.pipeline.observe_cameras`), and their viewpoint clouds
     for Rerun if asked; the registered silhouettes stay here under ``key`` (with those of
     at most ``in_flight`` other windows, and a few whose refine never came)."""
     model = _get_model()
-    observed = observe_cameras(tracks, model, cache=_match_cache)
+    observed = observe_cameras(tracks, model, cache=_match_cache, earlier=earlier)
     _observed[key] = observed
     while len(_observed) > in_flight + _STALE_OBSERVED:
         _observed.popitem(last=False)
@@ -566,7 +567,7 @@ def match_cache_stats() -> dict[str, int]:
 
 def estimate_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack], indices: list[int],
                     image_size: dict[str, tuple[int, int]], *, bundle_from: int | None = None,
-                    in_flight: int = 2, timeout_s: float = 60.0
+                    in_flight: int = 2, timeout_s: float = 60.0, earlier: dict[str, float] | None = None
                     ) -> tuple[dict, StageBundle | None, float, WalkEstimate]:
     """Estimate one live window with its cameras split over ``pools``: ``(result, bundle, seconds,
     estimate)``. Runs in the calling thread, the work in the pools.
@@ -578,7 +579,9 @@ def estimate_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack]
     decodes again; the estimate is :func:`~estimator.pipeline.estimate_walk`'s.
     A camera's process is fixed by its place among ``tracks`` (sorted names)
     and the ``rig``'s name; ``in_flight`` is how many windows the caller may
-    estimate at once. The bundle is None unless ``bundle_from`` is given.
+    estimate at once; ``earlier`` holds the cameras' azimuths found over the rig's
+    earlier windows (:func:`~estimator.pipeline.decode_walk`). The bundle is None
+    unless ``bundle_from`` is given.
     ValueError: nothing estimable.
     """
     t0 = time.perf_counter()
@@ -587,7 +590,7 @@ def estimate_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack]
     key = f"{rig}/{next(_window_ids)}"
     shares = camera_shares(names, rig, len(pools))
     observing = {k: pools.submit_to(k, observe_part, key, {n: tracks[n] for n in share},
-                                    clouds=bundle_from is not None, in_flight=in_flight)
+                                    clouds=bundle_from is not None, in_flight=in_flight, earlier=earlier)
                  for k, share in shares.items()}
     light: dict[str, CameraObservation] = {}
     clouds: dict[str, np.ndarray] = {}
@@ -600,7 +603,7 @@ def estimate_window(pools: PinnedPools, rig: str, tracks: dict[str, CameraTrack]
         futures = [pools.submit_to(k, refine_part, key, states, sides) for k in shares]
         return {n: r for f in futures for n, r in f.result(timeout=timeout_s).items()}
 
-    est = decode_walk({n: light[n] for n in names}, refine=refine)
+    est = decode_walk({n: light[n] for n in names}, refine=refine, earlier=earlier)
     result = json_safe(est.to_result(first_index=indices[0]))
     for frame, index in zip(result["frames"], indices):
         frame["index"] = int(index)

@@ -15,10 +15,10 @@ from estimator.matchcache import MatchCache
 from estimator.pipeline import estimate_walk, tracks_from_sequence
 from estimator.sequence import Sequence
 from estimator.synth import SynthSpec, synthesize
-from estimator.windows import window_tracks
+from estimator.windows import ViewpointTrack, earlier_azimuths, own_azimuth, window_tracks
 from service.worker import (WindowBefore, camera_shares, estimate_window, json_safe, make_pinned_pools,
                             match_cache_stats, warm_window)
-from test_pipeline import contested_shadow_walk
+from test_pipeline import contested_shadow_walk, out_of_step_walk
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +53,35 @@ def test_a_window_split_over_two_processes_is_the_one_process_estimate(pools, sm
     assert all(est.tracks[c].cut.sum() == alone.tracks[c].cut.sum() > 0 for c in tracks)  # the cleaned tracks
     assert sorted(bundle.clouds) == sorted(tracks) and all(len(v) for v in bundle.clouds.values())
     assert seconds > 0
+
+
+def test_the_side_earlier_windows_found_crosses_the_processes(pools, small_model):
+    """A camera held on the side its earlier windows found (its mirror observed where it is
+    observed, the side settled where the HMM joins them): the same as in one process."""
+    tracks = out_of_step_walk(7)
+    earlier = {"c0": 150.0, "c1": 110.0, "c2": 250.0}
+    expected = json_safe(estimate_walk(tracks, small_model, earlier=earlier).to_result())
+    for frame, index in zip(expected["frames"], range(24)):
+        frame["index"] = index
+    result, *_ = estimate_window(pools, "held", tracks, list(range(24)), {c: (320, 240) for c in tracks},
+                                 earlier=earlier)
+    assert result["cameras"]["c0"]["flip"] == "earlier"
+    _same(result, expected)
+
+
+def test_the_smoothing_is_fed_the_side_each_window_found_by_itself():
+    """A window held on its earlier side is smoothed as what it found by itself, so that a smoothed
+    viewpoint on the wrong side is still outvoted (the hold never feeds on itself)."""
+    track = ViewpointTrack(threshold_deg=30.0, confirm=3, settle=3)
+    for k in range(3):
+        track.update(150.0, 10.0, k)
+    assert own_azimuth(150.0, "earlier") == 30.0 and own_azimuth(150.0, "motion") == 150.0
+    assert own_azimuth(None, "earlier") is None
+    assert earlier_azimuths({"c0": track}, 2) == {"c0": 150.0} and earlier_azimuths({"c0": track}, 4) is None
+    assert earlier_azimuths({"c0": track}, 0) is None
+    for k in range(3, 6):
+        state = track.update(own_azimuth(150.0, "earlier"), 10.0, k)
+    assert abs(state["azimuth_deg"] - 30.0) < 1e-6 and len(state["changes"]) == 1
 
 
 def test_each_camera_stays_in_its_process_so_overlapping_windows_are_matched_once(pools, small_model):

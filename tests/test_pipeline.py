@@ -419,3 +419,34 @@ def test_a_camera_seen_on_few_frames_takes_the_side_the_other_cameras_phase_agre
                                shape=BodyShape(girth=0.85)))
     c1 = estimate_walk(tracks_from_sequence(seq), small_model).cameras["c1"]
     assert c1.viewpoint.flip == "motion" and az_error(c1.viewpoint.azimuth_deg, 30.0) < 25, c1.viewpoint
+
+
+def out_of_step_walk(shift: int) -> dict[str, CameraTrack]:
+    """Three cameras (30, 110 and 250 deg) on 24 frames, the first one's ``shift`` frames later than
+    the others' (7: half a gait cycle, so its phase says the mirror of what its motion cue says)."""
+    seq = synthesize(SynthSpec(n_cameras=3, n_frames=40, seed=4, azimuths=(30.0, 110.0, 250.0),
+                               elevations=(5.0, 10.0, 15.0), image_size=(320, 240)))
+    return {c: CameraTrack(t.silhouettes[k:k + 24], t.boxes[k:k + 24], t.full_frame, t.image_size)
+            for (c, t), k in zip(tracks_from_sequence(seq).items(), (shift, 0, 0))}
+
+
+def test_a_camera_keeps_the_side_its_earlier_windows_found_unless_the_others_phase_objects(small_model):
+    """A fixed camera's earlier windows are evidence of its ahead/behind (``earlier``, the live service's
+    smoothed viewpoints). The first camera's frames half a gait cycle later than the others', on 24
+    frames: its motion cue says 30 deg, the others' phase its mirror, 150. Earlier windows at 150 take
+    it there, with a note; at 30, or with the walker turned (no camera where its earlier windows put
+    it), the cue stands; in step with the others, earlier windows at 150 are not followed (their phase
+    objects)."""
+    def c0(shift: int, earlier: dict[str, float] | None):
+        return estimate_walk(out_of_step_walk(shift), small_model, earlier=earlier).cameras["c0"]
+
+    rest = {"c1": 110.0, "c2": 250.0}
+    held = c0(7, {"c0": 150.0, **rest})
+    assert held.viewpoint.flip == "earlier" and az_error(held.viewpoint.azimuth_deg, 150.0) < 25, held.viewpoint
+    assert any("earlier windows found (150 deg)" in n for n in held.notes), held.notes
+    turned = {"c0": 150.0, "c1": 290.0, "c2": 70.0}
+    for earlier in (None, {"c0": 30.0, **rest}, turned):
+        cue = c0(7, earlier)
+        assert cue.viewpoint.flip == "motion" and az_error(cue.viewpoint.azimuth_deg, 30.0) < 25, (earlier, cue.viewpoint)
+    in_step = c0(0, {"c0": 150.0, **rest})
+    assert az_error(in_step.viewpoint.azimuth_deg, 30.0) < 25, in_step.viewpoint
