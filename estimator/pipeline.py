@@ -1465,8 +1465,8 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
     """
     names = [n for n, o in observations.items() if np.isfinite(o.estimate.viewpoint.azimuth_deg)]
     against = {n for n in names if _against_earlier(config, observations[n].estimate, earlier.get(n))}
-    if not any(m in earlier and m not in against and _az_diff(observations[m].estimate, earlier[m]) <= config.earlier_deg
-               for m in names):
+    if not any(m in earlier and m not in against
+               and _az_diff(observations[m].estimate, earlier[m]) <= config.earlier_deg for m in names):
         against = set()  # no camera where its earlier windows put it: the walker turned, or the rig moved
 
     def is_open(n: str) -> bool:  # a cue on few frames yields only to a camera that saw more
@@ -1508,7 +1508,8 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
             c.notes.append(f"ahead/behind: on the side this camera's earlier windows found ({earlier[n]:.0f} deg), "
                            "against this window's motion cue, which the other cameras' phase does not back")
             continue
-        why = "absent" if c.cue is None else "contested" if _contested(c) else f"measured on {c.cue.n_frames} frames only"
+        why = ("absent" if c.cue is None else "contested" if _contested(c)
+               else f"measured on {c.cue.n_frames} frames only")
         c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was {why}; "
                        f"log-probability {best_lp - default_lp:.1f} better over {T} frames)")
     return sides, held

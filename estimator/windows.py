@@ -30,8 +30,8 @@ from .pipeline import CameraTrack, EstimateConfig, WalkEstimate, estimate_walk, 
 from .rig import RigConfig, attach_rig, calibrate_rig
 from .viewpoint import azimuth_difference_deg, circular_mean_deg
 
-__all__ = ["Segment", "SegmentedWalk", "ViewpointTrack", "earlier_azimuths", "own_azimuth", "segment_walk", "window_starts",
-           "window_tracks"]
+__all__ = ["Segment", "SegmentedWalk", "ViewpointTrack", "earlier_azimuths", "own_azimuth", "segment_walk",
+           "window_starts", "window_tracks"]
 
 
 def _view_distance(a: tuple[float, float], b: tuple[float, float]) -> float:

@@ -447,6 +447,7 @@ def test_a_camera_keeps_the_side_its_earlier_windows_found_unless_the_others_pha
     turned = {"c0": 150.0, "c1": 290.0, "c2": 70.0}
     for earlier in (None, {"c0": 30.0, **rest}, turned):
         cue = c0(7, earlier)
-        assert cue.viewpoint.flip == "motion" and az_error(cue.viewpoint.azimuth_deg, 30.0) < 25, (earlier, cue.viewpoint)
+        assert cue.viewpoint.flip == "motion" and az_error(cue.viewpoint.azimuth_deg, 30.0) < 25, (earlier,
+                                                                                                  cue.viewpoint)
     in_step = c0(0, {"c0": 150.0, **rest})
     assert az_error(in_step.viewpoint.azimuth_deg, 30.0) < 25, in_step.viewpoint
