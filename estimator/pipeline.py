@@ -111,8 +111,9 @@ class EstimateConfig:
         mirror across the ahead/behind fold is within this of its earlier
         azimuth, and its own viewpoint more than twice this away, takes the
         earlier side unless the other cameras' phase prefers its own by
-        ``settle_margin`` (:func:`_settle_ahead_behind`); not when no other
-        camera is where its earlier windows put it (the walker turned).
+        ``settle_margin`` (:func:`_settle_ahead_behind`); only while another
+        camera, away from the walking axis, is where its earlier windows put
+        it (:func:`_witness`: else the walker may have turned).
     settle_few_frames : int
         A camera's size change over a few frames tells ahead from behind less
         surely than the other cameras' phase: on exact silhouettes, of cameras
@@ -1078,6 +1079,15 @@ def _against_earlier(config: EstimateConfig, camera: CameraEstimate, earlier: fl
             and _az_diff(camera, earlier) > 2 * config.earlier_deg)
 
 
+def _witness(config: EstimateConfig, camera: CameraEstimate, earlier: float | None) -> bool:
+    """Whether a camera tells that the walker keeps the heading of the earlier windows: it is within
+    ``config.earlier_deg`` of where they found it, and that is more than as far from the walking axis.
+    Near the axis a turn and the fold look alike (``a + 180`` against ``180 - a``): two such cameras,
+    one folded, once held the other to the heading before a turn."""
+    return (earlier is not None and np.isfinite(earlier) and _az_diff(camera, earlier) <= config.earlier_deg
+            and abs(np.sin(np.deg2rad(earlier))) > np.sin(np.deg2rad(config.earlier_deg)))
+
+
 def _az_diff(camera: CameraEstimate, azimuth: float, *, mirrored: bool = False) -> float:
     """How far (deg) a camera's viewpoint, or its mirror across the ahead/behind fold, is from ``azimuth``."""
     a = camera.viewpoint.azimuth_deg
@@ -1465,9 +1475,8 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
     """
     names = [n for n, o in observations.items() if np.isfinite(o.estimate.viewpoint.azimuth_deg)]
     against = {n for n in names if _against_earlier(config, observations[n].estimate, earlier.get(n))}
-    if not any(m in earlier and m not in against
-               and _az_diff(observations[m].estimate, earlier[m]) <= config.earlier_deg for m in names):
-        against = set()  # no camera where its earlier windows put it: the walker turned, or the rig moved
+    if not any(_witness(config, observations[m].estimate, earlier.get(m)) for m in names if m not in against):
+        against = set()  # no camera tells that the walker did not turn (or the rig move)
 
     def is_open(n: str) -> bool:  # a cue on few frames yields only to a camera that saw more
         o = observations[n]

@@ -59,6 +59,7 @@ class ViewpointTrack:
         self.threshold, self.confirm, self.memory, self.settle = threshold_deg, confirm, memory, settle
         self.value: tuple[float, float] | None = None
         self.n = 0
+        self.streak = 0  # the last windows in a row that agree with the value
         self.pending: list[tuple[float, float, int]] = []
         self.changes: list[dict[str, Any]] = []
         self.outliers = 0
@@ -71,16 +72,18 @@ class ViewpointTrack:
 
     def _update(self, az: float, el: float, index: int) -> None:
         if self.value is None:
-            self.value, self.n = (az, el), 1
+            self.value, self.n, self.streak = (az, el), 1, 1
             return
         if _view_distance((az, el), self.value) <= self.threshold:
             self.pending.clear()
             self.n = min(self.n + 1, self.memory)
+            self.streak += 1
             a = 1.0 / self.n
             self.value = ((self.value[0] + a * float(azimuth_difference_deg(az, self.value[0]))) % 360.0,
                           self.value[1] + a * (el - self.value[1]))
             return
         self.outliers += 1
+        self.streak = 0
         self.pending.append((az, el, index))
         outvoted = self.n < self.settle and len(self.pending) > self.n  # a young value, more windows against it
         if len(self.pending) < self.confirm and not outvoted:
@@ -94,6 +97,7 @@ class ViewpointTrack:
                                      "from": [round(v, 2) for v in self.value],
                                      "to": [round(v, 2) for v in new]})
             self.value, self.n = new, len(self.pending)
+            self.streak = self.n
             self.pending.clear()
         else:
             self.pending = self.pending[-(self.confirm - 1):] if self.confirm > 1 else []
@@ -107,11 +111,14 @@ class ViewpointTrack:
 
 
 def earlier_azimuths(tracks: dict[str, ViewpointTrack], least: int) -> dict[str, float] | None:
-    """Each camera's smoothed azimuth where it rests on ``least`` windows or more (0: none), the
-    ``earlier`` of :func:`estimator.pipeline.decode_walk` for the next window of a fixed rig."""
+    """Each camera's smoothed azimuth where its last ``least`` windows in a row agreed with it (0: none),
+    the ``earlier`` of :func:`estimator.pipeline.decode_walk` for the next window of a fixed rig. A
+    camera with an outlier among its last windows may be changing (the walker turned): on walks up and
+    down a walkway, stale values met again after the second turn once held a camera to the heading in
+    between (``bench/eval_live_replay.py --synthetic 20 --turn 180``)."""
     if least < 1:
         return None
-    return {cam: t.value[0] for cam, t in tracks.items() if t.value is not None and t.n >= least} or None
+    return {cam: t.value[0] for cam, t in tracks.items() if t.value is not None and t.streak >= least} or None
 
 
 def own_azimuth(azimuth: float | None, flip: str | None) -> float | None:

@@ -138,8 +138,8 @@ class Settings(BaseSettings):
                                 "outliers mean the camera moved or the walker turned (a batch "
                                 "job starts a new segment there); live, not while the smoothed "
                                 "viewpoint rests on fewer windows (a bad start, not a move)")
-    fold_windows: int = Field(2, ge=0, description="live: a camera whose smoothed viewpoint rests on at "
-                              "least this many windows keeps that side of the ahead/behind fold in a window "
+    fold_windows: int = Field(2, ge=0, description="live: a camera whose last this many windows agreed "
+                              "with its smoothed viewpoint keeps that side of the ahead/behind fold in a window "
                               "that finds it on the other, unless the other cameras' phase says otherwise "
                               "(0: off; docs/ROBUSTNESS.md, \"The side the earlier windows found\")")
     # live: what a message must be to be believed (docs/SERVICE.md, "Limits and refusals")

@@ -79,6 +79,12 @@ def test_the_smoothing_is_fed_the_side_each_window_found_by_itself():
     assert own_azimuth(None, "earlier") is None
     assert earlier_azimuths({"c0": track}, 2) == {"c0": 150.0} and earlier_azimuths({"c0": track}, 4) is None
     assert earlier_azimuths({"c0": track}, 0) is None
+    outlier = ViewpointTrack(threshold_deg=30.0, confirm=3, settle=3)
+    for k, az in enumerate((150.0, 152.0, 30.0, 151.0)):  # an outlier among the last two: no earlier side
+        outlier.update(az, 10.0, k)
+    assert earlier_azimuths({"c0": outlier}, 2) is None and earlier_azimuths({"c0": outlier}, 1) is not None
+    outlier.update(149.0, 10.0, 4)
+    assert earlier_azimuths({"c0": outlier}, 2) == {"c0": outlier.value[0]}
     for k in range(3, 6):
         state = track.update(own_azimuth(150.0, "earlier"), 10.0, k)
     assert abs(state["azimuth_deg"] - 30.0) < 1e-6 and len(state["changes"]) == 1
