@@ -1108,6 +1108,8 @@ def observe_cameras(
     a window's cameras can be observed apart (in other processes) and the
     observations joined by :func:`decode_walk`; :func:`estimate_walk` is the
     two in one process. Tracks must have one length (not checked here).
+    ``earlier`` (:func:`estimate_walk`) marks the cameras whose other side is
+    observed too, for :func:`decode_walk` to weigh.
     """
     config = config or EstimateConfig()
     exemplars = model.exemplars() if config.method == "exemplars" else None
@@ -1232,6 +1234,11 @@ def estimate_walk(
         Registrations and matches of silhouettes seen before (overlapping live
         windows); the estimate is the same with or without (up to float32
         rounding, :mod:`estimator.matchcache`).
+    earlier : dict of str to float, optional
+        Each fixed camera's azimuth over the rig's earlier windows
+        (:func:`estimator.windows.earlier_azimuths`): the side of the
+        ahead/behind fold it keeps unless the other cameras' phase objects
+        (``EstimateConfig.earlier_deg``; exemplar path only).
 
     Raises
     ------
@@ -1318,7 +1325,9 @@ def decode_walk(
     decoded states and settled sides to :func:`refine_cameras`'s result for
     every camera, wherever their registered silhouettes are (needed with
     ``config.phase_refine``). ``model`` is needed on the paper's path only.
-    The observations' estimates are updated in place.
+    ``earlier`` is :func:`estimate_walk`'s, given to :func:`observe_cameras`
+    too (which observes the other side of the cameras it may hold). The
+    observations' estimates are updated in place.
     """
     config = config or EstimateConfig()
     gait = gait or load_gait()
@@ -1478,49 +1487,60 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
     if not any(_witness(config, observations[m].estimate, earlier.get(m)) for m in names if m not in against):
         against = set()  # no camera tells that the walker did not turn (or the rig move)
 
-    def is_open(n: str) -> bool:  # a cue on few frames yields only to a camera that saw more
+    def is_open(n: str, held: bool = True) -> bool:  # a cue on few frames yields only to a camera that saw more
         o = observations[n]
-        return o.mirror is not None and (_contested(o.estimate) or n in against or _few(config, o.estimate) and any(
-            observations[m].present.size >= config.settle_few_frames for m in names if m != n))
+        return o.mirror is not None and (_contested(o.estimate) or held and n in against or _few(config, o.estimate)
+                                         and any(observations[m].present.size >= config.settle_few_frames
+                                                 for m in names if m != n))
 
-    contested = [n for n in names if is_open(n)][:8]  # 2^8 decodes at most
+    # 2^8 decodes at most; the cameras the earlier windows hold first
+    contested = sorted((n for n in names if is_open(n)), key=lambda n: n not in against)[:8]
     if len(names) < 2 or not contested:
         return {}, set()
+    alone_open = np.array([is_open(n, held=False) for n in contested])
+    best = {}  # the best choice and its log-probability, with the earlier windows (True) and without
+    default_lp = zeros_lp = -np.inf
     default = tuple(int(n in against) for n in contested)
     other = np.zeros((T, len(log_start)))
     for n in names:
         if n not in contested:
             other[observations[n].present] -= observations[n].evidence
-    best, best_lp, default_lp = default, -np.inf, -np.inf
     for choice in np.ndindex(*(2,) * len(contested)):
         total = other.copy()
         for n, flip in zip(contested, choice):
             o = observations[n]
             total[o.present] -= o.mirror[1] if flip else o.evidence
         lp = viterbi(log_start, log_trans, total)[0]
-        if choice == default:
-            default_lp = lp
-        if lp > best_lp:
-            best, best_lp = choice, lp
-    by_phase = best != default and best_lp - default_lp > config.settle_margin * T
-    chosen = best if by_phase else default
+        default_lp = lp if choice == default else default_lp
+        zeros_lp = lp if not any(choice) else zeros_lp
+        for with_earlier in (True, False):
+            if (with_earlier or not np.any(np.array(choice, bool) & ~alone_open)) and lp > best.get(with_earlier,
+                                                                                                    (None, -np.inf))[1]:
+                best[with_earlier] = (choice, lp)
+
+    def decided(with_earlier: bool, start: tuple, start_lp: float) -> tuple[tuple, float]:
+        choice, lp = best[with_earlier]
+        return (choice, lp - start_lp) if choice != start and lp - start_lp > config.settle_margin * T else (start, 0.0)
+
+    chosen, gain = decided(True, default, default_lp)
+    alone, alone_gain = decided(False, (0,) * len(contested), zeros_lp)  # the window's own choice
     sides, held = {}, set()
-    for n, flip in zip(contested, chosen):
+    for n, flip, own in zip(contested, chosen, alone):
         if not flip:
             continue
         o = observations[n]
         c = o.estimate
         c.viewpoint, o.evidence, c.observations = o.mirror
         sides[n] = bool(np.cos(np.deg2rad(c.viewpoint.azimuth_deg)) >= 0)
-        if not by_phase or n in against:
+        if n in against and not own:  # the earlier windows decided it: alone, the window keeps the other side
             held.add(n)
-            c.notes.append(f"ahead/behind: on the side this camera's earlier windows found ({earlier[n]:.0f} deg), "
-                           "against this window's motion cue, which the other cameras' phase does not back")
+            c.notes.append(f"ahead/behind: on the side this camera's earlier windows found ({earlier[n] % 360:.0f} "
+                           "deg), where this window alone found the other; the other cameras' phase does not object")
             continue
-        why = ("absent" if c.cue is None else "contested" if _contested(c)
-               else f"measured on {c.cue.n_frames} frames only")
-        c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue was {why}; "
-                       f"log-probability {best_lp - default_lp:.1f} better over {T} frames)")
+        why = ("was absent" if c.cue is None else "was contested" if _contested(c)
+               else f"was measured on {c.cue.n_frames} frames only" if _few(config, c) else "said the other side")
+        c.notes.append(f"ahead/behind settled by the other cameras' phase (the motion cue {why}; "
+                       f"log-probability {alone_gain if own else gain:.1f} better over {T} frames)")
     return sides, held
 
 

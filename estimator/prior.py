@@ -124,9 +124,9 @@ class PriorConfig:
         by default for the bare rendering (evaluations, ablations).
     max_spread_deg, min_flip_margin : float
         Trust test, per camera: the viewpoint cloud's semi-major axis at most
-        ``max_spread_deg`` (a wider cloud is no viewpoint), and, where the
-        motion cue did not settle ahead/behind, a flip margin of at least
-        ``min_flip_margin``.
+        ``max_spread_deg`` (a wider cloud is no viewpoint), and, where neither
+        the motion cue, the other cameras' phase nor the earlier windows
+        settled ahead/behind, a flip margin of at least ``min_flip_margin``.
     min_window_agreement, min_agreement : float
         Trust test on :attr:`Prior.agreement` (IoU of the registered render
         with the cleaned observation): the window's median at least
@@ -483,7 +483,8 @@ def trust_test(agreement: np.ndarray, *, spread_deg: float, flip: str, flip_marg
     walker, so feedback from it would paint a wrong body into the silhouettes
     (issue 17): the camera is trusted only when its viewpoint is well defined
     (spread at most ``config.max_spread_deg``; ahead/behind settled by the
-    motion cue or by a margin of at least ``config.min_flip_margin``) and the
+    motion cue, the other cameras' phase or the earlier windows, or by a
+    margin of at least ``config.min_flip_margin``) and the
     rendered model agrees with the cleaned observations over the window
     (median :attr:`Prior.agreement` at least ``config.min_window_agreement``),
     better by ``config.min_view_margin`` than from the viewpoint turned by

@@ -171,7 +171,7 @@ class ResultCamera(_Open):
     elevation_deg: float | None
     spread_deg: float | None
     covariance_deg2: list[list[float]] | None
-    flip: str = Field(description="how ahead/behind was settled: motion, cameras, majority or none")
+    flip: str = Field(description="how ahead/behind was settled: motion, cameras, earlier, majority or none")
     flip_margin: float | None
     n_samples: int
     elevation_from: Literal["shape", "shape+path"] = Field(

@@ -1,5 +1,6 @@
 """Walking pose and viewpoints from silhouettes: the pipeline and `posecal estimate`."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -451,3 +452,10 @@ def test_a_camera_keeps_the_side_its_earlier_windows_found_unless_the_others_pha
                                                                                                   cue.viewpoint)
     in_step = c0(0, {"c0": 150.0, **rest})
     assert az_error(in_step.viewpoint.azimuth_deg, 30.0) < 25, in_step.viewpoint
+    # No motion cue (crops): the others' phase takes it to 150 by itself; the earlier windows agreeing is no hold.
+    tracks = out_of_step_walk(7)
+    tracks["c0"] = dataclasses.replace(tracks["c0"], full_frame=False)
+    for earlier in (None, {"c0": 150.0, **rest}):
+        cropped = estimate_walk(tracks, small_model, earlier=earlier).cameras["c0"]
+        assert cropped.viewpoint.flip == "cameras" and az_error(cropped.viewpoint.azimuth_deg, 150.0) < 25, (
+            earlier, cropped.viewpoint)
