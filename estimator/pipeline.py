@@ -1487,9 +1487,10 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
     if not any(_witness(config, observations[m].estimate, earlier.get(m)) for m in names if m not in against):
         against = set()  # no camera tells that the walker did not turn (or the rig move)
 
-    def is_open(n: str, held: bool = True) -> bool:  # a cue on few frames yields only to a camera that saw more
+    def is_open(n: str, with_earlier: bool = True) -> bool:  # a cue on few frames yields only to one that saw more
         o = observations[n]
-        return o.mirror is not None and (_contested(o.estimate) or held and n in against or _few(config, o.estimate)
+        return o.mirror is not None and (_contested(o.estimate) or with_earlier and n in against
+                                         or _few(config, o.estimate)
                                          and any(observations[m].present.size >= config.settle_few_frames
                                                  for m in names if m != n))
 
@@ -1497,33 +1498,28 @@ def _settle_ahead_behind(observations: dict[str, CameraObservation], log_start: 
     contested = sorted((n for n in names if is_open(n)), key=lambda n: n not in against)[:8]
     if len(names) < 2 or not contested:
         return {}, set()
-    alone_open = np.array([is_open(n, held=False) for n in contested])
-    best = {}  # the best choice and its log-probability, with the earlier windows (True) and without
-    default_lp = zeros_lp = -np.inf
-    default = tuple(int(n in against) for n in contested)
     other = np.zeros((T, len(log_start)))
     for n in names:
         if n not in contested:
             other[observations[n].present] -= observations[n].evidence
+    lps = {}  # the HMM's log-probability of each assignment of sides to the open cameras (1: the other side)
     for choice in np.ndindex(*(2,) * len(contested)):
         total = other.copy()
         for n, flip in zip(contested, choice):
             o = observations[n]
             total[o.present] -= o.mirror[1] if flip else o.evidence
-        lp = viterbi(log_start, log_trans, total)[0]
-        default_lp = lp if choice == default else default_lp
-        zeros_lp = lp if not any(choice) else zeros_lp
-        for with_earlier in (True, False):
-            if (with_earlier or not np.any(np.array(choice, bool) & ~alone_open)) and lp > best.get(with_earlier,
-                                                                                                    (None, -np.inf))[1]:
-                best[with_earlier] = (choice, lp)
+        lps[choice] = viterbi(log_start, log_trans, total)[0]
 
-    def decided(with_earlier: bool, start: tuple, start_lp: float) -> tuple[tuple, float]:
-        choice, lp = best[with_earlier]
-        return (choice, lp - start_lp) if choice != start and lp - start_lp > config.settle_margin * T else (start, 0.0)
+    def decided(choices: list[tuple], start: tuple) -> tuple[tuple, float]:
+        """The most probable of ``choices`` if it beats ``start`` by the margin, and by how much."""
+        best = max(choices, key=lps.get)
+        gain = lps[best] - lps[start]
+        return (best, gain) if best != start and gain > config.settle_margin * T else (start, 0.0)
 
-    chosen, gain = decided(True, default, default_lp)
-    alone, alone_gain = decided(False, (0,) * len(contested), zeros_lp)  # the window's own choice
+    shut = [not is_open(n, with_earlier=False) for n in contested]  # open only because of the earlier windows
+    chosen, gain = decided(list(lps), tuple(int(n in against) for n in contested))
+    alone, alone_gain = decided([c for c in lps if not any(f and s for f, s in zip(c, shut))],
+                                (0,) * len(contested))  # the window's own choice
     sides, held = {}, set()
     for n, flip, own in zip(contested, chosen, alone):
         if not flip:
