@@ -107,6 +107,17 @@ class ColourSplit:
         """Forget the walker (a new track starts); the others' colours stay."""
         self.walker, self.learned = None, 0
 
+    @property
+    def ready(self) -> bool:
+        """Whether the walker's colours rest on ``frames`` stable frames (cuts and likeness use them)."""
+        return self.walker is not None and self.learned >= self.frames
+
+    def likeness(self, pixels: np.ndarray) -> float:
+        """The Bhattacharyya coefficient (0-1) of the colours of ``pixels`` (BGR uint8, (N, 3)) with the
+        walker's model: which of the parts a merged blob splits into is the walker (module docstring)."""
+        h = _histogram(colour_bins(pixels))
+        return 0.0 if h is None or self.walker is None else float(np.sqrt(h * self.walker).sum())
+
     def _mean(self, old: np.ndarray | None, new: np.ndarray | None) -> np.ndarray | None:
         if new is None:
             return old

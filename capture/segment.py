@@ -40,7 +40,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Callable, Literal
 
 import cv2
 import numpy as np
@@ -207,6 +207,12 @@ class SegmentSettings(BaseModel):
                                 "person's box explains the extra rows, are cut back to it (on a file over "
                                 "the whole clip, capture.refine.segment_clip; live from the frames before, "
                                 "capture.merges.LiveUnmerge in the agent); 0 = off")
+    track_colour: float = Field(4.0, ge=0, description="where two or more candidates continue the tracked "
+                                "walker's box (after a merge with a passer-by, the parts), each one's score "
+                                "(overlap times height ratio) is weighed by the Bhattacharyya coefficient of "
+                                "its colours with the walker's learned colours to this power: the track stays "
+                                "with the walker rather than the larger part (capture/colours.py); 0 = off, "
+                                "and off with colour_split")
     colour_ratio: float = Field(2.7, gt=1, description="a region is cut where its colours are this many "
                                 "times likelier among the other people than on the walker")
     colour_window: float = Field(0.04, gt=0, description="the colour evidence is averaged over a square "
@@ -1078,7 +1084,7 @@ class Segmenter:
             return self._nobody(size, used_prior, 0)
         groups = self._groups(candidates, stats, g)  # a torn walker's pieces joined
         boxes = {k: _shifted(bounding_box(stats[groups[k], :4]), rx, ry) for k in candidates}
-        best = self._continuing(boxes)
+        best = self._continuing(boxes, self._likeness(labels, stats, groups, image, (rx, ry)))
         guided = None if guide is None else max(boxes, key=lambda k: box_iou(boxes[k], guide))
         if guided is not None and box_iou(boxes[guided], guide) < 0.3:
             guided = None  # no candidate is the clip's walker here
@@ -1224,7 +1230,24 @@ class Segmenter:
             self._walker.clear()
         return Segmentation.nothing(size, used_prior, n)
 
-    def _continuing(self, boxes: dict[int, tuple[int, int, int, int]]) -> int | None:
+    def _likeness(self, labels: np.ndarray, stats: np.ndarray, groups: dict[int, list[int]],
+                  image: np.ndarray | None, origin: tuple[int, int]) -> Callable[[int], float] | None:
+        """How much a candidate's colours are the tracked walker's (:meth:`ColourSplit.likeness` of its
+        pieces' pixels; ``labels`` and ``stats`` the region's components at ``origin`` of ``image``), once
+        the walker's colours are learned and ``track_colour`` is on; else None."""
+        if not (self.settings.colour_split and self.settings.track_colour) or image is None \
+                or not self._colours.ready:
+            return None
+        rx, ry = origin
+
+        def like(k: int) -> float:
+            x, y, w, h = (int(v) for v in bounding_box(stats[groups[k], :4]))
+            pieces = np.isin(labels[y:y + h, x:x + w], groups[k])
+            return self._colours.likeness(image[ry + y:ry + y + h, rx + x:rx + x + w][pieces])
+        return like
+
+    def _continuing(self, boxes: dict[int, tuple[int, int, int, int]],
+                    like: Callable[[int], float] | None = None) -> int | None:
         """The candidate that best continues the tracked walker, if any overlaps its grown box.
 
         The score is the overlap (the intersection with the grown box over the
@@ -1243,15 +1266,16 @@ class Segmenter:
         gx, gy = x - grow * w, y - grow * h
         gw, gh = w * (1 + 2 * grow), h * (1 + 2 * grow)
         tall = float(np.median([t for t, _ in self._walker])) if self._walker else float(h)
-        best, best_score = None, 0.0
+        scores = {}
         for k, (bx, by, bw, bh) in boxes.items():
             ix = max(0.0, min(gx + gw, bx + bw) - max(gx, bx))
             iy = max(0.0, min(gy + gh, by + bh) - max(gy, by))
             overlap = ix * iy / (bw * bh + w * h - ix * iy)  # IoU with the grown box
-            score = overlap * min(bh, tall) / max(bh, tall)
-            if score > best_score:
-                best, best_score = k, score
-        return best
+            if overlap > 0:
+                scores[k] = overlap * min(bh, tall) / max(bh, tall)
+        if len(scores) > 1 and like is not None:
+            scores = {k: v * like(k) ** self.settings.track_colour for k, v in scores.items()}
+        return max(scores, key=scores.get) if scores else None
 
     def _drop_ghosts(self, candidates: list[int], labels: np.ndarray, stats: np.ndarray,
                      origin: tuple[int, int], image: np.ndarray, gain: float,

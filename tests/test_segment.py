@@ -256,6 +256,36 @@ def test_a_passer_by_touching_the_walker_is_cut_off_by_colour(passer_bgr):
         assert min(split) > 0.85, split
 
 
+@pytest.mark.parametrize("track_colour", [SegmentSettings().track_colour, 0.0])
+def test_after_a_merge_the_track_goes_on_with_the_part_in_the_walkers_colours(track_colour):
+    """A passer-by of the walker's height but wider, in other colours, comes into view beside
+    the tracked walker: apart for 9 frames, one blob with them for 5, then apart again, 12 px
+    away. Both parts lie in the tracked (merged) box, and by overlap with it the wider
+    passer-by continues it; weighed by how like the walker's learned colours each part is
+    (``track_colour``), the track stays with the walker. Off (the premise), it goes on with
+    the passer-by."""
+    segmenter = Segmenter(SegmentSettings(warmup_frames=100, track_colour=track_colour))
+    after = []
+    for frame in scene_frames(dataclasses.replace(SMALL, walker_alpha=1.0)):  # opaque clothing
+        image = frame.image
+        if frame.index >= 106:  # the walker's track and colours first
+            x, y, w, h = cv2.boundingRect(frame.mask)
+            gap = 12 if frame.index >= 120 else -4 if frame.index >= 115 else 40  # edge to edge
+            passer = np.zeros_like(frame.mask)
+            cv2.rectangle(passer, (x + w + gap, y), (x + w + gap + 2 * w, y + h - 1), 255, -1)
+            passer[frame.mask > 0] = 0  # behind the walker
+            image = image.copy()
+            image[passer > 0] = (60, 170, 60)
+        seg = segmenter.apply(image, frame.index)
+        if frame.index >= 120:
+            after.append((seg.n_candidates, iou(seg.full_mask(), frame.mask)))
+    assert all(n == 2 for n, _ in after), after  # apart again
+    if track_colour:
+        assert min(v for _, v in after) > 0.85, after
+    else:
+        assert max(v for _, v in after) < 0.1, after
+
+
 def test_the_walkers_black_shoes_are_not_cut_among_passers_by_in_black():
     """A passer-by dressed in black is seen apart from the walker for 15 frames, then
     leaves; the walker wears black shoes (the lowest tenth of their height). Black is
