@@ -1257,7 +1257,11 @@ class Segmenter:
         detections (the smaller over the larger). By overlap alone, a walker torn
         in two by clothing the colour of the ground lost the track to the
         piece passers-by had joined, and the track then went on with them
-        (docs/ROBUSTNESS.md); the walker's height changes slowly.
+        (docs/ROBUSTNESS.md); the walker's height changes slowly. Where two or
+        more overlap it, each score is also weighed by ``like`` (:meth:`_likeness`)
+        to the power ``track_colour``: when a merged blob parts, both parts lie in
+        the merged box, and the larger one took the track (docs/ROBUSTNESS.md,
+        "After a merge, the part in the walker's colours").
         """
         if self._track is None or self._track_missed > self.settings.track_frames:
             return None
@@ -1274,7 +1278,9 @@ class Segmenter:
             if overlap > 0:
                 scores[k] = overlap * min(bh, tall) / max(bh, tall)
         if len(scores) > 1 and like is not None:
-            scores = {k: v * like(k) ** self.settings.track_colour for k, v in scores.items()}
+            weighed = {k: v * like(k) ** self.settings.track_colour for k, v in scores.items()}
+            if max(weighed.values()) > 0:  # else none has the walker's colours: by overlap and height
+                scores = weighed
         return max(scores, key=scores.get) if scores else None
 
     def _drop_ghosts(self, candidates: list[int], labels: np.ndarray, stats: np.ndarray,
