@@ -46,6 +46,11 @@ about the image centre), where which person the segmenter follows matters
         [--plot docs/img/composite_errors.png] [--montage docs/img/composite_frames.jpg] [--keep DIR] \
         [--walker-scale 0.5] [--plates] [--shutter 0.6] [--defocus 0.7] [--noise 2]
 
+``--segment-only`` scores only the segmenter's silhouettes (the file's path and
+the live agent's), ``--segment KEY=VALUE`` changes a ``SegmentSettings`` field
+for both (``--segment track_colour=0``: before session 59), ``--per-camera``
+prints each camera's figures.
+
 ``--plates`` puts an image of the empty scene beside each video (the median of
 the whole of ``vtest.avi``, mirrored as the camera's stretch), which
 ``posecal estimate`` takes as the background: a walker who stays in the same
@@ -389,10 +394,23 @@ def segmentation_iou(segs: list, seq: Sequence, cam: str) -> list[float]:
     return out
 
 
-def live_segments(frames: np.ndarray, plate: np.ndarray | None) -> list:
+def live_segments(frames: np.ndarray, plate: np.ndarray | None, settings: SegmentSettings = SegmentSettings()) -> list:
     """The frames segmented as a live agent segments a recording (:func:`capture.live.segment_recording`:
     no look ahead; the background bootstrapped from frames sampled over the start, or ``plate``)."""
-    return segment_recording(frames, SegmentSettings(), FPS, plate)
+    return segment_recording(frames, settings, FPS, plate)
+
+
+def segment_settings(pairs: list[str]) -> SegmentSettings:
+    """``SegmentSettings`` with ``KEY=VALUE`` overrides (``--segment``); exits with code 2 on a bad one."""
+    try:
+        fields = dict(p.split("=", 1) for p in pairs)
+        unknown = sorted(set(fields) - set(SegmentSettings.model_fields))
+        if unknown:
+            raise ValueError(f"no such setting: {', '.join(unknown)}")
+        return SegmentSettings(**fields)
+    except ValueError as e:  # pydantic's ValidationError, or a pair without '='
+        print(f"eval_composite.py: error: --segment {' '.join(pairs)}: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def iou_line(what: str, ious: list[float]) -> str:
@@ -455,7 +473,15 @@ def main() -> None:
                              "exact ones: no `posecal estimate` runs")
     parser.add_argument("--noise", type=float, default=Optics.noise,
                         help=f"the sensor's noise, sigma in grey levels (default {Optics.noise})")
+    parser.add_argument("--segment", action="append", default=[], metavar="KEY=VALUE",
+                        help="with --segment-only: a SegmentSettings field for both paths (repeat; e.g. "
+                             "track_colour=0)")
+    parser.add_argument("--per-camera", action="store_true",
+                        help="print each camera's mean IoU and share under 0.5, the file's path and the live one")
     args = parser.parse_args()
+    if args.segment and not args.segment_only:
+        parser.error("--segment needs --segment-only (`posecal estimate` runs with its defaults)")
+    settings = segment_settings(args.segment)
     optics = Optics(args.shutter, args.defocus, args.noise)
     runs = [("videos, no flags", "videos", ()), ("videos, --feedback off", "videos", ("--feedback", "off")),
             ("videos, --sync off", "videos", ("--sync", "off")), ("exact silhouettes", "exact", ())]
@@ -477,9 +503,13 @@ def main() -> None:
                 rows[name].setdefault(k, []).extend(v)
         for cam in seq.cameras:
             frames, plate_image = load_video(videos / f"{cam}.avi"), plate_for(videos / f"{cam}.avi")
-            segs, _ = segment_clip(lambda: list(frames), SegmentSettings(), fps=FPS, plate=plate_image)
-            ious.extend(segmentation_iou(segs, seq, cam))
-            live_ious.extend(segmentation_iou(live_segments(frames, plate_image), seq, cam))
+            segs, _ = segment_clip(lambda: list(frames), settings, fps=FPS, plate=plate_image)
+            ious.extend(file_ious := segmentation_iou(segs, seq, cam))
+            live_ious.extend(cam_ious := segmentation_iou(live_segments(frames, plate_image, settings), seq, cam))
+            if args.per_camera:
+                tqdm.write(f"walk {i} {cam}: IoU mean / under 0.5, file {np.mean(file_ious):.3f} / "
+                           f"{np.mean(np.array(file_ious) < 0.5):.1%}, live {np.mean(cam_ious):.3f} / "
+                           f"{np.mean(np.array(cam_ious) < 0.5):.1%}", file=sys.stdout)
             if i == 0:
                 mid = len(frames) // 2
                 montage.append((frames[mid], segs[mid].full_mask() if segs[mid] is not None
