@@ -44,7 +44,8 @@ about the image centre), where which person the segmenter follows matters
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/eval_composite.py [--sequences 8] [--seed 5] \
         [--plot docs/img/composite_errors.png] [--montage docs/img/composite_frames.jpg] [--keep DIR] \
-        [--walker-scale 0.5] [--plates] [--shutter 0.6] [--defocus 0.7] [--noise 2]
+        [--walker-scale 0.5] [--plates] [--shutter 0.6] [--defocus 0.7] [--noise 2] \
+        [--segment-only [--segment KEY=VALUE ...] [--per-camera]]
 
 ``--segment-only`` scores only the segmenter's silhouettes (the file's path and
 the live agent's), ``--segment KEY=VALUE`` changes a ``SegmentSettings`` field
@@ -403,6 +404,8 @@ def live_segments(frames: np.ndarray, plate: np.ndarray | None, settings: Segmen
 def segment_settings(pairs: list[str]) -> SegmentSettings:
     """``SegmentSettings`` with ``KEY=VALUE`` overrides (``--segment``); exits with code 2 on a bad one."""
     try:
+        if bad := [p for p in pairs if "=" not in p]:
+            raise ValueError(f"expected KEY=VALUE, got {', '.join(bad)}")
         fields = dict(p.split("=", 1) for p in pairs)
         unknown = sorted(set(fields) - set(SegmentSettings.model_fields))
         if unknown:
@@ -506,7 +509,7 @@ def main() -> None:
             segs, _ = segment_clip(lambda: list(frames), settings, fps=FPS, plate=plate_image)
             ious.extend(file_ious := segmentation_iou(segs, seq, cam))
             live_ious.extend(cam_ious := segmentation_iou(live_segments(frames, plate_image, settings), seq, cam))
-            if args.per_camera:
+            if args.per_camera and file_ious:
                 tqdm.write(f"walk {i} {cam}: IoU mean / under 0.5, file {np.mean(file_ious):.3f} / "
                            f"{np.mean(np.array(file_ious) < 0.5):.1%}, live {np.mean(cam_ious):.3f} / "
                            f"{np.mean(np.array(cam_ious) < 0.5):.1%}", file=sys.stdout)
@@ -517,7 +520,8 @@ def main() -> None:
     print(f"\n{args.sequences} walks ({n_cams} cameras, {args.frames} frames at 15 Hz, CMU motion, random "
           f"bodies; {shadows} with a ground shadow) composited over vtest.avi through a camera's optics (shutter "
           f"{optics.shutter:g} of the frame interval, lens blur {optics.defocus_px:g} px, noise {optics.noise:g} grey "
-          f"levels); `posecal estimate FOLDER`, no flags\n")
+          f"levels); `posecal estimate FOLDER`, no flags"
+          + (f"; segmenter settings {' '.join(args.segment)}" if args.segment else "") + "\n")
     print(iou_line("segmenter against the exact silhouettes (the file's path, `segment_clip`)", ious))
     print(iou_line("... live, as an agent segments (`capture.live.segment_recording`)", live_ious) + "\n")
     if not args.segment_only:

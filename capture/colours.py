@@ -139,7 +139,7 @@ class ColourSplit:
         """
         inside = crop > 0
         area = int(np.count_nonzero(inside))
-        cut = self.learned >= self.frames and self.others is not None
+        cut = self.ready and self.others is not None
         learn = area <= STABLE * median_area
         if not area or not (cut or learn):
             return crop

@@ -211,8 +211,8 @@ class SegmentSettings(BaseModel):
                                 "walker's box (after a merge with a passer-by, the parts), each one's score "
                                 "(overlap times height ratio) is weighed by the Bhattacharyya coefficient of "
                                 "its colours with the walker's learned colours to this power: the track stays "
-                                "with the walker rather than the larger part (capture/colours.py); 0 = off, "
-                                "and off with colour_split")
+                                "with the walker rather than the larger part (capture/colours.py); 0 = off "
+                                "(also off when colour_split is False)")
     colour_ratio: float = Field(2.7, gt=1, description="a region is cut where its colours are this many "
                                 "times likelier among the other people than on the walker")
     colour_window: float = Field(0.04, gt=0, description="the colour evidence is averaged over a square "
@@ -1261,7 +1261,8 @@ class Segmenter:
         more overlap it, each score is also weighed by ``like`` (:meth:`_likeness`)
         to the power ``track_colour``: when a merged blob parts, both parts lie in
         the merged box, and the larger one took the track (docs/ROBUSTNESS.md,
-        "After a merge, the part in the walker's colours").
+        "After a merge, the part in the walker's colours"). Where no part has any of
+        the walker's colours (every weighed score 0), overlap and height decide.
         """
         if self._track is None or self._track_missed > self.settings.track_frames:
             return None

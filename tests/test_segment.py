@@ -277,6 +277,10 @@ def test_after_a_merge_the_track_goes_on_with_the_part_in_the_walkers_colours(tr
             image = image.copy()
             image[passer > 0] = (60, 170, 60)
         seg = segmenter.apply(image, frame.index)
+        if frame.index == 114:
+            assert segmenter._colours.ready  # the walker's colours learned before the merge
+        if 115 <= frame.index < 120:
+            assert seg.n_candidates == 1  # one blob
         if frame.index >= 120:
             after.append((seg.n_candidates, iou(seg.full_mask(), frame.mask)))
     assert all(n == 2 for n, _ in after), after  # apart again
