@@ -46,7 +46,7 @@ import numpy as np
 from .segment import Segmentation, SegmentSettings, box_iou
 
 __all__ = ["AGREE", "GAP", "LIVE_EVERY", "LIVE_OFF", "LIVE_SHORTER", "LIVE_WINDOW", "MARGIN", "NOBODY", "RESIZE",
-           "LiveChoice", "choose", "guide", "overlap", "path_cost", "walker_boxes"]
+           "LiveChoice", "choose", "guide", "held_path", "held_walker", "overlap", "path_cost", "walker_boxes"]
 
 Box = tuple[int, int, int, int]
 
@@ -274,13 +274,31 @@ def held_walker(segs: list[Segmentation | None]) -> str | None:
     cross less than ``HELD_TRAVEL`` of the box height between their 10th and
     90th percentiles.
     """
-    boxes = np.array([(x + w / 2, h) for x, _, w, h in filter(None, walker_boxes(segs))], float)
-    if len(boxes) < max(5, len(segs) / 2):
-        return None
-    travel = float(np.subtract(*np.percentile(boxes[:, 0], [90, 10])) / np.median(boxes[:, 1]))
-    if travel >= HELD_TRAVEL:
+    travel = _travel(walker_boxes(segs))
+    if travel is None or travel >= HELD_TRAVEL:
         return None
     return (f"the walker stayed in about the same place in the image (crossed {travel:.2f} of their height) "
             "in most of the clip, so the background learned from it holds them and their silhouettes are "
             "partial: give an image of the empty scene (<camera>.background.png beside a video, posecal "
             "capture --background-image), or record from before the walker comes into view")
+
+
+def held_path(segs: list[Segmentation | None]) -> bool:
+    """Whether the walker's path chosen through the candidates of ``segs`` (:func:`choose`, not the person
+    the track followed) stayed in place as :func:`held_walker` reads it: against an image of the empty scene
+    a walker held in the clip's background shows whole, where the clip's own pass may have followed someone
+    crossing the view (docs/ROBUSTNESS.md, "A walker held in the background, behind a passer-by")."""
+    size = next((s.image_size for s in segs if s is not None), None)
+    if size is None:
+        return False
+    travel = _travel(choose([() if s is None else s.candidates for s in segs], size))
+    return travel is not None and travel < HELD_TRAVEL
+
+
+def _travel(boxes: list[Box | None]) -> float | None:
+    """How far the boxes' centres cross (p10-p90) in their median heights, None where fewer than half of the
+    frames (and 5) have one."""
+    b = np.array([(x + w / 2, h) for x, _, w, h in filter(None, boxes)], float)
+    if len(b) < max(5, len(boxes) / 2):
+        return None
+    return float(np.subtract(*np.percentile(b[:, 0], [90, 10])) / np.median(b[:, 1]))

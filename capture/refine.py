@@ -35,7 +35,7 @@ from estimator.prior import (
 from estimator.sequence import Sequence
 from estimator.windows import SegmentedWalk
 
-from .choose import guide, held_walker, walker_boxes
+from .choose import guide, held_path, held_walker, walker_boxes
 from .merges import MergeTest, unmerge
 from .segment import Segmentation, Segmenter, SegmentSettings, sample_indices
 from .sources import PLATE_SUFFIXES, VideoFileSource, read_plate
@@ -95,7 +95,10 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
     first pass followed someone else; the note saying so, else None.
 
     ``plate``, an image of the empty scene, is the background only where the walker stayed in
-    place (:func:`held_walker`; segmented once more then, guided by the walker followed so far):
+    place (:func:`held_walker`; segmented once more then, guided by the walker followed so far; or,
+    where the walker followed crossed the view, where the path chosen through a pass against the plate
+    stays in place, :func:`held_path`: the first pass followed a passer-by while the walker, held in
+    the clip's background, showed in pieces):
     where the walker crosses the view, the background learned from the clip is the better one (it
     has the light of the moment and whoever stood still in it: docs/ROBUSTNESS.md, "A walker held
     in the background"); the walker is then chosen over the clip once more, on that pass, where the
@@ -108,10 +111,18 @@ def segment_clip(frames: Callable[[], Iterable[np.ndarray]], settings: SegmentSe
     boxes, note = guide(segs, settings)
     if boxes is not None:
         segs = segment(frames(), settings, fps=fps, guide=boxes)
+    against = None  # the pass against the plate, where the walker stayed in place
     if plate is not None and held_walker(segs):
         # on the walker followed so far: against the plate someone who stood still all along shows,
         # and a walker dressed like the ground shows partly (docs/ROBUSTNESS.md, "Small walkers")
-        segs = segment(frames(), settings, fps=fps, guide=_nearest(walker_boxes(segs)), plate=plate)
+        against = segment(frames(), settings, fps=fps, guide=_nearest(walker_boxes(segs)), plate=plate)
+    elif plate is not None:
+        # the first pass may have followed someone crossing the view while the walker, held in the clip's
+        # background, showed in pieces: against the plate the path chosen through the candidates stays in place
+        trial = segment(frames(), settings, fps=fps, plate=plate)
+        against = trial if held_path(trial) else None
+    if against is not None:
+        segs = against
         boxes, chosen = guide(segs, settings)  # chosen again where the plate shows the walker whole
         if boxes is not None:
             segs, note = segment(frames(), settings, fps=fps, guide=boxes, plate=plate), chosen
