@@ -396,8 +396,15 @@ def test_three_worker_replicas_run_every_job_exactly_once(pg_url, tmp_path):
     text = {n: logs[n].read_text() for n in names}
     finishes = [(m.group(1), n, int(m.group(3))) for n in names for m in DONE.finditer(text[n])]
     per_job = collections.Counter(j for j, _, _ in finishes)
-    assert sorted(per_job) == sorted(ids) and set(per_job.values()) == {1}, per_job.most_common(3)
+    assert set(per_job.values()) == {1}, per_job.most_common(3)
     rows = {j: store.get(j) for j in ids}
+    # r0 was killed at any moment of its loop: a job its run had finished (the result written by its pool
+    # worker) may have lost its log line, written by the main process after it; every other run logs its own.
+    unlogged = sorted(set(ids) - set(per_job))
+    assert set(per_job) <= set(ids) and not set(unlogged) & set(killed), (unlogged, killed)
+    for job_id in unlogged:
+        assert (rows[job_id].state, rows[job_id].replica) == ("done", "r0"), (job_id, rows[job_id])
+        assert len(store.result(job_id)["frames"]) == FRAMES
     for job_id, replica, attempt in finishes:
         row = rows[job_id]
         assert (row.state, row.replica, row.attempts) == ("done", replica, attempt), (row, replica, attempt)
