@@ -222,7 +222,7 @@ def _cut(s: Segmentation, box: Box4, height: float, keep_feet: bool) -> Segmenta
     crop = np.ascontiguousarray(mask[y0:y1, x0:x1])
     box = Box(s.box.x + int(x0), s.box.y + int(y0), int(x1 - x0), int(y1 - y0))
     return Segmentation(crop, box, s.image_size, int(np.count_nonzero(crop)), s.used_prior, s.n_candidates,
-                        s.candidates)
+                        s.candidates, s.plate)
 
 
 class LiveUnmerge:

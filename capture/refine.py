@@ -43,7 +43,7 @@ from .wire import Box, FeedbackMessage
 
 __all__ = ["RefineResult", "RefinedSequence", "check_priors", "feedback_from_prior", "refine_cameras",
            "refine_sequence", "refine_videos", "second_pass", "segment", "track_from_segmentations", "trim",
-           "segment_clip", "background_note", "plate_for", "plate_path", "plates_for",
+           "segment_clip", "against_plate", "background_note", "plate_for", "plate_path", "plates_for",
            "video_frames"]
 
 
@@ -145,14 +145,20 @@ def _nearest(boxes: list[tuple[int, int, int, int] | None]) -> list[tuple[int, i
     return [boxes[int(seen[np.argmin(np.abs(seen - t))])] for t in range(len(boxes))]
 
 
+def against_plate(segs: list[Segmentation | None]) -> bool:
+    """Whether :func:`segment_clip` took the image of the empty scene as the clip's background
+    (it decides per clip: the walker held in place, or followed through the plate)."""
+    return any(s is not None and s.plate for s in segs)
+
+
 def background_note(segs: list[Segmentation | None], plate: Path | None) -> str | None:
     """What a camera's background was, for the result's notes: the image of the empty scene
-    (``plate``, its file) where the walker stayed in place; a note that it was not needed where
-    the walker crossed the view; the :func:`held_walker` advice where there was none; else None."""
-    held = held_walker(segs)
+    (``plate``, its file) where :func:`segment_clip` took it (:func:`against_plate`); a note that it
+    was not needed where the walker crossed the view; the :func:`held_walker` advice where there
+    was none; else None."""
     if plate is None:
-        return held
-    if held:
+        return held_walker(segs)
+    if against_plate(segs):
         return (f"background: {plate.name}, the image of the empty scene (the walker stayed in about the "
                 "same place in the image, so the background learned from the clip would hold them)")
     return (f"background: learned from the clip, not {plate.name}: the walker crossed the view, and the "
@@ -226,10 +232,11 @@ def trim(segs: list[Segmentation | None], priors: list[Prior], *, reach: float =
         full = trim_silhouette(s.full_mask(), p.full_mask(), reach=reach)
         cropped = crop_to_box(full)
         if cropped is None:
-            out.append(Segmentation.nothing(s.image_size, used_prior=True))
+            out.append(Segmentation.nothing(s.image_size, used_prior=True, plate=s.plate))
             continue
         crop, b = cropped
-        out.append(Segmentation(crop, Box(*(int(v) for v in b)), s.image_size, int(np.count_nonzero(crop)), True))
+        out.append(Segmentation(crop, Box(*(int(v) for v in b)), s.image_size, int(np.count_nonzero(crop)), True,
+                                plate=s.plate))
     return out
 
 
@@ -311,7 +318,7 @@ def refine_cameras(
         priors = {name: [prior_transform(p) for p in ps] for name, ps in priors.items()}
     refined = {}
     for k, (name, make) in enumerate(frames.items()):
-        plate = (plates or {}).get(name) if held_walker(raw[name]) else None  # as segment_clip's
+        plate = (plates or {}).get(name) if against_plate(raw[name]) else None  # segment_clip's choice
         refined[name] = second_pass(make(), settings, priors[name], raw[name], trim_reach=trim_reach, plate=plate)
         if progress is not None:
             progress((k + 1) / len(frames))

@@ -266,6 +266,7 @@ class Segmentation:
     used_prior: bool
     n_candidates: int = 0  # person-sized components seen (the tracked walker among them)
     candidates: tuple[tuple[int, int, int, int], ...] = ()  # their boxes (x, y, w, h), full frame
+    plate: bool = False  # segmented against an image of the empty scene, not a background learned from the frames
 
     def full_mask(self) -> np.ndarray:
         """The crop pasted into a full-frame ``(height, width)`` canvas."""
@@ -273,9 +274,9 @@ class Segmentation:
 
     @classmethod
     def nothing(cls, size: tuple[int, int], used_prior: bool = False,
-                n_candidates: int = 0) -> Segmentation:
+                n_candidates: int = 0, plate: bool = False) -> Segmentation:
         """A frame of ``size`` in which no walker was found."""
-        return cls(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), size, 0, used_prior, n_candidates)
+        return cls(np.zeros((0, 0), np.uint8), Box(0, 0, 0, 0), size, 0, used_prior, n_candidates, plate=plate)
 
 
 def _padded(rect: tuple[int, int, int, int], pad: int, size: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -476,6 +477,7 @@ class Segmenter:
     def __init__(self, settings: SegmentSettings = SegmentSettings(), *, plate: np.ndarray | None = None) -> None:
         self.settings = settings
         self.plate = plate  # an image of the empty scene: the bootstrapped background (bootstrap())
+        self._against_plate = False  # the plate is the background (bootstrap() took it)
         self._mog = cv2.createBackgroundSubtractorMOG2(
             history=settings.history, varThreshold=settings.var_threshold,
             detectShadows=settings.detect_shadows)
@@ -554,6 +556,7 @@ class Segmenter:
                 raise ValueError(f"the background plate must be a BGR uint8 image of the frames' size "
                                  f"{stack.shape[2]}x{stack.shape[1]}, got shape {self.plate.shape} {self.plate.dtype}")
             median = self.plate.astype(np.float32)
+            self._against_plate = True
         else:
             median = _median(stack, moving)
             if self.settings.bootstrap_lit > 0:
@@ -1130,7 +1133,7 @@ class Segmenter:
         x0, y0, x1, y1 = _padded((x, y, w, h), m, size)  # the crop: the box and the margin, in the frame
         crop = cv2.copyMakeBorder(blob, y - y0, y1 - y - h, x - x0, x1 - x - w, cv2.BORDER_CONSTANT, value=0)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, cv2.countNonZero(blob), used_prior,
-                            len(candidates), tuple(dict.fromkeys(boxes[k] for k in candidates)))
+                            len(candidates), tuple(dict.fromkeys(boxes[k] for k in candidates)), self._against_plate)
 
     def _groups(self, candidates: list[int], stats: np.ndarray, g: _Geometry) -> dict[int, list[int]]:
         """Each candidate component with the pieces stacked on it that make it the walker's height
@@ -1228,7 +1231,7 @@ class Segmenter:
         if self._track_missed > self.settings.track_frames:
             self._track = None
             self._walker.clear()
-        return Segmentation.nothing(size, used_prior, n)
+        return Segmentation.nothing(size, used_prior, n, self._against_plate)
 
     def _likeness(self, labels: np.ndarray, stats: np.ndarray, groups: dict[int, list[int]],
                   image: np.ndarray | None, origin: tuple[int, int]) -> Callable[[int], float] | None:

@@ -3,12 +3,14 @@ mends it (``<camera>.background.png``): capture.refine and the video path of job
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 
 from capture.choose import held_walker
-from capture.refine import plate_for, segment, segment_clip
+from capture.refine import against_plate, background_note, plate_for, segment, segment_clip
 from capture.scene import iou, textured_background
 from capture.segment import SegmentSettings
 
@@ -54,6 +56,10 @@ def test_a_walker_held_in_the_background_is_whole_with_the_empty_scenes_image():
     crossing_with_plate, _ = segment_clip(lambda: iter(crossing), SegmentSettings(), fps=FPS, plate=plate)
     assert all((a is None and b is None) or np.array_equal(a.full_mask(), b.full_mask())
                for a, b in zip(segs, crossing_with_plate))  # the clip's own background: the plate not used
+    # what the feedback pass and the notes read: the plate used where it was, and only there
+    assert against_plate(with_plate) and not against_plate(crossing_with_plate) and not against_plate(without)
+    assert background_note(with_plate, Path("c0.background.png")).startswith("background: c0.background.png")
+    assert background_note(crossing_with_plate, Path("c0.background.png")).startswith("background: learned")
 
 
 def test_with_the_plate_the_walker_followed_so_far_is_kept_not_someone_taller():
@@ -102,6 +108,9 @@ def test_with_the_plate_the_walker_is_chosen_again_when_the_first_pass_followed_
     segs, note = segment_clip(lambda: iter(frames), SegmentSettings(), fps=FPS, plate=plate)
     assert np.mean([0.0 if s is None else iou(s.full_mask(), m) for s, m in zip(segs, masks)]) > 0.8
     assert note is not None and "nearest the image centre" in note
+    # the segmentations say they were made against the plate (what the feedback pass and the notes read,
+    # not held_walker again, which can disagree with held_path's choice on the path through the plate)
+    assert against_plate(segs) and not against_plate(first)
 
 
 def test_a_plate_of_another_size_is_refused_naming_it(tmp_path):
