@@ -160,6 +160,14 @@ class CleanupConfig:
         up the image as they near or recede and lift in every step; a wall's
         edge does not. Less than all the frames: a walker passes behind a
         bench or the end of a wall for part of a window.
+    fixed_rows : int
+        ... and only where the lowest tenth of the frames on that row spans at
+        least this many rows: on fewer, a flat foot ends within a row of the
+        bottom in most columns as a straight cut does, and a small walker at
+        one depth rests it on one row all the window, shorter than their
+        other frames by a row or two where they have some
+        (``bench/profile_window.py``'s side views of 27-47 px: 35 of 336
+        windows x cameras; docs/ROBUSTNESS.md, "Flat feet on one row").
     edge_agree : float
         A walker behind the end of a fixed edge on some frames and whole on
         the others is taken as hidden only when the share the examples find
@@ -200,6 +208,7 @@ class CleanupConfig:
     hidden_gain: float = 0.25
     fixed_share: float = 0.25
     fixed_frames: int = 6
+    fixed_rows: int = 6
     edge_agree: float = 0.15
     hidden_matched: tuple[float, ...] = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
 
@@ -828,10 +837,11 @@ def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     line of the others' heights over time says, by ``shorter`` in the median
     (a shadow's or a cut limb's flat bottom on a few frames is not; frames
     astride the wall's end, :func:`astride_edge`, are left out of the line);
-    with fewer than 3 others, nothing is checked. Give it the frames of a
-    plausible walker only (:func:`check_plausible`): on ``vtest.avi`` a window
-    whose 12 frames wider than a walker rested on one row was taken for a
-    wall. Behind the edge the visible height is not the walker's size (it
+    with fewer than 3 others, nothing is checked. The frames on it must be
+    tall enough for their flatness to tell (``fixed_rows``). Give it the
+    frames of a plausible walker only (:func:`check_plausible`): on
+    ``vtest.avi`` a window whose 12 frames wider than a walker rested on one
+    row was taken for a wall. Behind the edge the visible height is not the walker's size (it
     shrinks as a walker comes nearer to a camera that looks over the wall),
     so :func:`estimator.occlusion.hidden_shares` gives each such frame its
     own share, and :func:`estimator.viewpoint.motion_cue` reads the growth
@@ -853,8 +863,8 @@ def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     on = np.abs(bottom - row) <= 1
     if on.sum() < max(config.fixed_frames, config.fixed_share * present.size):
         return out
-    if np.median(flat[on]) < config.hidden_flat:
-        return out
+    if np.median(flat[on]) < config.hidden_flat or 0.1 * np.median(b[present[on], 3]) < config.fixed_rows:
+        return out  # not flat, or too few rows to tell a straight cut from flat feet
     if np.any(np.diff(present[on]) > 3):  # not one stretch: feet that end flat on some steps
         return out
     if np.sum(~on) >= 3:  # the others show the walker whole: they do not end flat, and are taller
