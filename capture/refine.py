@@ -146,8 +146,10 @@ def _nearest(boxes: list[tuple[int, int, int, int] | None]) -> list[tuple[int, i
 
 
 def against_plate(segs: list[Segmentation | None]) -> bool:
-    """Whether :func:`segment_clip` took the image of the empty scene as the clip's background
-    (it decides per clip: the walker held in place, or followed through the plate)."""
+    """Whether :func:`segment_clip` took the image of the empty scene as the clip's background (it
+    decides per clip: where the walker followed stayed in place, :func:`held_walker`, or where the path
+    chosen through a pass against the plate stays in place, :func:`held_path`), as the segmentations
+    say (:attr:`capture.segment.Segmentation.plate`)."""
     return any(s is not None and s.plate for s in segs)
 
 
@@ -159,8 +161,9 @@ def background_note(segs: list[Segmentation | None], plate: Path | None) -> str 
     if plate is None:
         return held_walker(segs)
     if against_plate(segs):
-        return (f"background: {plate.name}, the image of the empty scene (the walker stayed in about the "
-                "same place in the image, so the background learned from the clip would hold them)")
+        return (f"background: {plate.name}, the image of the empty scene (the walker, or the path through the "
+                "people seen against it, stayed in about the same place in the image, so the background learned "
+                "from the clip would hold them)")
     return (f"background: learned from the clip, not {plate.name}: the walker crossed the view, and the "
             "clip's background has the light of the moment and whoever stood still in it")
 

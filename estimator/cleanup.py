@@ -161,10 +161,11 @@ class CleanupConfig:
         edge does not. Less than all the frames: a walker passes behind a
         bench or the end of a wall for part of a window.
     fixed_rows : int
-        ... and only where the lowest tenth of the frames on that row spans at
-        least this many rows: on fewer, a flat foot ends within a row of the
-        bottom in most columns as a straight cut does, and a small walker at
-        one depth rests it on one row all the window, shorter than their
+        ... and only where a tenth of the median height of the frames on that
+        row is at least this many pixel rows (a visible part of 60 px and
+        more): below, a flat foot ends within a row of the bottom in most of
+        the lowest tenth's columns as a straight cut does, and a small walker
+        at one depth rests it on one row all the window, shorter than their
         other frames by a row or two where they have some
         (``bench/profile_window.py``'s side views of 27-47 px: 35 of 336
         windows x cameras; docs/ROBUSTNESS.md, "Flat feet on one row").
@@ -840,8 +841,8 @@ def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     with fewer than 3 others, nothing is checked. The frames on it must be
     tall enough for their flatness to tell (``fixed_rows``). Give it the
     frames of a plausible walker only (:func:`check_plausible`): on
-    ``vtest.avi`` a window whose 12 frames wider than a walker rested on one
-    row was taken for a wall. Behind the edge the visible height is not the walker's size (it
+    ``vtest.avi`` a window whose 12 frames wider than a walker rested on
+    one row was taken for a wall. Behind the edge the visible height is not the walker's size (it
     shrinks as a walker comes nearer to a camera that looks over the wall),
     so :func:`estimator.occlusion.hidden_shares` gives each such frame its
     own share, and :func:`estimator.viewpoint.motion_cue` reads the growth

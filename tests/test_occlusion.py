@@ -312,10 +312,10 @@ def test_behind_a_wall_the_heads_width_tells_a_walker_who_slows_down():
 
 
 def test_a_small_side_view_walkers_flat_feet_are_not_a_wall():
-    """A walker about 50 px tall seen from the side, at one depth over the window, rests a flat foot on
+    """A walker 53-55 px tall seen from the side, at one depth over the window, rests a flat foot on
     one image row in every frame, as a wall's top does, and no frame off that row tells the two apart
-    (docs/ROBUSTNESS.md, "Flat feet on one row"): with the lowest tenth fewer than ``fixed_rows`` rows,
-    no edge is taken. A real wall over 20 of 24 frames of a larger walker is still told (the test
+    (docs/ROBUSTNESS.md, "Flat feet on one row"): with a tenth of their height under ``fixed_rows``
+    rows, no edge is taken. A real wall over 20 of 24 frames of a larger walker is still told (the test
     above, ``fixed_wall``)."""
     spec = SynthSpec(n_cameras=2, n_frames=20, seed=1, azimuths=(90.0, 270.0), elevations=(20.0, 15.0),
                      image_size=(128, 96))

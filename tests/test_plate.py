@@ -3,6 +3,7 @@ mends it (``<camera>.background.png``): capture.refine and the video path of job
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -111,6 +112,32 @@ def test_with_the_plate_the_walker_is_chosen_again_when_the_first_pass_followed_
     # the segmentations say they were made against the plate (what the feedback pass and the notes read,
     # not held_walker again, which can disagree with held_path's choice on the path through the plate)
     assert against_plate(segs) and not against_plate(first)
+
+
+def test_the_note_and_the_feedback_pass_follow_the_background_the_segmentations_were_made_against():
+    """Where the plate was taken, the segmentations say so (``Segmentation.plate``) whatever the walker
+    in them did afterwards: a pass against the plate can end on a walker who crosses the view (chosen
+    again on it, or cut back by the merge test), whom :func:`held_walker` reads as not held: the note
+    still names the plate, and so does :func:`against_plate`, which the feedback pass reads (seed 5's
+    58-frame walk 5 c1, docs/ROBUSTNESS.md, "The feedback pass on the same background"). Trimming to a
+    prior and cutting a merge keep it."""
+    from capture.merges import _cut
+    from capture.refine import trim
+    from estimator.prior import Prior
+
+    _, crossing, _ = _walking_in_place(step=5)
+    segs = segment(crossing, SegmentSettings(), fps=FPS)
+    assert held_walker(segs) is None and not against_plate(segs)
+    marked = [None if s is None else dataclasses.replace(s, plate=True) for s in segs]
+    assert against_plate(marked) and held_walker(marked) is None
+    assert background_note(marked, Path("c1.background.png")).startswith("background: c1.background.png, ")
+    assert background_note(segs, Path("c1.background.png")).startswith("background: learned from the clip")
+    k, s = next((k, s) for k, s in enumerate(marked) if s is not None and not s.box.empty)
+    prior = Prior(k, (s.box.x, s.box.y, s.box.w, s.box.h), s.image_size, np.full((s.box.h, s.box.w), 255, np.uint8))
+    assert trim(marked, [prior])[k].plate and trim(marked, [prior])[k].used_prior
+    ys, xs = np.nonzero(s.mask)  # the pixels' box
+    box = (s.box.x + int(xs.min()), s.box.y + int(ys.min()), int(np.ptp(xs)) + 1, int(np.ptp(ys)) + 1)
+    assert _cut(s, box, 0.6 * box[3], keep_feet=True).plate
 
 
 def test_a_plate_of_another_size_is_refused_naming_it(tmp_path):
