@@ -31,6 +31,7 @@ whose two ends both moved is left as it is.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -221,8 +222,7 @@ def _cut(s: Segmentation, box: Box4, height: float, keep_feet: bool) -> Segmenta
     x0, x1 = max(0, xs.min() - pad), min(w, xs.max() + 1 + pad)
     crop = np.ascontiguousarray(mask[y0:y1, x0:x1])
     box = Box(s.box.x + int(x0), s.box.y + int(y0), int(x1 - x0), int(y1 - y0))
-    return Segmentation(crop, box, s.image_size, int(np.count_nonzero(crop)), s.used_prior, s.n_candidates,
-                        s.candidates, s.plate)
+    return dataclasses.replace(s, mask=crop, box=box, area=int(np.count_nonzero(crop)))  # the rest as it was
 
 
 class LiveUnmerge:

@@ -1133,7 +1133,8 @@ class Segmenter:
         x0, y0, x1, y1 = _padded((x, y, w, h), m, size)  # the crop: the box and the margin, in the frame
         crop = cv2.copyMakeBorder(blob, y - y0, y1 - y - h, x - x0, x1 - x - w, cv2.BORDER_CONSTANT, value=0)
         return Segmentation(crop, Box(x0, y0, x1 - x0, y1 - y0), size, cv2.countNonZero(blob), used_prior,
-                            len(candidates), tuple(dict.fromkeys(boxes[k] for k in candidates)), plate=self._against_plate)
+                            len(candidates), tuple(dict.fromkeys(boxes[k] for k in candidates)),
+                            plate=self._against_plate)
 
     def _groups(self, candidates: list[int], stats: np.ndarray, g: _Geometry) -> dict[int, list[int]]:
         """Each candidate component with the pieces stacked on it that make it the walker's height

@@ -842,11 +842,11 @@ def fixed_edge(silhouettes: list[np.ndarray | None], boxes: np.ndarray, *,
     tall enough for their flatness to tell (``fixed_rows``). Give it the
     frames of a plausible walker only (:func:`check_plausible`): on
     ``vtest.avi`` a window whose 12 frames wider than a walker rested on
-    one row was taken for a wall. Behind the edge the visible height is not the walker's size (it
-    shrinks as a walker comes nearer to a camera that looks over the wall),
-    so :func:`estimator.occlusion.hidden_shares` gives each such frame its
-    own share, and :func:`estimator.viewpoint.motion_cue` reads the growth
-    from the other frames and the head. ``boxes`` are the silhouettes'
+    one row was taken for a wall. Behind the edge the visible height is not
+    the walker's size (it shrinks as a walker comes nearer to a camera that
+    looks over the wall), so :func:`estimator.occlusion.hidden_shares` gives
+    each such frame its own share, and :func:`estimator.viewpoint.motion_cue`
+    reads the growth from the other frames and the head. ``boxes`` are the silhouettes'
     ``(x, y, w, h)`` in the full frame.
     """
     config = config or CleanupConfig()
